@@ -1,0 +1,184 @@
+"""The one in-memory form of a robot log, simulated or real.
+
+A :class:`RobotLog` holds one robot's time-ordered odometry, scans (ragged,
+as flat arrays with offsets), optional truth, and its :class:`RobotInfo`.
+A :class:`Dataset` holds the logs of a fleet and the true landmark map when
+there is one. The simulator and every loader produce a Dataset; the robot
+process publishes a RobotLog over Zenoh; ``fleetslam run`` feeds
+:meth:`Dataset.events` straight into an estimator. One form, three uses.
+"""
+
+from __future__ import annotations
+
+import heapq
+from dataclasses import dataclass, field
+from typing import Iterator
+
+import numpy as np
+
+from schemas.messages import GroundTruth, Odometry, RobotInfo, Scan
+
+
+@dataclass(slots=True)
+class OdomEvent:
+    robot_id: str
+    seq: int
+    stamp: float
+    dt: float
+    control: np.ndarray
+    control_cov: np.ndarray
+
+    def to_message(self) -> Odometry:
+        return Odometry(robot_id=self.robot_id, seq=self.seq, stamp=self.stamp, dt=self.dt,
+                        control=self.control, control_cov=self.control_cov)
+
+
+@dataclass(slots=True)
+class ScanEvent:
+    robot_id: str
+    seq: int
+    stamp: float
+    ranges: np.ndarray
+    bearings: np.ndarray
+    landmark_ids: np.ndarray | None
+    noise_cov: np.ndarray
+    robot_ids: list[str] = field(default_factory=list)
+    robot_ranges: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    robot_bearings: np.ndarray = field(default_factory=lambda: np.zeros(0))
+
+    @property
+    def observations(self) -> np.ndarray:
+        """(n, 2) array of (range, bearing)."""
+        return np.stack([self.ranges, self.bearings], -1)
+
+    def to_message(self, with_ids: bool = True) -> Scan:
+        return Scan(robot_id=self.robot_id, seq=self.seq, stamp=self.stamp, ranges=self.ranges, bearings=self.bearings,
+                    landmark_ids=self.landmark_ids if with_ids else None, noise_cov=self.noise_cov,
+                    robot_ids=self.robot_ids, robot_ranges=self.robot_ranges, robot_bearings=self.robot_bearings)
+
+    @classmethod
+    def from_message(cls, scan: Scan) -> "ScanEvent":
+        return cls(scan.robot_id, scan.seq, scan.stamp, scan.ranges, scan.bearings, scan.landmark_ids, scan.noise_cov,
+                   list(scan.robot_ids), scan.robot_ranges, scan.robot_bearings)
+
+
+@dataclass(slots=True)
+class TruthEvent:
+    robot_id: str
+    seq: int
+    stamp: float
+    pose: np.ndarray
+
+    def to_message(self) -> GroundTruth:
+        return GroundTruth(robot_id=self.robot_id, seq=self.seq, stamp=self.stamp, pose=self.pose)
+
+
+Event = OdomEvent | ScanEvent | TruthEvent
+
+
+@dataclass
+class RobotLog:
+    """One robot's data: controls, scans (flat + offsets), optional truth."""
+
+    info: RobotInfo
+    odom_stamp: np.ndarray  # (K,) time at the END of each control interval
+    odom_dt: np.ndarray  # (K,)
+    odom_control: np.ndarray  # (K, 2)
+    odom_cov: np.ndarray  # (2, 2)
+    scan_stamp: np.ndarray  # (S,)
+    scan_offsets: np.ndarray  # (S+1,) detections of scan s are [offsets[s], offsets[s+1])
+    det_range: np.ndarray  # (D,)
+    det_bearing: np.ndarray  # (D,)
+    det_id: np.ndarray | None  # (D,) true landmark ids, -1 unknown; None if the data has none
+    scan_cov: np.ndarray  # (2, 2)
+    truth_stamp: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    truth_pose: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # θ may be NaN (GPS only)
+    robot_det_offsets: np.ndarray | None = None  # (S+1,) robot-to-robot detections per scan
+    robot_det_ids: list[str] = field(default_factory=list)
+    robot_det_range: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    robot_det_bearing: np.ndarray = field(default_factory=lambda: np.zeros(0))
+
+    @property
+    def robot_id(self) -> str:
+        return self.info.robot_id
+
+    @property
+    def start_stamp(self) -> float:
+        stamps = [a[0] for a in (self.odom_stamp - self.odom_dt, self.scan_stamp) if a.size]
+        return float(min(stamps)) if stamps else 0.0
+
+    @property
+    def end_stamp(self) -> float:
+        stamps = [a[-1] for a in (self.odom_stamp, self.scan_stamp) if a.size]
+        return float(max(stamps)) if stamps else 0.0
+
+    def scan(self, s: int) -> ScanEvent:
+        lo, hi = self.scan_offsets[s], self.scan_offsets[s + 1]
+        robot_ids, robot_r, robot_b = [], np.zeros(0), np.zeros(0)
+        if self.robot_det_offsets is not None:
+            rlo, rhi = self.robot_det_offsets[s], self.robot_det_offsets[s + 1]
+            robot_ids = self.robot_det_ids[rlo:rhi]
+            robot_r, robot_b = self.robot_det_range[rlo:rhi], self.robot_det_bearing[rlo:rhi]
+        return ScanEvent(self.robot_id, s, float(self.scan_stamp[s]), self.det_range[lo:hi], self.det_bearing[lo:hi],
+                         None if self.det_id is None else self.det_id[lo:hi], self.scan_cov,
+                         list(robot_ids), robot_r, robot_b)
+
+    def odom(self, k: int) -> OdomEvent:
+        return OdomEvent(self.robot_id, k, float(self.odom_stamp[k]), float(self.odom_dt[k]), self.odom_control[k],
+                         self.odom_cov)
+
+    def truth(self, k: int) -> TruthEvent:
+        return TruthEvent(self.robot_id, k, float(self.truth_stamp[k]), self.truth_pose[k])
+
+    def events(self, until: float | None = None, with_truth: bool = True) -> Iterator[Event]:
+        """This robot's events in time order; at equal stamps odometry first, then scan, then truth."""
+        streams = [(self.odom_stamp, 0, self.odom), (self.scan_stamp, 1, self.scan)]
+        if with_truth:
+            streams.append((self.truth_stamp, 2, self.truth))
+        merged = heapq.merge(*[((float(t), rank, k, make) for k, t in enumerate(stamps)) for stamps, rank, make in streams])
+        for stamp, _, k, make in merged:
+            if until is not None and stamp > until:
+                return
+            yield make(k)
+
+    def truth_at(self, stamps: np.ndarray) -> np.ndarray:
+        """Truth poses interpolated at ``stamps`` (NaN outside the truth span)."""
+        stamps = np.asarray(stamps, float)
+        out = np.full(stamps.shape + (3,), np.nan)
+        if self.truth_stamp.size < 2:
+            return out
+        inside = (stamps >= self.truth_stamp[0]) & (stamps <= self.truth_stamp[-1])
+        for j in range(2):
+            out[inside, j] = np.interp(stamps[inside], self.truth_stamp, self.truth_pose[:, j])
+        unwrapped = np.unwrap(self.truth_pose[:, 2])
+        theta = np.interp(stamps[inside], self.truth_stamp, unwrapped)
+        out[inside, 2] = np.mod(theta + np.pi, 2 * np.pi) - np.pi
+        return out
+
+
+@dataclass
+class Dataset:
+    """A fleet's logs and, where known, the true landmark map."""
+
+    name: str
+    robots: dict[str, RobotLog]
+    landmarks: np.ndarray | None = None  # (L, 2)
+    landmark_ids: np.ndarray | None = None  # (L,)
+    meta: dict = field(default_factory=dict)
+
+    @property
+    def start_stamp(self) -> float:
+        return min(log.start_stamp for log in self.robots.values())
+
+    @property
+    def end_stamp(self) -> float:
+        return max(log.end_stamp for log in self.robots.values())
+
+    def events(self, duration: float | None = None, robots: list[str] | None = None, with_truth: bool = False) -> Iterator[Event]:
+        """Every selected robot's events merged in time order (``duration`` of data from the start)."""
+        chosen = [self.robots[r] for r in (robots or list(self.robots))]
+        until = None if duration is None else self.start_stamp + duration
+        order = {log.robot_id: i for i, log in enumerate(chosen)}
+        merged = heapq.merge(*[log.events(until, with_truth) for log in chosen],
+                             key=lambda e: (e.stamp, order[e.robot_id]))
+        yield from merged

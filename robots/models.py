@@ -1,0 +1,258 @@
+"""Robot models: the one place for motion, sensing, their Jacobians and angle wrapping.
+
+Every function is vectorised with numpy broadcasting: a pose is ``(..., 3)``
+(x, y, θ), a control ``(..., 2)``, a landmark ``(..., 2)``, an observation
+``(..., 2)`` (range, bearing). Jacobians come back as ``(..., rows, cols)``.
+Every filter of the project imports these; nothing else models a robot.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+TWO_PI = 2.0 * np.pi
+
+
+def wrap_angle(angle):
+    """Wrap angles to [-π, π)."""
+    return np.mod(np.asarray(angle, dtype=float) + np.pi, TWO_PI) - np.pi
+
+
+def rotation(theta) -> np.ndarray:
+    """2-D rotation matrices ``(..., 2, 2)`` of the angles ``theta``."""
+    c, s = np.cos(theta), np.sin(theta)
+    return np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
+
+
+def se2_compose(a, b) -> np.ndarray:
+    """Pose composition a ⊕ b (b expressed in a's frame)."""
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
+    return np.stack(
+        [
+            a[..., 0] + c * b[..., 0] - s * b[..., 1],
+            a[..., 1] + s * b[..., 0] + c * b[..., 1],
+            wrap_angle(a[..., 2] + b[..., 2]),
+        ],
+        -1,
+    )
+
+
+def se2_inverse(a) -> np.ndarray:
+    """Inverse pose ⊖a."""
+    a = np.asarray(a, float)
+    c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
+    return np.stack([-c * a[..., 0] - s * a[..., 1], s * a[..., 0] - c * a[..., 1], wrap_angle(-a[..., 2])], -1)
+
+
+def se2_between(a, b) -> np.ndarray:
+    """Relative pose ⊖a ⊕ b: b expressed in a's frame."""
+    return se2_compose(se2_inverse(a), b)
+
+
+def _sinc_half(h):
+    """sin(h)/h and its derivative, stable at h = 0."""
+    h = np.asarray(h, float)
+    small = np.abs(h) < 1e-4
+    safe = np.where(small, 1.0, h)
+    s = np.where(small, 1.0 - h * h / 6.0, np.sin(safe) / safe)
+    ds = np.where(small, -h / 3.0, (safe * np.cos(safe) - np.sin(safe)) / (safe * safe))
+    return s, ds
+
+
+def unicycle_step(pose, control, dt) -> np.ndarray:
+    """Exact constant-(v, ω) arc over ``dt``: the chord has length v·dt·sinc(ω·dt/2) at heading θ + ω·dt/2."""
+    pose, control = np.asarray(pose, float), np.asarray(control, float)
+    v, w = control[..., 0], control[..., 1]
+    h = 0.5 * w * dt
+    s, _ = _sinc_half(h)
+    d = v * dt * s
+    alpha = pose[..., 2] + h
+    return np.stack(
+        [pose[..., 0] + d * np.cos(alpha), pose[..., 1] + d * np.sin(alpha), wrap_angle(pose[..., 2] + w * dt)], -1
+    )
+
+
+def unicycle_jacobians(pose, control, dt) -> tuple[np.ndarray, np.ndarray]:
+    """Jacobians (F_pose ``(...,3,3)``, F_control ``(...,3,2)``) of :func:`unicycle_step`."""
+    pose, control = np.asarray(pose, float), np.asarray(control, float)
+    v, w = np.broadcast_arrays(control[..., 0], control[..., 1])
+    shape = np.broadcast_shapes(pose.shape[:-1], v.shape)
+    h = 0.5 * w * dt
+    s, ds = _sinc_half(h)
+    d = v * dt * s
+    alpha = pose[..., 2] + h
+    ca, sa = np.cos(alpha), np.sin(alpha)
+    f_pose = np.zeros(shape + (3, 3))
+    f_pose[..., 0, 0] = f_pose[..., 1, 1] = f_pose[..., 2, 2] = 1.0
+    f_pose[..., 0, 2] = -d * sa
+    f_pose[..., 1, 2] = d * ca
+    dd_dw = v * dt * ds * 0.5 * dt
+    f_control = np.zeros(shape + (3, 2))
+    f_control[..., 0, 0] = dt * s * ca
+    f_control[..., 1, 0] = dt * s * sa
+    f_control[..., 0, 1] = dd_dw * ca - d * sa * 0.5 * dt
+    f_control[..., 1, 1] = dd_dw * sa + d * ca * 0.5 * dt
+    f_control[..., 2, 1] = dt
+    return f_pose, f_control
+
+
+@dataclass(frozen=True)
+class UnicycleModel:
+    """Differential-drive robot driven by (v, ω)."""
+
+    name = "unicycle"
+
+    def to_unicycle(self, control) -> tuple[np.ndarray, np.ndarray]:
+        """(v, ω) controls and the Jacobian d(v, ω)/d(control) (identity)."""
+        control = np.asarray(control, float)
+        jac = np.broadcast_to(np.eye(2), control.shape[:-1] + (2, 2))
+        return control, jac
+
+    def step(self, pose, control, dt) -> np.ndarray:
+        return unicycle_step(pose, control, dt)
+
+    def jacobians(self, pose, control, dt) -> tuple[np.ndarray, np.ndarray]:
+        f_pose, f_unicycle = unicycle_jacobians(pose, control, dt)
+        return f_pose, f_unicycle
+
+
+@dataclass(frozen=True)
+class AckermannModel:
+    """Car-like vehicle (Victoria Park, car park): control = (encoder speed, steering).
+
+    The pose is the rear-axle centre. The encoder wheel sits ``encoder_offset``
+    (H) beside it, so the centre speed is v_c = v_e / (1 − tan(α)·H/L), and the
+    yaw rate is ω = v_c·tan(α)/L (ACFR model, Guivant & Nebot 2001).
+    """
+
+    wheelbase: float = 2.83
+    encoder_offset: float = 0.76
+    name = "ackermann"
+
+    def to_unicycle(self, control) -> tuple[np.ndarray, np.ndarray]:
+        """(v_c, ω) and the Jacobian d(v_c, ω)/d(v_e, α)."""
+        control = np.asarray(control, float)
+        v_e, steer = control[..., 0], control[..., 1]
+        tan_a = np.tan(steer)
+        sec2 = 1.0 + tan_a * tan_a
+        g = 1.0 - tan_a * self.encoder_offset / self.wheelbase
+        v_c = v_e / g
+        w = v_c * tan_a / self.wheelbase
+        dvc_dve = 1.0 / g
+        dvc_da = v_e * (self.encoder_offset / self.wheelbase) * sec2 / (g * g)
+        jac = np.empty(control.shape[:-1] + (2, 2))
+        jac[..., 0, 0] = dvc_dve
+        jac[..., 0, 1] = dvc_da
+        jac[..., 1, 0] = dvc_dve * tan_a / self.wheelbase
+        jac[..., 1, 1] = (dvc_da * tan_a + v_c * sec2) / self.wheelbase
+        return np.stack([v_c, w], -1), jac
+
+    def step(self, pose, control, dt) -> np.ndarray:
+        unicycle, _ = self.to_unicycle(control)
+        return unicycle_step(pose, unicycle, dt)
+
+    def jacobians(self, pose, control, dt) -> tuple[np.ndarray, np.ndarray]:
+        unicycle, dvw_du = self.to_unicycle(control)
+        f_pose, f_unicycle = unicycle_jacobians(pose, unicycle, dt)
+        return f_pose, f_unicycle @ dvw_du
+
+
+MotionModel = UnicycleModel | AckermannModel
+
+
+def motion_model(name: str, wheelbase: float = 2.83, encoder_offset: float = 0.76) -> MotionModel:
+    """The motion model named in a RobotInfo."""
+    if name == "unicycle":
+        return UnicycleModel()
+    if name == "ackermann":
+        return AckermannModel(wheelbase=wheelbase, encoder_offset=encoder_offset)
+    raise ValueError(f"unknown motion model {name!r}")
+
+
+@dataclass(frozen=True)
+class RangeBearingSensor:
+    """Range-bearing sensor mounted at ``offset`` = (a, b) in the body frame (x forward, y left)."""
+
+    offset: tuple[float, float] = (0.0, 0.0)
+
+    def sensor_position(self, pose) -> tuple[np.ndarray, np.ndarray]:
+        """Sensor position ``(..., 2)`` and its derivative with respect to θ."""
+        pose = np.asarray(pose, float)
+        a, b = self.offset
+        c, s = np.cos(pose[..., 2]), np.sin(pose[..., 2])
+        position = np.stack([pose[..., 0] + a * c - b * s, pose[..., 1] + a * s + b * c], -1)
+        d_theta = np.stack([-a * s - b * c, a * c - b * s], -1)
+        return position, d_theta
+
+    def observe(self, pose, landmarks) -> np.ndarray:
+        """Predicted (range, bearing) ``(..., 2)`` of ``landmarks`` from ``pose`` (broadcast)."""
+        pose = np.asarray(pose, float)
+        position, _ = self.sensor_position(pose)
+        delta = np.asarray(landmarks, float) - position
+        r = np.hypot(delta[..., 0], delta[..., 1])
+        phi = wrap_angle(np.arctan2(delta[..., 1], delta[..., 0]) - pose[..., 2])
+        return np.stack([r, phi], -1)
+
+    def jacobians(self, pose, landmarks) -> tuple[np.ndarray, np.ndarray]:
+        """(H_pose ``(...,2,3)``, H_landmark ``(...,2,2)``) of :meth:`observe`."""
+        pose = np.asarray(pose, float)
+        position, d_theta = self.sensor_position(pose)
+        delta = np.asarray(landmarks, float) - position
+        dx, dy = delta[..., 0], delta[..., 1]
+        q = np.maximum(dx * dx + dy * dy, 1e-18)
+        r = np.sqrt(q)
+        h_lm = np.empty(delta.shape[:-1] + (2, 2))
+        h_lm[..., 0, 0] = dx / r
+        h_lm[..., 0, 1] = dy / r
+        h_lm[..., 1, 0] = -dy / q
+        h_lm[..., 1, 1] = dx / q
+        h_pose = np.empty(delta.shape[:-1] + (2, 3))
+        h_pose[..., :, :2] = -h_lm
+        d_theta = np.broadcast_to(d_theta, delta.shape)
+        h_pose[..., 0, 2] = -(h_lm[..., 0, 0] * d_theta[..., 0] + h_lm[..., 0, 1] * d_theta[..., 1])
+        h_pose[..., 1, 2] = -(h_lm[..., 1, 0] * d_theta[..., 0] + h_lm[..., 1, 1] * d_theta[..., 1]) - 1.0
+        return h_pose, h_lm
+
+    def inverse(self, pose, observation) -> np.ndarray:
+        """Landmark position ``(..., 2)`` that would produce ``observation`` from ``pose``."""
+        pose, observation = np.asarray(pose, float), np.asarray(observation, float)
+        position, _ = self.sensor_position(pose)
+        beta = pose[..., 2] + observation[..., 1]
+        r = observation[..., 0]
+        return position + np.stack([r * np.cos(beta), r * np.sin(beta)], -1)
+
+    def inverse_jacobians(self, pose, observation) -> tuple[np.ndarray, np.ndarray]:
+        """(G_pose ``(...,2,3)``, G_observation ``(...,2,2)``) of :meth:`inverse`."""
+        pose, observation = np.asarray(pose, float), np.asarray(observation, float)
+        _, d_theta = self.sensor_position(pose)
+        beta = pose[..., 2] + observation[..., 1]
+        r = observation[..., 0]
+        cb, sb = np.cos(beta), np.sin(beta)
+        shape = np.broadcast_shapes(pose.shape[:-1], observation.shape[:-1])
+        g_obs = np.empty(shape + (2, 2))
+        g_obs[..., 0, 0] = cb
+        g_obs[..., 0, 1] = -r * sb
+        g_obs[..., 1, 0] = sb
+        g_obs[..., 1, 1] = r * cb
+        g_pose = np.zeros(shape + (2, 3))
+        g_pose[..., 0, 0] = g_pose[..., 1, 1] = 1.0
+        g_pose[..., 0, 2] = d_theta[..., 0] - r * sb
+        g_pose[..., 1, 2] = d_theta[..., 1] + r * cb
+        return g_pose, g_obs
+
+    @staticmethod
+    def innovation(measured, predicted) -> np.ndarray:
+        """z − ẑ with the bearing difference wrapped."""
+        nu = np.asarray(measured, float) - np.asarray(predicted, float)
+        nu[..., 1] = wrap_angle(nu[..., 1])
+        return nu
+
+
+def in_field_of_view(observations, max_range: float, fov: float, min_range: float = 0.0) -> np.ndarray:
+    """Mask of (range, bearing) observations inside [min_range, max_range] and |bearing| ≤ fov/2."""
+    observations = np.asarray(observations, float)
+    r, phi = observations[..., 0], observations[..., 1]
+    return (r >= min_range) & (r <= max_range) & (np.abs(phi) <= 0.5 * fov + 1e-12)

@@ -1,0 +1,154 @@
+"""Zenoh plumbing shared by every process: config, session, publishers, shutdown.
+
+- :func:`zenoh_config` builds a client (or router) config: multicast scouting
+  off, bounded wait for the router, optional user/password and TLS.
+- :func:`open_session` opens it and turns a timeout into :class:`ConnectError`
+  with the endpoint in the message.
+- :class:`StreamPublisher` publishes messages reliably with congestion control
+  BLOCK (the default DROP loses a flood), optionally through an advanced
+  publisher whose cache lets late or cut-off subscribers recover.
+- :class:`Shutdown` turns SIGINT/SIGTERM into an event so every process closes
+  its session (a session with Python callbacks hangs at exit unless closed).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import signal
+import threading
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Iterator
+
+import zenoh
+import zenoh.ext
+from pydantic import BaseModel
+
+from schemas.codec import encode
+from schemas.config import FleetSettings
+
+log = logging.getLogger(__name__)
+
+
+class ConnectError(RuntimeError):
+    """The router could not be reached in time."""
+
+
+def _endpoints(text: str) -> list[str]:
+    return [e.strip() for e in text.split(",") if e.strip()]
+
+
+def zenoh_config(settings: FleetSettings, mode: str = "client", listen: str | None = None) -> zenoh.Config:
+    """A Zenoh config for ``mode`` ("client", "peer" or "router") from the shared settings."""
+    conf = zenoh.Config()
+    entries: dict[str, object] = {
+        "mode": mode,
+        "scouting/multicast/enabled": False,
+        "scouting/delay": 0,
+    }
+    if mode == "router":
+        entries["listen/endpoints"] = _endpoints(listen or "tcp/0.0.0.0:7447")
+    else:
+        entries["connect/endpoints"] = _endpoints(settings.zenoh_connect)
+        entries["connect/timeout_ms"] = int(settings.connect_timeout_s * 1000)
+        entries["connect/exit_on_failure"] = True
+        entries["connect/retry"] = {"period_init_ms": 100, "period_max_ms": 1000, "period_increase_factor": 1.5}
+    password = settings.zenoh_password
+    if settings.zenoh_password_file:
+        password = Path(settings.zenoh_password_file).read_text().strip()
+    if settings.zenoh_user and password is not None:
+        entries["transport/auth/usrpwd/user"] = settings.zenoh_user
+        entries["transport/auth/usrpwd/password"] = password
+    if settings.tls_root_ca:
+        entries["transport/link/tls/root_ca_certificate"] = settings.tls_root_ca
+    if settings.tls_cert and settings.tls_key:
+        entries["transport/link/tls/enable_mtls"] = True
+        entries["transport/link/tls/connect_certificate"] = settings.tls_cert
+        entries["transport/link/tls/connect_private_key"] = settings.tls_key
+    for key, value in entries.items():
+        conf.insert_json5(key, json.dumps(value))
+    return conf
+
+
+def open_session(settings: FleetSettings, mode: str = "client", listen: str | None = None) -> zenoh.Session:
+    """Open a Zenoh session; a router that does not answer in time raises :class:`ConnectError`."""
+    conf = zenoh_config(settings, mode, listen)
+    try:
+        return zenoh.open(conf)
+    except zenoh.ZError as exc:
+        where = listen if mode == "router" else settings.zenoh_connect
+        raise ConnectError(
+            f"could not {'listen on' if mode == 'router' else 'reach the zenoh router at'} {where} "
+            f"within {settings.connect_timeout_s:g} s ({exc}); start it with `fleetslam router` "
+            "or set FLEETSLAM_ZENOH_CONNECT"
+        ) from None
+
+
+@contextmanager
+def session_scope(settings: FleetSettings, mode: str = "client", listen: str | None = None) -> Iterator[zenoh.Session]:
+    """``with session_scope(settings) as session:`` — always closed, also on errors and signals."""
+    session = open_session(settings, mode, listen)
+    try:
+        yield session
+    finally:
+        try:
+            session.close()
+        except Exception:  # noqa: BLE001 - closing twice or after a lost link must not mask the real error
+            log.debug("session close failed", exc_info=True)
+
+
+class StreamPublisher:
+    """Reliable, congestion-control BLOCK publisher of fleetslam messages on one key."""
+
+    def __init__(self, session: zenoh.Session, key: str, cache: int = 0):
+        self.key = key
+        self.count = 0
+        if cache > 0:
+            self._publisher = zenoh.ext.declare_advanced_publisher(
+                session,
+                key,
+                congestion_control=zenoh.CongestionControl.BLOCK,
+                reliability=zenoh.Reliability.RELIABLE,
+                cache=zenoh.ext.CacheConfig(max_samples=cache),
+                sample_miss_detection=zenoh.ext.MissDetectionConfig(heartbeat=0.5, sporadic_heartbeat=None),
+                publisher_detection=True,
+            )
+        else:
+            self._publisher = session.declare_publisher(
+                key, congestion_control=zenoh.CongestionControl.BLOCK, reliability=zenoh.Reliability.RELIABLE
+            )
+
+    def put(self, message: BaseModel | bytes) -> None:
+        self._publisher.put(message if isinstance(message, bytes) else encode(message))
+        self.count += 1
+
+    def undeclare(self) -> None:
+        try:
+            self._publisher.undeclare()
+        except Exception:  # noqa: BLE001 - already gone with the session
+            log.debug("publisher undeclare failed", exc_info=True)
+
+
+class Shutdown:
+    """A stop flag set by SIGINT/SIGTERM (or by code); install once per process from the main thread."""
+
+    def __init__(self, install: bool = True):
+        self.event = threading.Event()
+        self.signal_name: str | None = None
+        if install and threading.current_thread() is threading.main_thread():
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                signal.signal(sig, self._handle)
+
+    def _handle(self, signum, _frame) -> None:
+        self.signal_name = signal.Signals(signum).name
+        self.event.set()
+
+    def set(self) -> None:
+        self.event.set()
+
+    def is_set(self) -> bool:
+        return self.event.is_set()
+
+    def wait(self, timeout: float | None = None) -> bool:
+        return self.event.wait(timeout)

@@ -1,0 +1,194 @@
+"""The thin asyncio shell every service runs in (DESIGN §1).
+
+Zenoh callbacks only hand ``(tag, key, payload, arrival time)`` to an asyncio
+queue with ``loop.call_soon_threadsafe``; the numeric core runs in the
+service's handler, off the callback thread. The shell counts messages in,
+rejections by reason and handling latency, publishes :class:`ServiceStats`
+on ``{prefix}/{service}/stats`` and stops cleanly on SIGINT/SIGTERM, closing
+the session.
+
+A service subclasses :class:`ServiceShell`, declares its subscriptions and
+queryables in :meth:`setup`, handles items in :meth:`handle`, and may run
+periodic work in :meth:`tick`.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import os
+import signal
+import time
+from collections import Counter, deque
+from typing import Any
+
+import numpy as np
+import zenoh
+
+from schemas.codec import DecodeError
+from schemas.config import FleetSettings
+from schemas.keys import Keys
+from schemas.messages import ServiceStats
+from schemas.transport import StreamPublisher, open_session
+
+log = logging.getLogger(__name__)
+
+
+class ServiceShell:
+    """Base of every service process: session, queue, stats, clean stop."""
+
+    name = "service"
+    tick_period_s: float | None = None
+
+    def __init__(self, settings: FleetSettings, instance: str | None = None):
+        self.settings = settings
+        self.keys = Keys(settings.prefix)
+        self.instance = instance or f"{self.name}-{os.getpid()}"
+        self.messages_in: Counter = Counter()
+        self.rejected: Counter = Counter()
+        self.extra: dict[str, float] = {}
+        self.published = 0
+        self._latencies_ms: deque[float] = deque(maxlen=2000)
+        self._started = time.monotonic()
+        self._stop: asyncio.Event | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._queue: asyncio.Queue | None = None
+        self.session: zenoh.Session | None = None
+        self._declared: list[Any] = []
+
+    def setup(self, session: zenoh.Session) -> None:
+        """Declare subscriptions (:meth:`subscribe`), queryables and publishers."""
+
+    async def handle(self, tag: str, key: str, payload: bytes) -> None:
+        """Handle one queued sample (decode, validate, call the core, publish)."""
+
+    async def tick(self) -> None:
+        """Periodic work (publish an estimate), every ``tick_period_s`` seconds."""
+
+    def on_stop(self) -> None:
+        """Last work before the session closes (final publication, report)."""
+
+    def subscribe(self, key: str, tag: str) -> None:
+        """Subscribe ``key``; each sample is queued as ``(tag, key, payload)``."""
+        assert self.session is not None and self._loop is not None
+        self._declared.append(self.session.declare_subscriber(key, self._enqueuer(tag)))
+
+    def _enqueuer(self, tag: str):
+        loop, queue = self._loop, self._queue
+
+        def callback(sample: zenoh.Sample) -> None:
+            item = (tag, str(sample.key_expr), sample.payload.to_bytes(), time.perf_counter())
+            try:
+                loop.call_soon_threadsafe(queue.put_nowait, item)
+            except RuntimeError:
+                pass  # the loop is closing: the service is stopping
+
+        return callback
+
+    def enqueue(self, tag: str, key: str, payload: bytes) -> None:
+        """Queue an item from any thread (liveliness callbacks, queries...)."""
+        if self._loop is not None and self._queue is not None:
+            try:
+                self._loop.call_soon_threadsafe(self._queue.put_nowait, (tag, key, payload, time.perf_counter()))
+            except RuntimeError:
+                pass
+
+    def publisher(self, key: str) -> StreamPublisher:
+        assert self.session is not None
+        pub = StreamPublisher(self.session, key, cache=self.settings.publisher_cache)
+        self._declared.append(pub)
+        return pub
+
+    def reject(self, reason: str, detail: str = "") -> None:
+        """Count a rejected message by reason (and log the first few of each)."""
+        self.rejected[reason] += 1
+        if self.rejected[reason] <= 3:
+            log.warning("%s rejected a message (%s)%s", self.name, reason, f": {detail}" if detail else "")
+
+    def reject_decode(self, error: DecodeError) -> None:
+        self.reject(error.reason, error.detail)
+
+    def stats(self) -> ServiceStats:
+        lat = np.asarray(self._latencies_ms) if self._latencies_ms else np.zeros(1)
+        return ServiceStats(
+            service=self.name,
+            instance=self.instance,
+            stamp=time.time(),
+            uptime_s=time.monotonic() - self._started,
+            messages_in=dict(self.messages_in),
+            rejected=dict(self.rejected),
+            published=self.published,
+            latency_ms_median=float(np.median(lat)),
+            latency_ms_p99=float(np.percentile(lat, 99)),
+            queue_depth=self._queue.qsize() if self._queue else 0,
+            extra=dict(self.extra),
+        )
+
+    def stop(self) -> None:
+        if self._loop is not None and self._stop is not None:
+            self._loop.call_soon_threadsafe(self._stop.set)
+
+    async def _consume(self) -> None:
+        assert self._queue is not None
+        while True:
+            tag, key, payload, arrived = await self._queue.get()
+            self.messages_in[tag] += 1
+            try:
+                await self.handle(tag, key, payload)
+            except DecodeError as error:
+                self.reject_decode(error)
+            except Exception:  # noqa: BLE001 - one bad message must never kill the service
+                self.reject("handler_error")
+                log.exception("%s: handler failed on %s", self.name, key)
+            self._latencies_ms.append((time.perf_counter() - arrived) * 1e3)
+
+    async def _every(self, period: float, work) -> None:
+        while True:
+            await asyncio.sleep(period)
+            try:
+                await work()
+            except Exception:  # noqa: BLE001
+                log.exception("%s: periodic work failed", self.name)
+
+    async def _publish_stats(self) -> None:
+        self._stats_pub.put(self.stats())
+
+    async def run(self, duration: float | None = None) -> None:
+        """Open the session, set up, consume until a signal (or ``duration``), close."""
+        self._loop = asyncio.get_running_loop()
+        self._queue = asyncio.Queue()
+        self._stop = asyncio.Event()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            try:
+                self._loop.add_signal_handler(sig, self._stop.set)
+            except (NotImplementedError, RuntimeError, ValueError):
+                pass  # not the main thread (tests): stop() still works
+        self.session = await asyncio.to_thread(open_session, self.settings)
+        tasks: list[asyncio.Task] = []
+        try:
+            self._stats_pub = StreamPublisher(self.session, self.keys.stats(self.name))
+            self.setup(self.session)
+            log.info("%s ready (%s)", self.instance, self.settings.zenoh_connect)
+            tasks.append(asyncio.create_task(self._consume()))
+            tasks.append(asyncio.create_task(self._every(self.settings.stats_period_s, self._publish_stats)))
+            if self.tick_period_s:
+                tasks.append(asyncio.create_task(self._every(self.tick_period_s, self.tick)))
+            if duration is not None:
+                self._loop.call_later(duration, self._stop.set)
+            await self._stop.wait()
+            log.info("%s stopping", self.instance)
+        finally:
+            for task in tasks:
+                task.cancel()
+            await asyncio.gather(*tasks, return_exceptions=True)
+            try:
+                self.on_stop()
+                self._stats_pub.put(self.stats())
+            except Exception:  # noqa: BLE001
+                log.exception("%s: final work failed", self.name)
+            for entity in self._declared:
+                try:
+                    entity.undeclare()
+                except Exception:  # noqa: BLE001
+                    pass
+            self.session.close()
