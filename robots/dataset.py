@@ -76,6 +76,12 @@ class TruthEvent:
 Event = OdomEvent | ScanEvent | TruthEvent
 
 
+def _tagged(stamps: np.ndarray, rank: int, make) -> Iterator[tuple]:
+    """(stamp, stream rank, index, maker) for each element of one stream, for a time-ordered merge."""
+    for k, t in enumerate(stamps.tolist()):
+        yield t, rank, k, make
+
+
 @dataclass
 class RobotLog:
     """One robot's data: controls, scans (flat + offsets), optional truth."""
@@ -135,7 +141,7 @@ class RobotLog:
         streams = [(self.odom_stamp, 0, self.odom), (self.scan_stamp, 1, self.scan)]
         if with_truth:
             streams.append((self.truth_stamp, 2, self.truth))
-        merged = heapq.merge(*[((float(t), rank, k, make) for k, t in enumerate(stamps)) for stamps, rank, make in streams])
+        merged = heapq.merge(*[_tagged(stamps, rank, make) for stamps, rank, make in streams])
         for stamp, _, k, make in merged:
             if until is not None and stamp > until:
                 return

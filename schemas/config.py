@@ -53,7 +53,10 @@ class RouterSettings(FleetSettings):
 class RobotSettings(FleetSettings):
     """``fleetslam robot``: a simulated robot, or a robot that replays a data set."""
 
-    robot_id: str = Field("r1", pattern=r"^[A-Za-z0-9_-]{1,64}$", description="robot id", json_schema_extra={"cli": "--id"})
+    robot_id: str | None = Field(
+        None, pattern=r"^[A-Za-z0-9_-]{1,64}$", description="robot id (default: r1, or the replayed robot's id)",
+        json_schema_extra={"cli": "--id"},
+    )
     world: str = Field("arena", description="simulated world: random, paper000, grid196, cross, arena")
     trajectory: Literal["auto", "circle", "waypoints", "random_walk"] = Field(
         "auto", description="trajectory (auto: the world's own)"

@@ -39,9 +39,15 @@ def _endpoints(text: str) -> list[str]:
     return [e.strip() for e in text.split(",") if e.strip()]
 
 
-def zenoh_config(settings: FleetSettings, mode: str = "client", listen: str | None = None) -> zenoh.Config:
-    """A Zenoh config for ``mode`` ("client", "peer" or "router") from the shared settings."""
-    conf = zenoh.Config()
+def zenoh_config(
+    settings: FleetSettings, mode: str = "client", listen: str | None = None, base_file: str | None = None
+) -> zenoh.Config:
+    """A Zenoh config for ``mode`` ("client", "peer" or "router") from the shared settings.
+
+    ``base_file`` is a JSON5 zenoh config (access control, users, TLS) that the
+    settings are laid over.
+    """
+    conf = zenoh.Config.from_file(base_file) if base_file else zenoh.Config()
     entries: dict[str, object] = {
         "mode": mode,
         "scouting/multicast/enabled": False,
@@ -71,9 +77,11 @@ def zenoh_config(settings: FleetSettings, mode: str = "client", listen: str | No
     return conf
 
 
-def open_session(settings: FleetSettings, mode: str = "client", listen: str | None = None) -> zenoh.Session:
+def open_session(
+    settings: FleetSettings, mode: str = "client", listen: str | None = None, base_file: str | None = None
+) -> zenoh.Session:
     """Open a Zenoh session; a router that does not answer in time raises :class:`ConnectError`."""
-    conf = zenoh_config(settings, mode, listen)
+    conf = zenoh_config(settings, mode, listen, base_file)
     try:
         return zenoh.open(conf)
     except zenoh.ZError as exc:

@@ -1,0 +1,136 @@
+"""``fleetslam robot``: one robot process, simulated or replaying a data set.
+
+It declares the liveliness token ``{prefix}/robots/{rid}/alive``, publishes
+its RobotInfo (again every second, and to late joiners through a queryable),
+the world's true map once on ``{prefix}/world/truth`` (and to late joiners),
+then its odometry, scans and truth in time order, paced at real time divided
+by ``--speedup``. Publishers are reliable with congestion control BLOCK, so
+nothing is dropped silently. SIGINT/SIGTERM stop it cleanly.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import time
+
+import zenoh
+
+from robots.dataset import Dataset, OdomEvent, RobotLog, ScanEvent, TruthEvent
+from robots.simulator import simulate
+from schemas.codec import encode
+from schemas.config import RobotSettings, add_settings_arguments, settings_from_args
+from schemas.keys import Keys
+from schemas.messages import WorldTruth
+from schemas.transport import ConnectError, Shutdown, StreamPublisher, session_scope
+
+log = logging.getLogger("fleetslam.robot")
+
+INFO_PERIOD_S = 1.0
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    add_settings_arguments(parser, RobotSettings)
+
+
+def load_robot(settings: RobotSettings) -> tuple[RobotLog, Dataset]:
+    """The log this robot publishes: a simulation, or one robot of a data set."""
+    if settings.replay:
+        from robots.loaders import load_dataset
+
+        dataset = load_dataset(settings.replay)
+        if len(dataset.robots) != 1:
+            raise ValueError(f"--replay {settings.replay!r} holds {len(dataset.robots)} robots; name one (mrclam:PATH:N)")
+        robot = next(iter(dataset.robots.values()))
+    else:
+        rid = settings.robot_id or "r1"
+        dataset = simulate(
+            settings.world, seed=settings.seed, duration=settings.duration, rate=settings.rate,
+            odom_factor=settings.odom_factor, trajectory=settings.trajectory,
+            detection_probability=settings.detection_probability, clutter_rate=settings.clutter_rate,
+            unknown_start=settings.unknown_start, robot_ids=[rid],
+        )
+        robot = dataset.robots[rid]
+    updates = {}
+    if settings.robot_id and settings.robot_id != robot.robot_id:
+        updates["robot_id"] = settings.robot_id
+    if settings.unknown_start:
+        updates.update(start_pose=None, start_pose_cov=None)
+    if updates:
+        robot.info = robot.info.model_copy(update=updates)
+    return robot, dataset
+
+
+def run(settings: RobotSettings, shutdown: Shutdown) -> dict[str, int]:
+    """Publish the robot's log over Zenoh; return the count of messages per stream."""
+    robot, dataset = load_robot(settings)
+    rid = robot.robot_id
+    keys = Keys(settings.prefix)
+    until = None if settings.replay is None else robot.start_stamp + settings.duration
+    info_payload = encode(robot.info)
+    world_payload = None
+    if dataset.landmarks is not None and settings.publish_truth:
+        world_payload = encode(WorldTruth(world=dataset.name, stamp=robot.start_stamp, landmarks=dataset.landmarks,
+                                          landmark_ids=dataset.landmark_ids))
+    counts = {"odom": 0, "scan": 0, "truth": 0}
+    with session_scope(settings) as session:
+        token = session.liveliness().declare_token(keys.alive(rid))
+        pubs = {name: StreamPublisher(session, keys.robot(rid, name), cache=settings.publisher_cache)
+                for name in ("info", "odom", "scan", "truth")}
+        answer_info = session.declare_queryable(keys.info(rid), lambda q: q.reply(keys.info(rid), info_payload))
+        answer_world = None
+        world_pub = None
+        if world_payload is not None:
+            answer_world = session.declare_queryable(keys.world_truth, lambda q: q.reply(keys.world_truth, world_payload))
+            world_pub = StreamPublisher(session, keys.world_truth)
+        try:
+            shutdown.wait(settings.start_delay)
+            pubs["info"].put(info_payload)
+            if world_pub is not None:
+                world_pub.put(world_payload)
+            log.info("robot %s publishing %s (%s) at speed-up %g", rid, robot.info.source, robot.info.motion_model,
+                     settings.speedup)
+            wall0, data0 = time.monotonic(), robot.start_stamp
+            next_info = wall0 + INFO_PERIOD_S
+            for event in robot.events(until=until, with_truth=settings.publish_truth):
+                due = wall0 + (event.stamp - data0) / settings.speedup
+                now = time.monotonic()
+                if due > now and shutdown.wait(due - now):
+                    break
+                if shutdown.is_set():
+                    break
+                if isinstance(event, OdomEvent):
+                    pubs["odom"].put(event.to_message())
+                    counts["odom"] += 1
+                elif isinstance(event, ScanEvent):
+                    pubs["scan"].put(event.to_message(with_ids=settings.publish_ids))
+                    counts["scan"] += 1
+                elif isinstance(event, TruthEvent):
+                    pubs["truth"].put(event.to_message())
+                    counts["truth"] += 1
+                if time.monotonic() >= next_info:
+                    pubs["info"].put(info_payload)
+                    next_info += INFO_PERIOD_S
+            log.info("robot %s done: %s", rid, ", ".join(f"{k} {v}" for k, v in counts.items()))
+        finally:
+            for entity in [*pubs.values(), answer_info, answer_world, world_pub, token]:
+                if entity is not None:
+                    try:
+                        entity.undeclare()
+                    except zenoh.ZError:
+                        pass
+    return counts
+
+
+def main(args: argparse.Namespace) -> int:
+    settings = settings_from_args(RobotSettings, args)
+    shutdown = Shutdown()
+    try:
+        run(settings, shutdown)
+    except ConnectError as exc:
+        log.error("%s", exc)
+        return 2
+    except (ValueError, FileNotFoundError) as exc:
+        log.error("cannot start robot: %s", exc)
+        return 2
+    return 0

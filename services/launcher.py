@@ -1,0 +1,220 @@
+"""``fleetslam demo``: a whole fleet on this machine, as separate processes.
+
+Starts a router, the services that exist in this installation, the monitor,
+and ``--robots`` simulated robots in one world; lets the robots run for
+``--duration`` wall seconds; stops everything in order (robots, services,
+monitor, router) with SIGTERM; then prints per-robot message counts, service
+statistics, the memory of each process, and where the logs and results are.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import json
+import logging
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from rich.console import Console
+from rich.table import Table
+
+from schemas.config import DemoSettings, add_settings_arguments, settings_from_args
+from schemas.transport import Shutdown
+
+log = logging.getLogger("fleetslam.demo")
+
+
+@dataclass
+class ServiceSpec:
+    """A service the demo starts when its module is installed: ``fleetslam NAME ARGS...``."""
+
+    name: str
+    module: str
+    args: list[str] = field(default_factory=list)
+
+
+# Each service adds itself here; the demo starts those whose module exists.
+SERVICES: list[ServiceSpec] = [
+    ServiceSpec("assoc", "services.association.service"),
+    ServiceSpec("central", "central.service"),
+    ServiceSpec("dslam", "services.dslam.service"),
+    ServiceSpec("mcl", "services.mcl.service"),
+    ServiceSpec("evaluate", "services.evaluation.service"),
+]
+
+
+def module_exists(module: str) -> bool:
+    try:
+        return importlib.util.find_spec(module) is not None
+    except ModuleNotFoundError:
+        return False
+
+
+@dataclass
+class Child:
+    name: str
+    process: subprocess.Popen
+    log_path: Path
+
+
+class Fleet:
+    """Starts, watches and stops the demo's processes."""
+
+    def __init__(self, settings: DemoSettings, out: Path):
+        self.settings = settings
+        self.out = out
+        self.children: list[Child] = []
+        self.endpoint = f"tcp/127.0.0.1:{settings.port}"
+        self.env = {**os.environ, "FLEETSLAM_ZENOH_CONNECT": self.endpoint, "FLEETSLAM_PREFIX": settings.prefix,
+                    "PYTHONUNBUFFERED": "1"}
+
+    def start(self, name: str, *words: str) -> Child:
+        log_path = self.out / "logs" / f"{name}.log"
+        log_path.parent.mkdir(parents=True, exist_ok=True)
+        handle = open(log_path, "w")
+        process = subprocess.Popen([sys.executable, "-m", "services.cli", *words], env=self.env, stdout=handle,
+                                   stderr=subprocess.STDOUT, start_new_session=True)
+        child = Child(name, process, log_path)
+        self.children.append(child)
+        return child
+
+    def wait_for_router(self, timeout: float = 10.0) -> None:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            try:
+                with socket.create_connection(("127.0.0.1", self.settings.port), timeout=0.2):
+                    return
+            except OSError:
+                if self.children[0].process.poll() is not None:
+                    raise RuntimeError(f"router exited; see {self.children[0].log_path}") from None
+                time.sleep(0.05)
+        raise RuntimeError(f"router did not listen on {self.endpoint} within {timeout} s")
+
+    @staticmethod
+    def memory_mb(child: Child) -> float | None:
+        try:
+            for line in Path(f"/proc/{child.process.pid}/status").read_text().splitlines():
+                if line.startswith("VmRSS:"):
+                    return int(line.split()[1]) / 1024.0
+        except OSError:
+            return None
+        return None
+
+    def stop(self, children: list[Child], timeout: float = 10.0) -> dict[str, float]:
+        """SIGTERM, then wait; SIGKILL what does not exit. Returns seconds each took to exit."""
+        started = time.monotonic()
+        for child in children:
+            if child.process.poll() is None:
+                child.process.send_signal(signal.SIGTERM)
+        took = {}
+        for child in children:
+            try:
+                child.process.wait(timeout=max(0.1, timeout - (time.monotonic() - started)))
+            except subprocess.TimeoutExpired:
+                log.warning("%s did not stop in %.0f s; killing it", child.name, timeout)
+                os.killpg(child.process.pid, signal.SIGKILL)
+                child.process.wait()
+            took[child.name] = time.monotonic() - started
+        return took
+
+
+def run_demo(settings: DemoSettings, shutdown: Shutdown, console: Console) -> dict:
+    out = Path(settings.out)
+    out.mkdir(parents=True, exist_ok=True)
+    fleet = Fleet(settings, out)
+    services = [s for s in SERVICES if module_exists(s.module)]
+    summary: dict = {"settings": settings.model_dump(mode="json"), "services": [s.name for s in services]}
+    router = fleet.start("router", "router", "--listen", fleet.endpoint)
+    try:
+        fleet.wait_for_router()
+        monitor = fleet.start("monitor", "monitor", "--plain", "--json-out", str(out / "monitor.json"))
+        service_children = [fleet.start(s.name, s.name, *s.args) for s in services]
+        robot_duration = settings.duration * settings.speedup
+        robots = [
+            fleet.start(f"r{i + 1}", "robot", "--id", f"r{i + 1}", "--world", settings.world, "--seed", str(settings.seed),
+                        "--rate", str(settings.rate), "--speedup", str(settings.speedup),
+                        "--duration", f"{robot_duration:g}", "--start-delay", "1.0")
+            for i in range(settings.robots)
+        ]
+        console.print(f"[bold]fleetslam demo[/]: router {fleet.endpoint}, {settings.robots} robots in world "
+                      f"'{settings.world}', services: {', '.join(s.name for s in services) or 'none yet'}; "
+                      f"{settings.duration:g} s (Ctrl-C stops early)")
+        deadline = time.monotonic() + settings.duration + 15.0
+        memory: dict[str, float | None] = {}
+        while any(r.process.poll() is None for r in robots) and time.monotonic() < deadline:
+            if shutdown.wait(0.5):
+                console.print("interrupted: stopping the fleet")
+                break
+            if not memory and time.monotonic() > deadline - settings.duration - 12.0:
+                memory = {c.name: fleet.memory_mb(c) for c in fleet.children}
+        memory = {c.name: fleet.memory_mb(c) for c in fleet.children} if not memory else memory
+        summary["memory_mb"] = memory
+        summary["stop_s"] = fleet.stop(robots)
+        summary["stop_s"].update(fleet.stop(service_children, timeout=15.0))
+        summary["stop_s"].update(fleet.stop([monitor]))
+    finally:
+        remaining = [c for c in fleet.children if c.process.poll() is None and c is not router]
+        if remaining:
+            fleet.stop(remaining)
+        summary.setdefault("stop_s", {}).update(fleet.stop([router]))
+    monitor_path = out / "monitor.json"
+    summary["monitor"] = json.loads(monitor_path.read_text()) if monitor_path.exists() else {}
+    metrics_path = out / "report" / "metrics.json"
+    if metrics_path.exists():
+        summary["metrics"] = json.loads(metrics_path.read_text())
+    (out / "demo.json").write_text(json.dumps(summary, indent=2))
+    return summary
+
+
+def print_summary(summary: dict, console: Console, settings: DemoSettings) -> None:
+    robots = summary.get("monitor", {}).get("robots", {})
+    table = Table(title=f"messages per robot (over {settings.duration:g} s wall, speed-up {settings.speedup:g})")
+    for column in ("robot", "odom", "scan", "truth", "missing", "msg/s"):
+        table.add_column(column, justify="right")
+    for rid, c in robots.items():
+        total = c["odom"] + c["scan"] + c["truth"]
+        table.add_row(rid, str(c["odom"]), str(c["scan"]), str(c["truth"]), str(c["missing"]),
+                      f"{total / settings.duration:.1f}")
+    console.print(table)
+    services = summary.get("monitor", {}).get("services", {})
+    if services:
+        stable = Table(title="services")
+        for column in ("service", "in", "rejected", "published", "latency ms median", "p99"):
+            stable.add_column(column, justify="right")
+        for name, s in sorted(services.items()):
+            stable.add_row(name, str(sum(s["messages_in"].values())), str(sum(s["rejected"].values())),
+                           str(s["published"]), f"{s['latency_ms_median']:.2f}", f"{s['latency_ms_p99']:.2f}")
+        console.print(stable)
+    rejected = summary.get("monitor", {}).get("rejected", {})
+    console.print(f"rejected by the monitor: {rejected or 'none'}")
+    memory = summary.get("memory_mb", {})
+    console.print("memory (RSS MB): " + ", ".join(f"{k} {v:.0f}" for k, v in memory.items() if v is not None))
+    console.print("exit after SIGTERM (s): " + ", ".join(f"{k} {v:.2f}" for k, v in summary.get("stop_s", {}).items()))
+    if "metrics" in summary:
+        console.print_json(data=summary["metrics"].get("summary", summary["metrics"]))
+    console.print(f"logs in {settings.out}/logs, results in {settings.out}/demo.json")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    add_settings_arguments(parser, DemoSettings)
+
+
+def main(args: argparse.Namespace) -> int:
+    settings = settings_from_args(DemoSettings, args)
+    console = Console()
+    shutdown = Shutdown()
+    try:
+        summary = run_demo(settings, shutdown, console)
+    except RuntimeError as exc:
+        log.error("demo failed: %s", exc)
+        return 1
+    print_summary(summary, console, settings)
+    robots = summary.get("monitor", {}).get("robots", {})
+    return 0 if len(robots) == settings.robots else 1
