@@ -4,7 +4,8 @@
 loader, so the robot process publishes a simulation exactly as it replays a
 real log, and ``fleetslam run --dataset sim:WORLD`` feeds the same data to an
 estimator offline. Same seed, same data: the world comes from ``seed``,
-robot i's motion and noise from ``(seed, i)``.
+robot i's motion, sensor noise and sightings of other robots from three
+streams of ``(seed, i)``, so a robot simulated alone equals the same robot in a fleet.
 """
 
 from __future__ import annotations
@@ -112,7 +113,9 @@ def simulate(
     trajectory_kind = world.trajectory if trajectory == "auto" else trajectory
     n = len(ids)
     indices = [int(rid[1:]) - 1 if rid[1:].isdigit() else i for i, rid in enumerate(ids)]
-    rngs = [np.random.default_rng([seed, idx]) for idx in indices]
+    rngs = [np.random.default_rng([seed, idx, 0]) for idx in indices]
+    sensor_rngs = [np.random.default_rng([seed, idx, 1]) for idx in indices]
+    mutual_rngs = [np.random.default_rng([seed, idx, 2]) for idx in indices]
     controllers = [_controller(world, trajectory_kind, rngs[i]) for i in range(n)]
     poses = np.array([world.start_poses(idx) for idx in indices], float)
 
@@ -122,7 +125,7 @@ def simulate(
 
     def scan_all(poses_now: np.ndarray) -> None:
         for i in range(n):
-            rng = rngs[i]
+            rng = sensor_rngs[i]
             predicted = sensor.observe(poses_now[i], world.landmarks)
             visible = in_field_of_view(predicted, world.sensor.max_range, world.sensor.fov, world.sensor.min_range)
             visible &= rng.random(visible.shape[0]) < p_detect
@@ -145,7 +148,7 @@ def simulate(
                 rz = sensor.observe(poses_now[i], poses_now[others, :2])
                 rvis = in_field_of_view(rz, world.sensor.max_range, world.sensor.fov, world.sensor.min_range)
                 seen_ids = [ids[others[k]] for k in np.flatnonzero(rvis)]
-                seen_z = rz[rvis] + rng.standard_normal((int(rvis.sum()), 2)) @ sensor_chol.T
+                seen_z = rz[rvis] + mutual_rngs[i].standard_normal((int(rvis.sum()), 2)) @ sensor_chol.T
                 seen_z[:, 0] = np.abs(seen_z[:, 0])
                 seen_z[:, 1] = wrap_angle(seen_z[:, 1])
             scans[i].append((z, lm_ids, seen_ids, seen_z))

@@ -97,7 +97,7 @@ def decode(payload: bytes | bytearray | memoryview, expected: type[M]) -> M:
     if not isinstance(envelope["body"], dict):
         raise DecodeError("malformed", "envelope body is not a map")
     try:
-        return expected.model_validate(envelope["body"])
+        return expected.model_validate(envelope["body"], context={"wire": True})
     except pydantic.ValidationError as exc:
         first = exc.errors()[0]
         where = ".".join(str(p) for p in first.get("loc", ()))

@@ -12,7 +12,7 @@ import math
 from typing import Annotated, Any, ClassVar, Literal
 
 import numpy as np
-from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, PlainSerializer, model_validator
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, PlainSerializer, ValidationInfo, model_validator
 
 ROBOT_ID_PATTERN = r"^[A-Za-z0-9_-]{1,64}$"
 RobotId = Annotated[str, Field(pattern=ROBOT_ID_PATTERN)]
@@ -22,8 +22,10 @@ FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
 def _array_validator(shape: tuple[int | None, ...], kind: str, finite: bool, nonnegative: bool, symmetric: bool):
     dtype = {"float": np.float64, "int": np.int64, "bool": np.bool_}[kind]
 
-    def validate(value: Any) -> np.ndarray:
+    def validate(value: Any, info: ValidationInfo) -> np.ndarray:
         if isinstance(value, (list, tuple)) or np.isscalar(value):
+            if info.context and info.context.get("wire"):
+                raise ValueError("arrays must travel as packed binary, not as lists")
             value = np.asarray(value)
         if not isinstance(value, np.ndarray):
             raise ValueError(f"expected an array, got {type(value).__name__}")

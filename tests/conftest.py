@@ -1,0 +1,50 @@
+"""Shared fixtures: a real Zenoh router process, real fleetslam processes, a client session."""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+
+import pytest
+
+from tests.helpers import Processes, client_session, free_port, wait_for_port
+
+
+@dataclass
+class Router:
+    endpoint: str
+    port: int
+    env: dict[str, str]
+
+
+@pytest.fixture
+def processes(tmp_path):
+    """A group of fleetslam processes; all are stopped at the end of the test."""
+    group = Processes(tmp_path, {**os.environ, "PYTHONUNBUFFERED": "1"})
+    yield group
+    group.stop_all()
+
+
+@pytest.fixture
+def router(processes, tmp_path) -> Router:
+    """A router process on a free loopback port; children started after it connect to it."""
+    port = free_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    prefix = f"t{port}"
+    processes.env.update(FLEETSLAM_ZENOH_CONNECT=endpoint, FLEETSLAM_PREFIX=prefix, FLEETSLAM_CONNECT_TIMEOUT_S="10")
+    processes.start("router", "router", "--listen", endpoint)
+    wait_for_port(port)
+    return Router(endpoint=endpoint, port=port, env=dict(processes.env))
+
+
+@pytest.fixture
+def zsession(router):
+    """A client session of the test itself, connected to the router."""
+    session = client_session(router.endpoint)
+    yield session
+    session.close()
+
+
+@pytest.fixture
+def prefix(router) -> str:
+    return router.env["FLEETSLAM_PREFIX"]

@@ -1,0 +1,28 @@
+from schemas.streams import StreamTracker, Verdict
+
+
+def test_tracker_accepts_in_order_and_counts_gaps():
+    t = StreamTracker()
+    assert [t.check("r1", "odom", s, s * 0.1) for s in (0, 1, 2, 5)] == [Verdict.ACCEPT] * 4
+    assert t.missing("r1") == 2 and t.received("r1", "odom") == 4
+
+
+def test_tracker_rejects_duplicates_reordering_and_time_going_backwards():
+    t = StreamTracker()
+    t.check("r1", "scan", 0, 1.0)
+    t.check("r1", "scan", 1, 2.0)
+    assert t.check("r1", "scan", 1, 2.0) is Verdict.DUPLICATE
+    assert t.check("r1", "scan", 0, 1.0) is Verdict.OUT_OF_ORDER
+    assert t.check("r1", "scan", 2, 1.5) is Verdict.TIME_BACKWARDS
+    assert t.last_seq("r1", "scan") == 1
+    assert dict(t.rejected) == {"duplicate": 1, "out_of_order": 1, "time_backwards": 1}
+    assert t.check("r1", "scan", 2, 2.5) is Verdict.ACCEPT
+
+
+def test_streams_are_independent_and_a_robot_can_be_forgotten():
+    t = StreamTracker()
+    t.check("r1", "scan", 3, 1.0)
+    assert t.check("r2", "scan", 0, 0.0) is Verdict.ACCEPT
+    assert t.missing("r1") == 3
+    t.forget("r1")
+    assert t.check("r1", "scan", 0, 0.0) is Verdict.ACCEPT
