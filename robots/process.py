@@ -26,8 +26,6 @@ from schemas.transport import ConnectError, Shutdown, StreamPublisher, session_s
 
 log = logging.getLogger("fleetslam.robot")
 
-INFO_PERIOD_S = 1.0
-
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_settings_arguments(parser, RobotSettings)
@@ -91,7 +89,7 @@ def run(settings: RobotSettings, shutdown: Shutdown) -> dict[str, int]:
             log.info("robot %s publishing %s (%s) at speed-up %g", rid, robot.info.source, robot.info.motion_model,
                      settings.speedup)
             wall0, data0 = time.monotonic(), robot.start_stamp
-            next_info = wall0 + INFO_PERIOD_S
+            next_info = wall0 + settings.info_period_s
             for event in robot.events(until=until, with_truth=settings.publish_truth):
                 due = wall0 + (event.stamp - data0) / settings.speedup
                 now = time.monotonic()
@@ -110,7 +108,7 @@ def run(settings: RobotSettings, shutdown: Shutdown) -> dict[str, int]:
                     counts["truth"] += 1
                 if time.monotonic() >= next_info:
                     pubs["info"].put(info_payload)
-                    next_info += INFO_PERIOD_S
+                    next_info += settings.info_period_s
             log.info("robot %s done: %s", rid, ", ".join(f"{k} {v}" for k, v in counts.items()))
         finally:
             for entity in [*pubs.values(), answer_info, answer_world, world_pub, token]:

@@ -73,6 +73,7 @@ class RobotSettings(FleetSettings):
     detection_probability: float | None = Field(None, ge=0, le=1, description="override the world's detection probability")
     clutter_rate: float | None = Field(None, ge=0, description="override the world's clutter (false detections per scan)")
     replay: str | None = Field(None, description="replay a data set instead: mrclam:PATH:N, victoria-park:PATH, car-park:PATH")
+    info_period_s: float = Field(1.0, gt=0, description="period of the RobotInfo re-publication (s)")
 
 
 class MonitorSettings(FleetSettings):
@@ -80,6 +81,7 @@ class MonitorSettings(FleetSettings):
 
     duration: float | None = Field(None, gt=0, description="stop after this many seconds (default: until Ctrl-C)")
     refresh_hz: float = Field(2.0, gt=0, description="console refresh rate")
+    rate_window_s: float = Field(2.0, gt=0, description="window over which message rates are measured (s)")
     plain: bool = Field(False, description="print plain lines instead of a live table (for logs)")
     json_out: str | None = Field(None, description="write the final counters to this JSON file")
 

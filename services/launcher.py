@@ -33,7 +33,10 @@ log = logging.getLogger("fleetslam.demo")
 
 @dataclass
 class ServiceSpec:
-    """A service the demo starts when its module is installed: ``fleetslam NAME ARGS...``."""
+    """A service the demo starts when its module is installed: ``fleetslam NAME ARGS...``
+
+    ``{out}`` in an argument becomes the demo's output folder.
+    """
 
     name: str
     module: str
@@ -46,7 +49,7 @@ SERVICES: list[ServiceSpec] = [
     ServiceSpec("central", "central.service"),
     ServiceSpec("dslam", "services.dslam.service"),
     ServiceSpec("mcl", "services.mcl.service"),
-    ServiceSpec("evaluate", "services.evaluation.service"),
+    ServiceSpec("evaluate", "services.evaluation.service", ["--out", "{out}/report"]),
 ]
 
 
@@ -135,7 +138,7 @@ def run_demo(settings: DemoSettings, shutdown: Shutdown, console: Console) -> di
     try:
         fleet.wait_for_router()
         monitor = fleet.start("monitor", "monitor", "--plain", "--json-out", str(out / "monitor.json"))
-        service_children = [fleet.start(s.name, s.name, *s.args) for s in services]
+        service_children = [fleet.start(s.name, s.name, *(a.format(out=settings.out) for a in s.args)) for s in services]
         robot_duration = settings.duration * settings.speedup
         robots = [
             fleet.start(f"r{i + 1}", "robot", "--id", f"r{i + 1}", "--world", settings.world, "--seed", str(settings.seed),
@@ -157,7 +160,9 @@ def run_demo(settings: DemoSettings, shutdown: Shutdown, console: Console) -> di
         memory = {c.name: fleet.memory_mb(c) for c in fleet.children} if not memory else memory
         summary["memory_mb"] = memory
         summary["stop_s"] = fleet.stop(robots)
-        summary["stop_s"].update(fleet.stop(service_children, timeout=15.0))
+        evaluators = [c for c in service_children if c.name == "evaluate"]
+        summary["stop_s"].update(fleet.stop([c for c in service_children if c not in evaluators], timeout=15.0))
+        summary["stop_s"].update(fleet.stop(evaluators, timeout=30.0))
         summary["stop_s"].update(fleet.stop([monitor]))
     finally:
         remaining = [c for c in fleet.children if c.process.poll() is None and c is not router]

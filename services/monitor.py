@@ -31,7 +31,6 @@ from services.runtime import ServiceShell
 log = logging.getLogger("fleetslam.monitor")
 
 ROBOT_MESSAGES = {"info": RobotInfo, "odom": Odometry, "scan": Scan, "truth": GroundTruth}
-RATE_WINDOW_S = 2.0
 
 
 class Monitor(ServiceShell):
@@ -107,8 +106,8 @@ class Monitor(ServiceShell):
         if not times:
             return 0.0
         now = time.monotonic()
-        recent = [t for t in times if now - t <= RATE_WINDOW_S]
-        return len(recent) / RATE_WINDOW_S
+        window = self.settings.rate_window_s
+        return sum(1 for t in times if now - t <= window) / window
 
     def render(self) -> Group:
         robots = Table(title="robots", expand=False)

@@ -1,0 +1,29 @@
+"""`fleetslam demo` end to end: every process it starts comes up, robots publish, everything stops cleanly."""
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+from tests.helpers import REPO, free_port
+
+pytestmark = pytest.mark.integration
+
+
+def test_demo_runs_and_reports_per_robot_counts(tmp_path):
+    out = tmp_path / "demo"
+    result = subprocess.run(
+        [sys.executable, "-m", "services.cli", "demo", "--duration", "4", "--robots", "3", "--speedup", "2",
+         "--port", str(free_port()), "--out", str(out)],
+        cwd=REPO, capture_output=True, text=True, timeout=150,
+    )
+    assert result.returncode == 0, result.stdout[-2000:] + result.stderr[-2000:]
+    summary = json.loads((out / "demo.json").read_text())
+    robots = summary["monitor"]["robots"]
+    assert set(robots) >= {"r1", "r2", "r3"}
+    for rid in ("r1", "r2", "r3"):
+        assert robots[rid]["scan"] > 20 and robots[rid]["missing"] == 0
+    assert summary["monitor"]["rejected"] == {}
+    assert all(seconds < 15 for seconds in summary["stop_s"].values())
+    assert "messages per robot" in result.stdout
