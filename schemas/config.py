@@ -37,6 +37,10 @@ class FleetSettings(BaseSettings):
     publisher_cache: int = Field(
         0, ge=0, description="samples an advanced publisher keeps for recovery by late or cut-off subscribers (0: plain publisher)"
     )
+    subscriber_recovery: bool = Field(
+        False, description="subscribe robot streams through an advanced subscriber that recovers samples missed "
+        "during a link cut or router restart from the publishers' caches (needs publisher_cache > 0 on the robots)"
+    )
     stats_period_s: float = Field(1.0, gt=0, description="period of the stats publication (s)")
     log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = Field("INFO", description="log level")
 
@@ -92,6 +96,7 @@ class DemoSettings(FleetSettings):
     duration: float = Field(20.0, gt=0, description="wall seconds to run")
     world: str = Field("arena", description="simulated world")
     robots: int = Field(3, ge=1, le=50, description="number of simulated robots")
+    unknown_start_robots: int = Field(1, ge=0, le=10, description="more robots that announce no start pose (found by MCL)")
     seed: int = Field(0, description="base seed (robot i uses seed + i)")
     speedup: float = Field(1.0, gt=0, description="robot speed-up over real time")
     rate: float = Field(10.0, gt=0, description="scan rate of every robot (Hz)")
@@ -141,3 +146,185 @@ def settings_from_args(settings_cls: type[S], args: argparse.Namespace, **overri
     """Build settings: CLI flags that were given > ``overrides`` > environment > defaults."""
     given = {name: getattr(args, name) for name in settings_cls.model_fields if getattr(args, name, None) is not None}
     return settings_cls(**{**overrides, **given})
+
+
+
+class MclFilterSettings(BaseSettings):
+    """The Monte Carlo localisation filter (paper 004): variant, sample sizes, likelihood, resetting, clusters, kidnap."""
+
+    model_config = SettingsConfigDict(env_prefix="FLEETSLAM_", extra="ignore", validate_default=True)
+
+    variant: Literal["mcl", "kld", "srl", "kld_srl", "csrl", "cluster_kld_srl"] = Field(
+        "cluster_kld_srl", description="mcl, kld (Fox 2003), srl (Lenser 2000), kld_srl, csrl, cluster_kld_srl (paper 004 tables 2-4)"
+    )
+    seed: int = Field(0, description="seed of every random draw of the filter")
+    particles: int = Field(1000, ge=10, description="sample size of the fixed-size variants; initial size of the adaptive ones")
+    min_particles: int = Field(100, ge=10, description="smallest sample size KLD-sampling may choose")
+    max_particles: int = Field(5000, ge=10, description="largest sample size KLD-sampling may choose")
+    init: Literal["sensor", "uniform"] = Field("sensor", description="global initialisation: from the first scan and the map, or uniform")
+    kld_epsilon: float = Field(0.05, gt=0, description="KLD-sampling error bound ε (eq. 2)")
+    kld_delta: float = Field(0.01, gt=0, lt=1, description="KLD-sampling probability δ; the bound uses the normal quantile z_(1-δ)")
+    kld_bin_xy: float = Field(0.5, gt=0, description="KLD-sampling bin size in x and y (m)")
+    kld_bin_theta: float = Field(0.17453292519943295, gt=0, description="KLD-sampling bin size in heading (rad, 10°)")
+    noise_scale: float = Field(2.0, gt=0, description="the likelihood uses the sensor's standard deviations times this")
+    clutter_weight: float = Field(0.05, gt=0, lt=1, description="weight of the uniform clutter floor in each observation's likelihood")
+    miss_floor: float = Field(0.2, gt=0, le=1, description="smallest probability of missing a landmark predicted well inside the view")
+    view_margin_range: float = Field(0.3, ge=0, description="a landmark counts as surely visible this far (m) inside the range limits")
+    view_margin_bearing: float = Field(0.05, ge=0, description="... and this far (rad) inside the field of view")
+    match_sigmas: float = Field(3.0, gt=0, description="gate of the best-matching landmark, in standard deviations")
+    lookup_cell: float = Field(0.25, gt=0, description="cell size (m) of the grid that lists the candidate landmarks of a point")
+    match_candidates: int = Field(2, ge=1, description="landmarks (nearest the point's cell) an observation is matched against")
+    motion_noise_scale: float = Field(1.5, gt=0, description="the prediction samples the control noise with this times its std")
+    diffusion_xy: float = Field(0.05, ge=0, description="extra position diffusion per sqrt(second) (m)")
+    diffusion_theta: float = Field(0.02, ge=0, description="extra heading diffusion per sqrt(second) (rad)")
+    srl_threshold: float = Field(0.3, gt=0, description="P_t of sensor resetting, eq. 1, against the mean match quality")
+    reset_oversample: int = Field(4, ge=1, description="sensor resetting draws this many candidate poses per sample kept")
+    reset_prior: float = Field(
+        0.01, gt=0, le=1, description="prior weight of a pose added from the scan (KLD-SRL), relative to a tracked particle's"
+    )
+    reset_draws: int = Field(8, ge=1, description="poses drawn per candidate kept; those that put one more observation on a landmark are kept first")
+    reset_jitter_xy: float = Field(0.1, ge=0, description="std (m) added to poses drawn from a scan")
+    reset_jitter_theta: float = Field(0.03, ge=0, description="std (rad) added to headings drawn from a scan")
+    pair_sigmas: float = Field(3.0, gt=0, description="two observations match a landmark pair when distances agree within this many std")
+    cluster_cell_xy: float = Field(2.0, gt=0, description="cluster grid cell size in x and y (m)")
+    cluster_cell_theta: float = Field(0.7853981633974483, gt=0, description="cluster grid cell size in heading (rad, 45°)")
+    cluster_merge_xy: float = Field(2.0, ge=0, description="adjacent cells merge when their means are this close (m)")
+    cluster_merge_theta: float = Field(0.7853981633974483, ge=0, description="... and their mean headings this close (rad)")
+    cluster_prune: float = Field(1e-4, ge=0, lt=1, description="particles lighter than this times the heaviest join no cluster")
+    cluster_min_weight: float = Field(0.001, ge=0, lt=1, description="a cluster is significant when it holds this share of the weight")
+    cluster_min_quality: float = Field(0.02, ge=0, lt=1, description="... and its particles' mean match quality is at least this")
+    max_hypotheses: int = Field(16, ge=1, description="most significant clusters kept (heaviest first)")
+    cluster_memory: float = Field(
+        0.9, ge=0, le=1, description="share of a cluster's log-weight carried to the next step (0: all clusters equal after "
+        "resampling, as eq. 7; 1: full Bayesian weight)"
+    )
+    localized_weight: float = Field(0.9, gt=0, le=1, description="localised when one hypothesis holds this share of the weight")
+    localized_std_xy: float = Field(0.5, gt=0, description="... its position std is below this (m)")
+    localized_std_theta: float = Field(0.2, gt=0, description="... its heading std is below this (rad)")
+    localized_scans: int = Field(3, ge=1, description="... for this many scans in a row")
+    kidnap_quality: float = Field(0.05, gt=0, lt=1, description="the expected match quality below which the robot may be lost")
+    kidnap_scans: int = Field(3, ge=1, description="lost after this many scans in a row below kidnap_quality")
+    kidnap_recovery: bool = Field(True, description="when lost, start global localisation again from the scan")
+    map_margin: float = Field(2.0, ge=0, description="uniform samples lie within the map's bounding box grown by this (m)")
+    converge_xy: float = Field(0.5, gt=0, description="evaluation: converged when localised within this distance of the truth (m)")
+    converge_theta: float = Field(0.2, gt=0, description="... and this heading error (rad)")
+    chunk_particles: int = Field(400, ge=1, description="particles weighed at a time (keeps the work in the processor's cache)")
+
+
+class MclSettings(MclFilterSettings, FleetSettings):
+    """``fleetslam mcl``: localise robots against a map; publish hypotheses; answer one-shot localisation queries."""
+
+    source: str = Field(
+        "truth", pattern=r"^(central|dslam|truth|file:.+)$",
+        description="map source: central (Estimate), dslam (MapEstimate), truth (WorldTruth) or file:PATH (.npy/.txt, (L,2))",
+    )
+    all_robots: bool = Field(False, description="localise every robot, not only those that announce no start pose")
+    publish_every: int = Field(1, ge=1, description="publish a robot's MclPose every this many scans")
+    map_period_s: float = Field(1.0, ge=0, description="take a new map from the source at most this often (s)")
+    localize_particles: int = Field(2000, ge=10, description="sample size of a one-shot localisation query")
+
+
+class DslamFilterSettings(BaseSettings):
+    """The D-SLAM core (paper 003): association, feature lists, recovery, localisation."""
+
+    model_config = SettingsConfigDict(env_prefix="FLEETSLAM_", extra="ignore", validate_default=True)
+
+    association: str = Field(
+        "known", pattern=r"^(known|nn|greedy|ihgr|exact|jcbb|auto)$",
+        description="known (true ids from the scans) or a method of the association service: nn, greedy, ihgr, exact, jcbb, auto",
+    )
+    gate_probability: float = Field(0.99, gt=0, lt=1, description="chi-square gate of the association")
+    new_feature_gate_probability: float = Field(0.9999, gt=0, lt=1, description="a measurement starts a feature only outside this gate of every landmark")
+    new_feature_density: float = Field(1e-3, gt=0, description="expected new features per m·rad of measurement space")
+    candidate_margin: float = Field(1.0, ge=0, description="landmarks up to max range + this (m) are association candidates")
+    confirm_hits: int = Field(2, ge=1, description="sightings before a tentative feature enters the map (association methods; known ids map at once)")
+    tentative_misses: int = Field(3, ge=1, description="scans in view without a sighting before a tentative feature is dropped")
+    min_reference_distance: float = Field(0.3, gt=0, description="smallest distance (m) between the two reference features of z_map")
+    map_gate_probability: float = Field(0.9999, gt=0, lt=1, description="z_map is refused when its χ² test fails at this probability")
+    recovery_tol: float = Field(1e-6, gt=0, description="mean recovery stops when every block-Jacobi step is below this (m)")
+    recovery_max_iter: int = Field(200, ge=1, description="most PCG iterations of one mean recovery")
+    column_tol: float = Field(1e-6, gt=0, description="covariance-column recovery tolerance, relative to the landmark's variance")
+    column_max_iter: int = Field(300, ge=1, description="most PCG iterations of one covariance-column recovery")
+    column_cache: int = Field(64, ge=1, description="covariance columns kept to warm-start the next solves (landmarks)")
+    ci_criterion: Literal["trace", "det"] = Field("trace", description="covariance intersection minimises the trace or the determinant")
+    marginals_limit: int = Field(3000, ge=0, description="maps up to this many landmarks report every marginal covariance exactly")
+
+
+class DslamSettings(DslamFilterSettings, FleetSettings):
+    """``fleetslam dslam``: one D-SLAM map fed by every robot; association through the queryable."""
+
+    assoc_timeout_s: float = Field(0.5, gt=0, description="how long to wait for the association queryable (s)")
+    assoc_retry_s: float = Field(5.0, ge=0, description="after a failed query, associate in-process this long before asking again (s)")
+    map_period_s: float = Field(1.0, gt=0, description="period of the map publication (s)")
+    waiting_messages: int = Field(2000, ge=1, description="messages of a robot kept while its RobotInfo is awaited")
+
+
+class RunSettings(BaseSettings):
+    """``fleetslam run``: feed a data set straight into an estimator (no Zenoh) and score it."""
+
+    model_config = SettingsConfigDict(env_prefix="FLEETSLAM_", extra="ignore", validate_default=True)
+
+    dataset: str = Field(
+        "sim:arena", description="mrclam:PATH[:N], victoria-park:PATH, car-park:PATH or sim:WORLD "
+        "(a relative PATH is also looked for under FLEETSLAM_DATA)",
+    )
+    estimator: str = Field("odometry", description="estimator name (services/estimator.py ESTIMATORS)")
+    association: str = Field("known", description="data association: known (true ids) or a method name")
+    particles: int = Field(100, ge=1, description="particles of particle-filter estimators")
+    seed: int = Field(0, description="seed of every random draw (estimator, and the simulator for sim:)")
+    robot_ids: str | None = Field(
+        None, description="comma-separated robot ids to use (default: all)", json_schema_extra={"cli": "--robots"}
+    )
+    duration: float | None = Field(None, gt=0, description="seconds of data from the start (default: all)")
+    variant: str | None = Field(None, description="estimator variant")
+    sim_robots: int = Field(3, ge=1, le=50, description="robots simulated for sim:WORLD when --robots is not given")
+    sim_rate: float = Field(10.0, gt=0, description="scan rate of simulated robots (Hz)")
+    sample_period_s: float = Field(0.2, gt=0, description="estimated poses are sampled this often in data time (s)")
+    map_cutoff_m: float = Field(1.0, gt=0, description="farther estimated <-> true landmark pairs are not matches (m)")
+    rpe_delta_s: float = Field(1.0, gt=0, description="time step of the relative pose error (s)")
+    out: str | None = Field(None, description="write a report folder here (metrics.json, TUM trajectories, plots)")
+    json_out: str | None = Field(None, description="write the results JSON to this file", json_schema_extra={"cli": "--json"})
+    progress: bool = Field(True, description="show a progress bar on the terminal")
+    log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = Field("INFO", description="log level")
+
+
+class EvaluateSettings(FleetSettings):
+    """``fleetslam evaluate``: compare every live estimate with the truth; publish stats; write a report on exit."""
+
+    out: str = Field("reports/evaluate", description="report folder written on exit")
+    duration: float | None = Field(None, gt=0, description="stop after this many seconds (default: until SIGINT/SIGTERM)")
+    map_cutoff_m: float = Field(1.0, gt=0, description="farther estimated <-> true landmark pairs are not matches (m)")
+    rpe_delta_s: float = Field(1.0, gt=0, description="time step of the relative pose error (s)")
+    max_gap_s: float = Field(1.0, gt=0, description="truth is not interpolated across gaps longer than this (s)")
+    truth_offset_x: float = Field(0.0, description="body-frame x (m) of the point the truth positions refer to (GPS antenna)")
+    truth_offset_y: float = Field(0.0, description="body-frame y (m) of that point")
+    max_samples: int = Field(200000, ge=100, description="most samples kept per trajectory (older ones are thinned)")
+
+
+class AssocSettings(FleetSettings):
+    """``fleetslam assoc``: the data-association queryable on ``{prefix}/assoc/{method}``."""
+
+    methods: str = Field(
+        "nn,greedy,ihgr,exact,jcbb,auto", pattern=r"^(nn|greedy|ihgr|exact|jcbb|auto)(,(nn|greedy|ihgr|exact|jcbb|auto))*$",
+        description="methods to serve, comma-separated (one queryable each)",
+    )
+    complete: bool = Field(True, description="declare the queryables complete, so a BEST_MATCHING query reaches one instance")
+    max_measurements: int = Field(2000, ge=1, description="larger requests are refused (measurements)")
+    max_landmarks: int = Field(5000, ge=1, description="larger requests are refused (landmarks)")
+    duration: float | None = Field(None, gt=0, description="stop after this many seconds (default: until SIGINT/SIGTERM)")
+
+
+class CentralSettings(FleetSettings):
+    """``fleetslam central``: the central multi-robot FastSLAM service (every robot in one filter)."""
+
+    association: Literal["known", "nn", "mht"] = Field("nn", description="data association: known (scan ids), nn or mht")
+    particles: int = Field(100, ge=1, le=100000, description="particles of the filter")
+    seed: int = Field(0, description="seed of every random draw of the filter")
+    proposal: Literal["fastslam1", "fastslam2"] = Field("fastslam1", description="FastSLAM 1.0 or 2.0 proposal")
+    estimate_rate_hz: float = Field(2.0, gt=0, le=100, description="rate of the estimate publication on {prefix}/central/estimate")
+    reorder_window_s: float = Field(0.1, ge=0, le=10, description="longest wall time a message waits for other robots' "
+                                    "streams so that robots are processed in time order (0: as they come)")
+    waiting_messages: int = Field(2000, ge=1, description="messages of a robot kept while its RobotInfo or its placement by MCL is awaited")
+    robot_detections: bool = Field(False, description="weight particles by robot-to-robot detections")
+    filter_options: str | None = Field(None, description="JSON object of extra FastSLAM settings (central/fastslam/config.py)")
+    duration: float | None = Field(None, gt=0, description="stop after this many seconds (default: until SIGINT/SIGTERM)")

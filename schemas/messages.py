@@ -146,9 +146,13 @@ class Scan(StreamMessage):
 
 
 class GroundTruth(StreamMessage):
-    """The true pose of a robot (simulator, or a data set's truth)."""
+    """The true pose of a robot (simulator, or a data set's truth).
+
+    GPS-like truth has no heading: then ``heading_known`` is false and θ is 0 on the wire.
+    """
 
     pose: Pose
+    heading_known: bool = True
 
 
 class WorldTruth(Message):

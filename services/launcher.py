@@ -1,7 +1,8 @@
 """``fleetslam demo``: a whole fleet on this machine, as separate processes.
 
 Starts a router, the services that exist in this installation, the monitor,
-and ``--robots`` simulated robots in one world; lets the robots run for
+and ``--robots`` simulated robots in one world (plus ``--unknown-start-robots``
+that announce no start pose, for MCL to find); lets the robots run for
 ``--duration`` wall seconds; stops everything in order (robots, services,
 monitor, router) with SIGTERM; then prints per-robot message counts, service
 statistics, the memory of each process, and where the logs and results are.
@@ -143,10 +144,12 @@ def run_demo(settings: DemoSettings, shutdown: Shutdown, console: Console) -> di
         robots = [
             fleet.start(f"r{i + 1}", "robot", "--id", f"r{i + 1}", "--world", settings.world, "--seed", str(settings.seed),
                         "--rate", str(settings.rate), "--speedup", str(settings.speedup),
-                        "--duration", f"{robot_duration:g}", "--start-delay", "1.0")
-            for i in range(settings.robots)
+                        "--duration", f"{robot_duration:g}", "--start-delay", "1.0",
+                        *(["--unknown-start"] if i >= settings.robots else []))
+            for i in range(settings.robots + settings.unknown_start_robots)
         ]
-        console.print(f"[bold]fleetslam demo[/]: router {fleet.endpoint}, {settings.robots} robots in world "
+        console.print(f"[bold]fleetslam demo[/]: router {fleet.endpoint}, {settings.robots} robots "
+                      f"(+{settings.unknown_start_robots} with no start pose) in world "
                       f"'{settings.world}', services: {', '.join(s.name for s in services) or 'none yet'}; "
                       f"{settings.duration:g} s (Ctrl-C stops early)")
         deadline = time.monotonic() + settings.duration + 15.0
@@ -222,4 +225,4 @@ def main(args: argparse.Namespace) -> int:
         return 1
     print_summary(summary, console, settings)
     robots = summary.get("monitor", {}).get("robots", {})
-    return 0 if len(robots) == settings.robots else 1
+    return 0 if len(robots) == settings.robots + settings.unknown_start_robots else 1

@@ -24,6 +24,7 @@ from typing import Any
 
 import numpy as np
 import zenoh
+import zenoh.ext
 
 from schemas.codec import DecodeError
 from schemas.config import FleetSettings
@@ -68,10 +69,26 @@ class ServiceShell:
     def on_stop(self) -> None:
         """Last work before the session closes (final publication, report)."""
 
-    def subscribe(self, key: str, tag: str) -> None:
-        """Subscribe ``key``; each sample is queued as ``(tag, key, payload)``."""
+    def subscribe(self, key: str, tag: str, recover: bool = True) -> None:
+        """Subscribe ``key``; each sample is queued as ``(tag, key, payload)``.
+
+        With the setting ``subscriber_recovery`` on (and ``recover``), this is
+        an advanced subscriber: it fetches the cache of publishers it finds late
+        (after a link cut or a router restart too), and heartbeats tell it
+        which samples it missed, which it then queries from the publishers'
+        caches, so a reconnected robot's stream arrives complete and in order.
+        """
         assert self.session is not None and self._loop is not None
-        self._declared.append(self.session.declare_subscriber(key, self._enqueuer(tag)))
+        if recover and self.settings.subscriber_recovery:
+            subscriber = zenoh.ext.declare_advanced_subscriber(
+                self.session, key, self._enqueuer(tag),
+                history=zenoh.ext.HistoryConfig(detect_late_publishers=True),
+                recovery=zenoh.ext.RecoveryConfig(heartbeat=True),
+                subscriber_detection=True,
+            )
+        else:
+            subscriber = self.session.declare_subscriber(key, self._enqueuer(tag))
+        self._declared.append(subscriber)
 
     def _enqueuer(self, tag: str):
         loop, queue = self._loop, self._queue

@@ -1,0 +1,96 @@
+"""MCL update time against particle count (paper 004 reports about 0.03 s per update).
+
+A map of 200 landmarks uniform in a 40 m square and the ``random`` world's
+sensor (8 m range, 120° field of view, about 8 landmarks per scan); one robot
+tracked from its known start pose (``mcl``, fixed sample size), and the same
+robot in global localisation (``cluster_kld_srl``, adaptive). Reports, per
+particle count, the wall time of one scan update (weigh, cluster, resample)
+and of one prediction: median and 10th/90th percentiles over the run.
+
+    .venv/bin/python benchmarks/mcl_timing.py [--out FILE] [--particles 100,300,1000,3000]
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import time
+
+import numpy as np
+
+from robots.dataset import OdomEvent, ScanEvent
+from robots.simulator import simulate
+from robots.worlds import make_world
+from schemas.config import MclFilterSettings
+from services.mcl.core import MonteCarloLocalizer
+from services.mcl.likelihood import scan_log_likelihood
+
+
+def landmark_world(count: int, seed: int):
+    rng = np.random.default_rng([seed, 7])
+    base = make_world("random", seed)
+    return dataclasses.replace(
+        base, name=f"uniform{count}", landmarks=rng.uniform(0.0, 40.0, size=(count, 2)), bounds=(6.0, 34.0, 6.0, 34.0),
+        start_poses=lambda i: np.array([10.0, 10.0, 0.3]),
+    )
+
+
+def percentiles(samples: list[float]) -> dict:
+    ms = np.asarray(samples) * 1e3
+    return {"median_ms": round(float(np.median(ms)), 3), "p10_ms": round(float(np.percentile(ms, 10)), 3),
+            "p90_ms": round(float(np.percentile(ms, 90)), 3)}
+
+
+def run(dataset, variant: str, particles: int, known_start: bool, seed: int) -> dict:
+    log = dataset.robots["r1"]
+    info = log.info if known_start else log.info.model_copy(update={"start_pose": None, "start_pose_cov": None})
+    settings = MclFilterSettings(variant=variant, particles=particles, seed=seed,
+                                 max_particles=max(particles, 5000), min_particles=min(100, particles))
+    mcl = MonteCarloLocalizer(dataset.landmarks, info, settings)
+    updates, predictions, likelihoods, counts, observations = [], [], [], [], []
+    for event in dataset.events():
+        if isinstance(event, OdomEvent):
+            start = time.perf_counter()
+            mcl.predict(event.control, event.dt, event.control_cov)
+            predictions.append(time.perf_counter() - start)
+        elif isinstance(event, ScanEvent):
+            z = event.observations
+            if mcl.initialized:
+                start = time.perf_counter()
+                scan_log_likelihood(mcl.particles, z, mcl.map, mcl.model)
+                likelihoods.append(time.perf_counter() - start)
+            start = time.perf_counter()
+            mcl.update(z)
+            updates.append(time.perf_counter() - start)
+            counts.append(mcl.count)
+            observations.append(len(z))
+    return {"variant": variant, "particles": particles, "known_start": known_start,
+            "update": percentiles(updates[5:]), "likelihood": percentiles(likelihoods[5:]),
+            "predict": percentiles(predictions[5:]), "particles_median": int(np.median(counts)),
+            "observations_median": float(np.median(observations)), "scans": len(updates)}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--out", help="also write the JSON here")
+    parser.add_argument("--particles", default="100,300,1000,3000")
+    parser.add_argument("--landmarks", type=int, default=200)
+    parser.add_argument("--duration", type=float, default=20.0, help="robot seconds per run")
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args()
+    world = landmark_world(args.landmarks, args.seed)
+    dataset = simulate(world, seed=args.seed, duration=args.duration)
+    results = [run(dataset, "mcl", int(p), True, args.seed) for p in args.particles.split(",")]
+    results.append(run(dataset, "cluster_kld_srl", 1000, False, args.seed))
+    report = {"benchmark": "mcl_timing", "landmarks": args.landmarks, "world": world.name, "duration_s": args.duration,
+              "target": "update < 5 ms for 1000 particles with 200 landmarks", "runs": results}
+    text = json.dumps(report, indent=2)
+    print(text)
+    if args.out:
+        with open(args.out, "w") as handle:
+            handle.write(text + "\n")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,72 @@
+"""Small closed-form Gaussian helpers on stacks of 2-vectors and 2×2 matrices, and systematic resampling."""
+
+from __future__ import annotations
+
+import numpy as np
+
+LOG_2PI = float(np.log(2.0 * np.pi))
+
+
+def inv2(s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(inverse, determinant) of a stack of 2×2 matrices ``(..., 2, 2)``."""
+    a, b, c, d = s[..., 0, 0], s[..., 0, 1], s[..., 1, 0], s[..., 1, 1]
+    det = a * d - b * c
+    safe = np.where(np.abs(det) > 1e-300, det, 1e-300)
+    inv = np.empty_like(s)
+    inv[..., 0, 0], inv[..., 0, 1] = d / safe, -b / safe
+    inv[..., 1, 0], inv[..., 1, 1] = -c / safe, a / safe
+    return inv, det
+
+
+def quad2(nu: np.ndarray, s_inv: np.ndarray) -> np.ndarray:
+    """νᵀ S⁻¹ ν for stacks ``nu (..., 2)`` and ``s_inv (..., 2, 2)`` (broadcast)."""
+    n0, n1 = nu[..., 0], nu[..., 1]
+    return s_inv[..., 0, 0] * n0 * n0 + (s_inv[..., 0, 1] + s_inv[..., 1, 0]) * n0 * n1 + s_inv[..., 1, 1] * n1 * n1
+
+
+def sandwich(a: np.ndarray, m: np.ndarray) -> np.ndarray:
+    """A M Aᵀ for stacks of matrices (broadcast)."""
+    return a @ m @ np.swapaxes(a, -1, -2)
+
+
+def sandwich2(a: np.ndarray, m: np.ndarray) -> np.ndarray:
+    """A M Aᵀ for stacks of 2×2 matrices with M symmetric, in closed form (several times faster than matmul)."""
+    a00, a01, a10, a11 = a[..., 0, 0], a[..., 0, 1], a[..., 1, 0], a[..., 1, 1]
+    m00, m01, m11 = m[..., 0, 0], m[..., 0, 1], m[..., 1, 1]
+    t00, t01 = a00 * m00 + a01 * m01, a00 * m01 + a01 * m11
+    t10, t11 = a10 * m00 + a11 * m01, a10 * m01 + a11 * m11
+    out = np.empty(np.broadcast_shapes(a.shape, m.shape))
+    out[..., 0, 0] = t00 * a00 + t01 * a01
+    out[..., 0, 1] = out[..., 1, 0] = t00 * a10 + t01 * a11
+    out[..., 1, 1] = t10 * a10 + t11 * a11
+    return out
+
+
+def valid_cov2(cov: np.ndarray) -> bool:
+    """True for a finite, symmetric, positive semi-definite 2×2 matrix (closed form: cheap enough per message)."""
+    if cov.shape != (2, 2):
+        return False
+    a, b, c, d = float(cov[0, 0]), float(cov[0, 1]), float(cov[1, 0]), float(cov[1, 1])
+    finite = all(np.isfinite(v) for v in (a, b, c, d))
+    return finite and abs(b - c) <= 1e-9 + 1e-6 * abs(b) and a >= 0 and d >= 0 and a * d - b * c >= -1e-12 * max(a * d, 1e-300)
+
+
+def sqrt_psd(cov: np.ndarray) -> np.ndarray:
+    """A matrix L with L Lᵀ = cov for a symmetric positive semi-definite ``cov`` (stacks allowed).
+
+    Cholesky when ``cov`` is positive definite, else an eigen-decomposition (robust to rank loss).
+    """
+    try:
+        return np.linalg.cholesky(cov)
+    except np.linalg.LinAlgError:
+        pass
+    values, vectors = np.linalg.eigh(0.5 * (cov + np.swapaxes(cov, -1, -2)))
+    return vectors * np.sqrt(np.clip(values, 0.0, None))[..., None, :]
+
+
+def systematic_resample(weights: np.ndarray, count: int, rng: np.random.Generator) -> np.ndarray:
+    """Indices of ``count`` draws by systematic resampling of normalised ``weights`` (one uniform offset)."""
+    edges = np.cumsum(weights)
+    edges[-1] = 1.0
+    points = (rng.random() + np.arange(count)) / count
+    return np.minimum(np.searchsorted(edges, points, side="right"), weights.size - 1)

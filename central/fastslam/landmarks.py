@@ -1,0 +1,81 @@
+"""Every particle's landmark map as padded arrays (one EKF per landmark).
+
+Slot ``s`` of particle ``p`` holds a landmark iff ``valid[p, s]``. New
+landmarks of a particle go after its high-water mark ``used[p]``; deleted ones
+leave holes that :meth:`LandmarkMap.compact` squeezes out when room runs short,
+and the capacity doubles when that is not enough (amortised O(1) growth).
+Resampling is a gather along the particle axis.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+class LandmarkMap:
+    """Means ``(P, C, 2)``, covariances ``(P, C, 2, 2)``, existence scores, hit counts, labels, valid mask."""
+
+    def __init__(self, particles: int, capacity: int = 16):
+        self.mean = np.zeros((particles, capacity, 2))
+        self.cov = np.zeros((particles, capacity, 2, 2))
+        self.exist = np.zeros((particles, capacity))
+        self.hits = np.zeros((particles, capacity), np.int32)
+        self.label = np.full((particles, capacity), -1, np.int64)
+        self.valid = np.zeros((particles, capacity), bool)
+        self.used = np.zeros(particles, np.int64)
+
+    @property
+    def particles(self) -> int:
+        return self.valid.shape[0]
+
+    @property
+    def capacity(self) -> int:
+        return self.valid.shape[1]
+
+    def counts(self) -> np.ndarray:
+        """Landmarks per particle ``(P,)``."""
+        return self.valid.sum(1)
+
+    def reserve(self, extra: int, compact: bool = True) -> None:
+        """Make room for ``extra`` more slots after every particle's high-water mark."""
+        if int(self.used.max(initial=0)) + extra <= self.capacity:
+            return
+        if compact:
+            self.compact()
+        need = int(self.used.max(initial=0)) + extra
+        if need > self.capacity:
+            self._grow(max(need, 2 * self.capacity))
+
+    def _grow(self, capacity: int) -> None:
+        extra = capacity - self.capacity
+        pad = lambda a, fill: np.concatenate([a, np.full((a.shape[0], extra) + a.shape[2:], fill, a.dtype)], 1)  # noqa: E731
+        self.mean, self.cov = pad(self.mean, 0.0), pad(self.cov, 0.0)
+        self.exist, self.hits = pad(self.exist, 0.0), pad(self.hits, 0)
+        self.label, self.valid = pad(self.label, -1), pad(self.valid, False)
+
+    def compact(self) -> None:
+        """Move every particle's valid slots to the front, keeping their order."""
+        order = np.argsort(~self.valid, axis=1, kind="stable")
+        take = lambda a: np.take_along_axis(a, order.reshape(order.shape + (1,) * (a.ndim - 2)), 1)  # noqa: E731
+        self.mean, self.cov, self.exist = take(self.mean), take(self.cov), take(self.exist)
+        self.hits, self.label, self.valid = take(self.hits), take(self.label), take(self.valid)
+        self.used = self.valid.sum(1).astype(np.int64)
+
+    def select(self, index: np.ndarray) -> None:
+        """Keep particles ``index`` (with repetition): the gather of resampling and of MHT splitting."""
+        self.mean, self.cov, self.exist = self.mean[index], self.cov[index], self.exist[index]
+        self.hits, self.label, self.valid = self.hits[index], self.label[index], self.valid[index]
+        self.used = self.used[index]
+
+    def append(self, particle: np.ndarray, mean: np.ndarray, cov: np.ndarray, exist: float, label: np.ndarray) -> np.ndarray:
+        """Add landmarks to ``particle`` (sorted, repeats allowed); returns their slots. Call :meth:`reserve` first."""
+        first = np.searchsorted(particle, particle)
+        slot = self.used[particle] + np.arange(particle.size) - first
+        self.mean[particle, slot] = mean
+        self.cov[particle, slot] = cov
+        self.exist[particle, slot] = exist
+        self.hits[particle, slot] = 1
+        self.label[particle, slot] = label
+        self.valid[particle, slot] = True
+        np.add.at(self.used, particle, 1)
+        return slot

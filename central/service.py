@@ -1,0 +1,301 @@
+"""``fleetslam central``: the central multi-robot FastSLAM service (paper 001, centralised scheme).
+
+Robots are found by their liveliness tokens (``{prefix}/robots/*/alive``) and
+their RobotInfo (published periodically, and asked for by a query when a token
+appears). Every robot's odometry and scans go into one filter
+(:class:`central.fastslam.FastSlam`):
+
+- Each stream is checked by a :class:`~schemas.streams.StreamTracker` on
+  arrival (gaps counted, duplicates / out-of-order / time going backwards
+  rejected), so nothing reaches the filter out of order within a robot.
+- Across robots, messages wait in a reorder buffer at most
+  ``reorder_window_s`` (wall time) and are released in stamp order once every
+  live robot's stream has passed their stamp.
+- Messages of a robot whose RobotInfo has not arrived, or whose start pose is
+  unknown, are kept (at most ``waiting_messages``, the excess counted). Such a
+  robot is placed on the first ``{prefix}/mcl/{rid}/pose`` (MclPose) with
+  ``localized`` true, at its best pose and covariance; its kept messages older
+  than that pose are dropped (counted), the rest processed.
+- Robot-to-robot detections in scans are ignored unless ``robot_detections``
+  is on (they then weight particles; they never update the map).
+
+The estimate (every placed robot's weighted mean pose and covariance, the
+map) is published on ``{prefix}/central/estimate`` at ``estimate_rate_hz``;
+the queryable ``{prefix}/central/state`` answers with a fresh one.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import heapq
+import itertools
+import json
+import logging
+import time
+from collections import defaultdict, deque
+
+import numpy as np
+import zenoh
+
+from central.fastslam import FastSlam, FastSlamConfig
+from robots.dataset import OdomEvent, ScanEvent
+from schemas.codec import decode, encode
+from schemas.config import CentralSettings, add_settings_arguments, settings_from_args
+from schemas.messages import Estimate, MclPose, Odometry, RobotEstimate, RobotInfo, Scan
+from schemas.streams import StreamTracker, Verdict
+from schemas.transport import ConnectError
+from services.runtime import ServiceShell
+
+log = logging.getLogger("fleetslam.central")
+
+
+def filter_config(settings: CentralSettings) -> FastSlamConfig:
+    """The FastSLAM settings a service's settings ask for (``filter_options`` is a JSON object of extra fields)."""
+    config = FastSlamConfig(particles=settings.particles, association=settings.association, seed=settings.seed,
+                            proposal=settings.proposal, robot_detections=settings.robot_detections)
+    extra = json.loads(settings.filter_options) if settings.filter_options else {}
+    if not isinstance(extra, dict):
+        raise ValueError("filter_options must be a JSON object")
+    return config.with_overrides(extra)
+
+
+def odom_event(message: Odometry) -> OdomEvent:
+    return OdomEvent(message.robot_id, message.seq, message.stamp, message.dt, message.control, message.control_cov)
+
+
+class CentralService(ServiceShell):
+    """Decode, order, feed the filter, publish estimates and answer state queries."""
+
+    name = "central"
+
+    def __init__(self, settings: CentralSettings, instance: str | None = None):
+        super().__init__(settings, instance)
+        self.settings: CentralSettings = settings
+        self.tick_period_s = 1.0 / settings.estimate_rate_hz
+        self.slam = FastSlam(filter_config(settings))
+        self.tracker = StreamTracker()
+        self.alive: set[str] = set()
+        self.asked: set[str] = set()
+        self.latest: dict[str, float] = {}  # robot -> newest stamp received
+        self.waiting: dict[str, deque] = defaultdict(lambda: deque(maxlen=settings.waiting_messages))
+        self.buffer: list = []  # heap of (stamp, order, arrival, event)
+        self.order = itertools.count()
+        self.processed: dict[str, int] = defaultdict(int)
+        self.hold_ms: deque[float] = deque(maxlen=5000)
+        self.compute_ms: deque[float] = deque(maxlen=5000)
+        self.estimate_seq = 0
+        self.last_stamp = 0.0
+
+    # ------------------------------------------------------------ wiring
+    def setup(self, session: zenoh.Session) -> None:
+        self.subscribe(self.keys.all_robot_stream("info"), "info", recover=False)
+        self.subscribe(self.keys.all_robot_stream("odom"), "odom")
+        self.subscribe(self.keys.all_robot_stream("scan"), "scan")
+        self.subscribe(f"{self.settings.prefix}/mcl/*/pose", "mcl", recover=False)
+        self._estimate_pub = self.publisher(self.keys.central_estimate)
+        self._declared.append(session.liveliness().declare_subscriber(self.keys.alive_any, self._on_token, history=True))
+        self._declared.append(session.declare_queryable(self.keys.central_state,
+                                                        lambda query: self.enqueue("state", self.keys.central_state, query)))
+
+    def _on_token(self, sample: zenoh.Sample) -> None:
+        tag = "alive" if sample.kind == zenoh.SampleKind.PUT else "gone"
+        self.enqueue(tag, str(sample.key_expr), b"")
+
+    def _ask_info(self, robot_id: str) -> None:
+        """Query a robot's RobotInfo (it answers late joiners); replies come back through the queue."""
+        assert self.session is not None
+        self.asked.add(robot_id)
+
+        def on_reply(reply: zenoh.Reply) -> None:
+            if reply.ok is not None:
+                self.enqueue("info", str(reply.ok.key_expr), reply.ok.payload.to_bytes())
+
+        self.session.get(self.keys.info(robot_id), on_reply, timeout=5.0)
+
+    # ------------------------------------------------------------ handling
+    async def handle(self, tag: str, key: str, payload) -> None:
+        if tag == "state":
+            self._answer_state(payload)
+            return
+        if tag in ("alive", "gone"):
+            self._on_liveliness(tag, key)
+            return
+        parsed = self.keys.parse_robot_key(key) if tag != "mcl" else None
+        if tag == "info":
+            self._on_info(decode(payload, RobotInfo), parsed)
+        elif tag == "mcl":
+            self._on_mcl(decode(payload, MclPose), key)
+        elif tag in ("odom", "scan"):
+            message = decode(payload, Odometry if tag == "odom" else Scan)
+            if parsed is None or parsed[0] != message.robot_id:
+                self.reject("robot_id_mismatch", f"{message.robot_id} on {key}")
+                return
+            self._on_stream(tag, message)
+        self._release(flush=False)
+
+    def _on_liveliness(self, tag: str, key: str) -> None:
+        parsed = self.keys.parse_robot_key(key)
+        if parsed is None:
+            return
+        robot_id = parsed[0]
+        if tag == "alive":
+            self.alive.add(robot_id)
+            if robot_id not in self.slam.robots and robot_id not in self.slam.parked and robot_id not in self.asked:
+                self._ask_info(robot_id)
+        else:
+            self.alive.discard(robot_id)
+            self.extra["robots_lost"] = self.extra.get("robots_lost", 0.0) + 1.0
+            self._release(flush=False)
+
+    def _on_info(self, info: RobotInfo, parsed) -> None:
+        if parsed is not None and parsed[0] != info.robot_id:
+            self.reject("robot_id_mismatch", f"{info.robot_id} on info of {parsed[0]}")
+            return
+        rid = info.robot_id
+        if rid in self.slam.robots or rid in self.slam.parked:
+            return
+        self.slam.add_robot(info)
+        log.info("robot %s joined (%s)", rid, "placed" if rid in self.slam.robots else "waiting for a pose from MCL")
+        if rid in self.slam.robots:
+            self._requeue(rid, after=None)
+
+    def _on_mcl(self, message: MclPose, key: str) -> None:
+        rid = message.robot_id
+        if key != self.keys.mcl_pose(rid):
+            self.reject("robot_id_mismatch", f"{rid} on {key}")
+            return
+        if rid not in self.slam.parked or not message.localized:
+            return
+        if self.slam.place_robot(rid, message.best_pose, message.best_cov):
+            log.info("robot %s placed by MCL at %s", rid, np.round(message.best_pose, 3).tolist())
+            self._requeue(rid, after=message.stamp)
+        else:
+            self.reject("bad_placement", f"MCL pose of {rid}")
+
+    def _on_stream(self, stream: str, message) -> None:
+        rid = message.robot_id
+        verdict = self.tracker.check(rid, stream, message.seq, message.stamp)
+        if verdict is not Verdict.ACCEPT:
+            self.reject(verdict.value, f"{rid}/{stream} seq {message.seq}")
+            return
+        self.latest[rid] = max(self.latest.get(rid, -np.inf), message.stamp)
+        event = odom_event(message) if stream == "odom" else ScanEvent.from_message(message)
+        if rid not in self.slam.robots:
+            queue = self.waiting[rid]
+            if len(queue) == queue.maxlen:
+                self.reject("waiting_overflow", f"{rid} has no RobotInfo or no pose yet")
+            queue.append(event)
+            if rid not in self.slam.parked and rid not in self.asked and self.session is not None:
+                self._ask_info(rid)
+            return
+        heapq.heappush(self.buffer, (event.stamp, next(self.order), time.perf_counter(), event))
+
+    def _requeue(self, robot_id: str, after: float | None) -> None:
+        """Move a robot's waiting messages into the reorder buffer (those not after ``after`` are dropped)."""
+        for event in self.waiting.pop(robot_id, ()):
+            if after is not None and event.stamp <= after:
+                self.reject("before_placement")
+                continue
+            heapq.heappush(self.buffer, (event.stamp, next(self.order), time.perf_counter(), event))
+
+    def _release(self, flush: bool) -> None:
+        """Process buffered messages in stamp order: those every live robot's stream has passed, and any that
+        waited longer than the reorder window (all of them when ``flush``)."""
+        live = [self.latest[rid] for rid in self.alive if rid in self.latest and rid in self.slam.robots]
+        watermark = min(live) if live else np.inf
+        deadline = time.perf_counter() - self.settings.reorder_window_s
+        while self.buffer:
+            stamp, _, arrived, event = self.buffer[0]
+            if not (flush or stamp <= watermark or arrived <= deadline or self.settings.reorder_window_s == 0):
+                break
+            heapq.heappop(self.buffer)
+            started = time.perf_counter()
+            self.hold_ms.append((started - arrived) * 1e3)
+            accepted = self.slam.on_odometry(event) if isinstance(event, OdomEvent) else self.slam.on_scan(event)
+            self.compute_ms.append((time.perf_counter() - started) * 1e3)
+            if accepted:
+                self.processed[event.robot_id] += 1
+                self.last_stamp = max(self.last_stamp, event.stamp)
+
+    # ------------------------------------------------------------ output
+    def estimate(self) -> Estimate | None:
+        """The current estimate as a message (None when a number is not finite: never published)."""
+        robots = []
+        for rid, (pose, cov) in self.slam.poses().items():
+            slot = self.slam.robots[rid]
+            stamp = slot.pose_time if slot.pose_time is not None else self.last_stamp
+            robots.append(RobotEstimate(robot_id=rid, stamp=stamp, pose=pose, cov=0.5 * (cov + cov.T)))
+        view = self.slam.landmark_map()
+        values = [view.means, view.covs] + [r.pose for r in robots] + [r.cov for r in robots]
+        if not all(np.all(np.isfinite(v)) for v in values):
+            self.reject("estimate_not_finite")
+            return None
+        message = Estimate(seq=self.estimate_seq, stamp=self.last_stamp, robots=robots, landmarks=view.means,
+                           landmark_covs=view.covs, landmark_ids=view.ids, particles=self.slam.pose.shape[0],
+                           effective_particles=self.slam.effective_particles(),
+                           method=f"fastslam-{self.slam.config.association}")
+        self.estimate_seq += 1
+        return message
+
+    def _answer_state(self, query: zenoh.Query) -> None:
+        try:
+            message = self.estimate()
+            if message is None:
+                query.reply_err(b"estimate_not_finite")
+            else:
+                query.reply(self.keys.central_state, encode(message))
+        finally:
+            query.drop()
+
+    def _update_stats(self) -> None:
+        self.extra.update({k: v for k, v in self.slam.stats().items()})
+        self.extra["missing"] = float(self.tracker.missing())
+        self.extra["buffered"] = float(len(self.buffer))
+        self.extra["waiting"] = float(sum(len(q) for q in self.waiting.values()))
+        self.extra["processed"] = float(sum(self.processed.values()))
+        for name, values in (("hold_ms", self.hold_ms), ("compute_ms", self.compute_ms)):
+            if values:
+                array = np.asarray(values)
+                self.extra[f"{name}_median"] = float(np.median(array))
+                self.extra[f"{name}_p99"] = float(np.percentile(array, 99))
+
+    async def tick(self) -> None:
+        self._release(flush=False)
+        self._update_stats()
+        if not self.slam.robots:
+            return
+        message = self.estimate()
+        if message is not None:
+            self._estimate_pub.put(message)
+            self.published += 1
+
+    def on_stop(self) -> None:
+        self._release(flush=True)
+        self._update_stats()
+        if self.slam.robots:
+            message = self.estimate()
+            if message is not None:
+                self._estimate_pub.put(message)
+                self.published += 1
+        log.info("central: processed %s; rejected %s", dict(self.processed), dict(self.rejected))
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    add_settings_arguments(parser, CentralSettings)
+
+
+def main(args: argparse.Namespace) -> int:
+    settings = settings_from_args(CentralSettings, args)
+    try:
+        service = CentralService(settings)
+    except (ValueError, json.JSONDecodeError) as exc:
+        log.error("bad settings: %s", exc)
+        return 2
+    try:
+        asyncio.run(service.run(settings.duration))
+    except ConnectError as exc:
+        log.error("%s", exc)
+        return 2
+    return 0
+

@@ -1,0 +1,253 @@
+"""Single-scan data association: gating, costs, components and the one entry point :func:`associate`.
+
+Every service calls :func:`associate` in-process, and the ``fleetslam assoc``
+queryable calls it too. Steps (paper 000 §II-III, DESIGN §4):
+
+1. Predicted observations ẑ_n and innovation covariances S_n, given or computed
+   from landmarks + pose with the sensor model of :mod:`robots.models`.
+2. Innovations ν_mn = z_m − ẑ_n (bearing wrapped) and NIS d²_mn = νᵀS_n⁻¹ν.
+3. Gate: d²_mn ≤ χ²₂(gate_probability) (9.21 for 0.99; the paper's 6.63 is the
+   1-dof value).
+4. Cost (the paper's eq. 5 with its exponent's sign corrected, as a likelihood
+   ratio against the dummy): c_nm = ½d² + ½ln|2πS_n| + ln λ − ln(P_D/(1−P_D)).
+5. Isolated gated pairs are decided at once (c < 0); the rest of the gate graph
+   is split into connected components (IHGR solves one LP per component).
+6. Unassigned measurements become NEW when they lie outside every landmark's
+   new-feature gate, CLUTTER otherwise.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from functools import cached_property
+from typing import Callable
+
+import numpy as np
+
+from robots.models import RangeBearingSensor, wrap_angle
+from schemas.association import CLUTTER, NEW, AssociationReply, AssociationRequest
+from services.association import solvers
+
+
+class AssociationError(ValueError):
+    """A request that cannot be solved (bad covariance, unknown method); ``reason`` labels it."""
+
+    def __init__(self, reason: str, detail: str = ""):
+        self.reason = reason
+        self.detail = detail
+        super().__init__(f"{reason}: {detail}" if detail else reason)
+
+
+@dataclass
+class Problem:
+    """The gated assignment problem of one scan."""
+
+    innovations: np.ndarray  # (M, N, 2) z_m − ẑ_n, bearing wrapped
+    nis: np.ndarray  # (M, N) squared Mahalanobis distances
+    cost: np.ndarray  # (M, N) pair costs c_nm, +inf outside the gate
+    innovation_covs: np.ndarray  # (N, 2, 2) S_n
+    noise: np.ndarray  # (2, 2) R
+    new_feature_gate: float
+    blocks: Callable[[], np.ndarray]  # computes the joint covariance blocks (only JCBB needs them)
+
+    @property
+    def gated(self) -> np.ndarray:
+        return np.isfinite(self.cost)
+
+    @cached_property
+    def joint_blocks(self) -> np.ndarray:
+        """(N, N, 2, 2) blocks of the joint covariance of the predicted observations (without R)."""
+        return self.blocks()
+
+
+def _inverse_and_logdet(covs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Inverse and ln|2πS| of (N, 2, 2) covariances; AssociationError unless positive definite."""
+    a, b, c, d = covs[:, 0, 0], covs[:, 0, 1], covs[:, 1, 0], covs[:, 1, 1]
+    det = a * d - b * c
+    bad = np.flatnonzero(~((a > 0) & (d > 0) & (det > 0)))
+    if bad.size:
+        raise AssociationError("bad_covariance", f"innovation covariance of landmark {int(bad[0])} is not positive definite")
+    inverse = np.stack([np.stack([d, -b], -1), np.stack([-c, a], -1)], -2) / det[:, None, None]
+    return inverse, np.log((2 * math.pi) ** 2 * det)
+
+
+def _predict(request: AssociationRequest) -> tuple[np.ndarray, np.ndarray, Callable[[], np.ndarray]]:
+    """(ẑ (N,2), S (N,2,2), a function giving the joint-covariance blocks of ẑ (N,N,2,2)) from either form.
+
+    Landmark form: ẑ = h(pose, l_n) and cov(ẑ) = J P Jᵀ with J = [H_pose | blockdiag(H_lm)],
+    P the joint covariance of [pose, landmarks] (block-diagonal unless ``joint_cov`` is given).
+    """
+    noise = request.noise
+    if request.predicted is not None:
+        predicted, covs = request.predicted, request.innovation_covs
+        n = predicted.shape[0]
+        if request.joint_cov is not None:
+            return predicted, covs, lambda: request.joint_cov.reshape(n, 2, n, 2).transpose(0, 2, 1, 3)
+
+        def diagonal() -> np.ndarray:
+            blocks = np.zeros((n, n, 2, 2))
+            blocks[np.arange(n), np.arange(n)] = covs - noise
+            return blocks
+
+        return predicted, covs, diagonal
+    sensor = RangeBearingSensor(tuple(request.sensor_offset))
+    landmarks = request.landmarks
+    n = landmarks.shape[0]
+    predicted = sensor.observe(request.pose, landmarks)
+    h_pose, h_lm = sensor.jacobians(request.pose, landmarks)
+    if request.joint_cov is not None:
+        p = request.joint_cov
+        p_pp, p_pl = p[:3, :3], p[:3, 3:].reshape(3, n, 2).transpose(1, 0, 2)  # (n, 3, 2)
+        p_ll = p[3:, 3:].reshape(n, 2, n, 2).transpose(0, 2, 1, 3)
+    else:
+        p_pp = request.pose_cov if request.pose_cov is not None else np.zeros((3, 3))
+        p_pl = np.zeros((n, 3, 2))
+        p_ll = None
+    p_ll_diag = p_ll[np.arange(n), np.arange(n)] if p_ll is not None else request.landmark_covs
+    cross = np.einsum("iab,ibc,idc->iad", h_pose, p_pl, h_lm)
+    covs = (np.einsum("iab,bc,idc->iad", h_pose, p_pp, h_pose) + cross + np.swapaxes(cross, -1, -2)
+            + h_lm @ p_ll_diag @ np.swapaxes(h_lm, -1, -2) + noise)
+
+    def joint() -> np.ndarray:
+        blocks = np.einsum("iab,bc,jdc->ijad", h_pose, p_pp, h_pose)
+        cross = np.einsum("iab,jbc,jdc->ijad", h_pose, p_pl, h_lm)
+        blocks += cross + np.swapaxes(cross, 0, 1).swapaxes(-1, -2)
+        if p_ll is not None:
+            blocks += np.einsum("iab,ijbc,jdc->ijad", h_lm, p_ll, h_lm)
+        else:
+            blocks[np.arange(n), np.arange(n)] += h_lm @ p_ll_diag @ np.swapaxes(h_lm, -1, -2)
+        return blocks
+
+    return predicted, covs, joint
+
+
+def build_problem(request: AssociationRequest) -> Problem:
+    """Innovations, NIS, gate and costs of every (measurement, landmark) pair (steps 1-4)."""
+    predicted, covs, blocks = _predict(request)
+    inverse, logdet = _inverse_and_logdet(covs) if covs.shape[0] else (np.zeros((0, 2, 2)), np.zeros(0))
+    z = request.measurements
+    innovations = z[:, None, :] - predicted[None, :, :]
+    innovations[..., 1] = wrap_angle(innovations[..., 1])
+    v0, v1 = innovations[..., 0], innovations[..., 1]
+    nis = inverse[:, 0, 0] * v0 * v0 + 2.0 * inverse[:, 0, 1] * v0 * v1 + inverse[:, 1, 1] * v1 * v1
+    gate = solvers.gate_value(request.gate_probability, 2)
+    p_d = request.detection_probability
+    log_ratio = math.log(request.clutter_density + request.new_feature_density) - math.log(p_d / (1.0 - p_d))
+    cost = np.where(nis <= gate, 0.5 * nis + 0.5 * logdet[None, :] + log_ratio, np.inf)
+    return Problem(
+        innovations=innovations, nis=nis, cost=cost, innovation_covs=covs, noise=request.noise,
+        blocks=blocks, new_feature_gate=solvers.gate_value(request.new_feature_gate_probability, 2),
+    )
+
+
+def split_components(gated: np.ndarray) -> tuple[tuple[np.ndarray, np.ndarray], list[tuple[np.ndarray, np.ndarray]]]:
+    """Split the gate graph: (isolated pairs (rows, cols), [(rows, cols) of each larger component]).
+
+    An isolated pair is a measurement with one gated landmark that no other
+    measurement gates; every other connected component of the bipartite gate
+    graph is returned as its measurement and landmark indices (found by
+    propagating the smallest measurement index along the edges).
+    """
+    row_degree, col_degree = gated.sum(1), gated.sum(0)
+    isolated = gated & (row_degree[:, None] == 1) & (col_degree[None, :] == 1)
+    single_rows, single_cols = np.nonzero(isolated)
+    rows, cols = np.nonzero(gated & ~isolated)
+    if rows.size == 0:
+        return (single_rows, single_cols), []
+    row_label = np.arange(gated.shape[0])
+    while True:
+        col_label = np.full(gated.shape[1], gated.shape[0])
+        np.minimum.at(col_label, cols, row_label[rows])
+        updated = row_label.copy()
+        np.minimum.at(updated, rows, col_label[cols])
+        if np.array_equal(updated, row_label):
+            break
+        row_label = updated
+    comp_rows, comp_cols = np.unique(rows), np.unique(cols)
+    comp_rows = comp_rows[np.argsort(row_label[comp_rows], kind="stable")]
+    comp_cols = comp_cols[np.argsort(col_label[comp_cols], kind="stable")]
+    row_cuts = np.flatnonzero(np.diff(row_label[comp_rows])) + 1
+    col_cuts = np.flatnonzero(np.diff(col_label[comp_cols])) + 1
+    return (single_rows, single_cols), list(zip(np.split(comp_rows, row_cuts), np.split(comp_cols, col_cuts)))
+
+
+def _by_components(problem: Problem, method: str, tie_margin: float) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Solve ``exact`` or ``ihgr`` on the gate graph's components; isolated pairs are taken when c < 0.
+
+    IHGR solves one LP per component. The exact solver gives every component
+    to one ``linear_sum_assignment`` call on their union: the optimum is the
+    same (the problem is separable) and the C solver copes with the block
+    structure faster than a Python loop over components.
+    """
+    (single_rows, single_cols), components = split_components(problem.gated)
+    take = problem.cost[single_rows, single_cols] < 0.0
+    rows, cols = [single_rows[take]], [single_cols[take]]
+    info = {"components": len(components), "lp_objective": float(np.minimum(problem.cost[single_rows, single_cols], 0).sum()), "lp_solves": 0}
+    if method == "exact" and components:
+        union_rows = np.concatenate([r for r, _ in components])
+        union_cols = np.concatenate([c for _, c in components])
+        r, c = solvers.solve_exact(problem.cost[np.ix_(union_rows, union_cols)])
+        rows.append(union_rows[r])
+        cols.append(union_cols[c])
+    elif method == "ihgr":
+        for comp_rows, comp_cols in components:
+            result = solvers.solve_ihgr(problem.cost[np.ix_(comp_rows, comp_cols)], tie_margin=tie_margin)
+            info["lp_objective"] += result.lp_objective
+            info["lp_solves"] += result.lp_solves
+            rows.append(comp_rows[result.rows])
+            cols.append(comp_cols[result.cols])
+    return np.concatenate(rows).astype(np.int64), np.concatenate(cols).astype(np.int64), info
+
+
+def solve(problem: Problem, method: str, request: AssociationRequest) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Run one concrete method on a built problem: (rows, cols, extra reply fields)."""
+    if method == "nn":
+        rows, cols = solvers.solve_nn(problem.nis, problem.cost)
+        return rows, cols, {}
+    if method == "greedy":
+        rows, cols = solvers.solve_greedy(problem.nis, problem.cost)
+        return rows, cols, {}
+    if method in ("exact", "ihgr"):
+        return _by_components(problem, method, request.ihgr_tie_margin)
+    if method == "jcbb":
+        result = solvers.solve_jcbb(
+            problem.innovations, problem.gated, problem.nis, problem.joint_blocks, problem.noise,
+            request.gate_probability, request.jcbb_max_nodes,
+        )
+        return result.rows, result.cols, {"joint_nis": result.joint_nis, "truncated": result.truncated}
+    raise AssociationError("unknown_method", f"{method!r}; choose from nn, greedy, ihgr, exact, jcbb, auto")
+
+
+def choose_method(request: AssociationRequest, problem: Problem) -> str:
+    """``auto``: JCBB when correlations are known and few measurements are gated, else the exact solver."""
+    correlated = request.joint_cov is not None or (request.landmarks is not None and request.pose_cov is not None)
+    gated_measurements = int(problem.gated.any(1).sum())
+    return "jcbb" if correlated and gated_measurements <= request.auto_jcbb_max_measurements else "exact"
+
+
+def associate(request: AssociationRequest, method: str = "auto") -> AssociationReply:
+    """Associate one scan by ``method`` (nn, greedy, ihgr, exact, jcbb or auto) and build the reply."""
+    started = time.perf_counter()
+    problem = build_problem(request)
+    concrete = choose_method(request, problem) if method == "auto" else method
+    rows, cols, extra = solve(problem, concrete, request)
+    m, n = problem.cost.shape
+    assignment = np.full(m, CLUTTER, np.int64)
+    assignment[rows] = cols
+    unassigned = assignment == CLUTTER
+    if request.new_feature_density > 0:
+        far = np.all(problem.nis > problem.new_feature_gate, axis=1) if n else np.ones(m, bool)
+        assignment[unassigned & far] = NEW
+    missed = np.ones(n, bool)
+    missed[cols] = False
+    cost = float(problem.cost[rows, cols].sum())
+    if "lp_objective" in extra and concrete == "ihgr":
+        extra["gap"] = max(0.0, cost - extra["lp_objective"])
+    else:
+        extra.pop("lp_objective", None)
+    return AssociationReply(
+        request_id=request.request_id, method=concrete, assignment=assignment, missed=missed, cost=cost,
+        solve_time_ms=(time.perf_counter() - started) * 1e3, gated_pairs=int(problem.gated.sum()), **extra,
+    )

@@ -1,0 +1,302 @@
+"""Assignment solvers for one scan (paper 000 §III, Neira & Tardós 2001).
+
+Every solver works on a cost matrix ``cost`` (M, N) of pair costs c_nm with
+``+inf`` for pairs outside the gate; the cost of leaving a measurement
+unassigned or a landmark missed is 0 (the dummy, already folded into c_nm by
+:mod:`services.association.core`). A solver returns the chosen pairs as two
+index arrays ``(rows, cols)`` (measurement, landmark).
+
+- :func:`solve_nn`: nearest neighbour per measurement (smallest Mahalanobis
+  distance among gated landmarks; several measurements may take one landmark).
+- :func:`solve_greedy`: greedy global nearest neighbour (smallest distance
+  first, each measurement and landmark used once).
+- :func:`solve_ihgr`: the paper's LP relaxation with iterative heuristic greedy
+  rounding (IHGR).
+- :func:`solve_exact`: the optimum of eqs. 6-8 by ``linear_sum_assignment`` on
+  the dummy-augmented square matrix.
+- :func:`solve_jcbb`: joint compatibility branch and bound (maximum number of
+  jointly compatible pairings, then smallest joint NIS).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from functools import lru_cache
+from typing import Callable
+
+import numpy as np
+from scipy import sparse
+from scipy.optimize import linear_sum_assignment, linprog
+from scipy.stats import chi2
+
+Pairs = tuple[np.ndarray, np.ndarray]
+LpSolver = Callable[[np.ndarray, np.ndarray, np.ndarray, int, int], tuple[np.ndarray, float]]
+
+_EMPTY = np.zeros(0, np.int64)
+
+
+@lru_cache(maxsize=256)
+def gate_value(probability: float, dof: int) -> float:
+    """The chi-square gate ε with P(τ ≤ ε) = ``probability`` for ``dof`` degrees of freedom (9.21 for 0.99, 2 dof)."""
+    return float(chi2.ppf(probability, dof))
+
+
+def solve_nn(nis: np.ndarray, cost: np.ndarray) -> Pairs:
+    """Per measurement, the gated landmark of smallest NIS, kept if its cost beats the dummy (c < 0)."""
+    if nis.size == 0:
+        return _EMPTY, _EMPTY
+    distance = np.where(np.isfinite(cost), nis, np.inf)
+    best = np.argmin(distance, axis=1)
+    rows = np.arange(nis.shape[0])
+    keep = cost[rows, best] < 0.0
+    return rows[keep], best[keep]
+
+
+def solve_greedy(nis: np.ndarray, cost: np.ndarray) -> Pairs:
+    """Global greedy nearest neighbour: take gated pairs by increasing NIS while both ends are free."""
+    rows, cols = np.nonzero(np.isfinite(cost) & (cost < 0.0))
+    order = np.argsort(nis[rows, cols], kind="stable")
+    used_rows, used_cols, chosen = set(), set(), []
+    for k in order:
+        r, c = int(rows[k]), int(cols[k])
+        if r not in used_rows and c not in used_cols:
+            used_rows.add(r)
+            used_cols.add(c)
+            chosen.append(k)
+    chosen = np.asarray(chosen, np.int64)
+    return (rows[chosen], cols[chosen]) if chosen.size else (_EMPTY, _EMPTY)
+
+
+def solve_exact(cost: np.ndarray) -> Pairs:
+    """Optimum of eqs. 6-8: ``linear_sum_assignment`` on the (M+N)×(N+M) dummy-augmented matrix.
+
+    Row m < M may take landmark column n (cost c_nm) or its own dummy column
+    N+m (cost 0); dummy row M+n may take landmark column n (landmark n missed,
+    cost 0) or any dummy column (cost 0).
+    """
+    m, n = cost.shape
+    if m == 0 or n == 0:
+        return _EMPTY, _EMPTY
+    big = np.full((m + n, n + m), np.inf)
+    big[:m, :n] = cost
+    big[np.arange(m), n + np.arange(m)] = 0.0
+    big[m + np.arange(n), np.arange(n)] = 0.0
+    big[m:, n:] = 0.0
+    rows, cols = linear_sum_assignment(big)
+    keep = (rows < m) & (cols < n)
+    return rows[keep].astype(np.int64), cols[keep].astype(np.int64)
+
+
+def lp_relaxation(weights: np.ndarray, rows: np.ndarray, cols: np.ndarray, n_rows: int, n_cols: int) -> tuple[np.ndarray, float]:
+    """Solve the LP relaxation of eqs. 6-8 over the pairs (rows[e], cols[e]) with HiGHS.
+
+    min Σ w_e x_e  s.t.  Σ_{e ∋ m} x_e ≤ 1,  Σ_{e ∋ n} x_e ≤ 1,  0 ≤ x ≤ 1
+    (the slack of each inequality is the dummy variable x_0m or x_n0, cost 0).
+    When every pair shares one measurement or one landmark, a single constraint
+    couples them and the optimum is in closed form (the cheapest negative pair).
+    """
+    e = weights.shape[0]
+    if e and (np.all(rows == rows[0]) or np.all(cols == cols[0])):
+        x = np.zeros(e)
+        best = int(np.argmin(weights))
+        x[best] = float(weights[best] < 0.0)
+        return x, min(float(weights[best]), 0.0)
+    index = np.arange(e)
+    a_ub = sparse.csr_matrix(
+        (np.ones(2 * e), (np.concatenate([rows, n_rows + cols]), np.concatenate([index, index]))),
+        shape=(n_rows + n_cols, e),
+    )
+    result = linprog(weights, A_ub=a_ub, b_ub=np.ones(n_rows + n_cols), bounds=(0.0, 1.0), method="highs")
+    if result.status != 0:
+        raise RuntimeError(f"IHGR: the LP relaxation failed ({result.message})")
+    return np.clip(result.x, 0.0, 1.0), float(result.fun)
+
+
+@dataclass
+class IhgrResult:
+    rows: np.ndarray
+    cols: np.ndarray
+    lp_objective: float  # optimum of the first LP (a lower bound on the IP optimum)
+    lp_solves: int
+
+
+def _best_matching(weights: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> list[int]:
+    """Enumerate every matching among the given pairs; return the indices of the cheapest (ties: first found)."""
+    best_cost, best = 0.0, []
+    order = np.argsort(rows, kind="stable")
+
+    def extend(k: int, used_r: frozenset, used_c: frozenset, total: float, chosen: list[int]) -> None:
+        nonlocal best_cost, best
+        if k == order.size:
+            if total < best_cost:
+                best_cost, best = total, list(chosen)
+            return
+        e = int(order[k])
+        if rows[e] not in used_r and cols[e] not in used_c:
+            extend(k + 1, used_r | {rows[e]}, used_c | {cols[e]}, total + weights[e], chosen + [e])
+        extend(k + 1, used_r, used_c, total, chosen)
+
+    extend(0, frozenset(), frozenset(), 0.0, [])
+    return best
+
+
+def solve_ihgr(
+    cost: np.ndarray,
+    tie_margin: float = 0.05,
+    tolerance: float = 1e-6,
+    max_tie_pairs: int = 16,
+    lp: LpSolver = lp_relaxation,
+) -> IhgrResult:
+    """Paper 000 §III-B: LP relaxation, then iterative heuristic greedy rounding.
+
+    Solve the LP; fix every variable at 1 and delete its row and column (with
+    the variables they implicate). While fractional variables remain: set the
+    largest to 1 (if the runner-up is within ``tie_margin`` of it, a tie:
+    enumerate every combination of the tied variables and fix the cheapest),
+    delete its row and column, and solve the LP of what is left. The
+    single-scan LP is totally unimodular, so HiGHS' vertex optimum is already
+    integral and the loop usually ends after one LP; ``lp`` can be replaced
+    (tests inject fractional optima to exercise the rounding).
+    """
+    n_rows, n_cols = cost.shape
+    pair_rows, pair_cols = np.nonzero(np.isfinite(cost))
+    weights = cost[pair_rows, pair_cols]
+    active = np.ones(weights.shape[0], bool)
+    fixed: list[int] = []
+    if weights.size == 0:
+        return IhgrResult(_EMPTY, _EMPTY, 0.0, 0)
+
+    def fix(indices) -> None:
+        for e in indices:
+            fixed.append(int(e))
+        hit_rows, hit_cols = pair_rows[list(indices)], pair_cols[list(indices)]
+        active[np.isin(pair_rows, hit_rows) | np.isin(pair_cols, hit_cols)] = False
+
+    x, lp_objective = lp(weights, pair_rows, pair_cols, n_rows, n_cols)
+    solves = 1
+    values = np.zeros(weights.shape[0])
+    values[:] = x
+    while True:
+        ones = np.flatnonzero(active & (values > 1.0 - tolerance))
+        if ones.size:
+            fix(ones)
+        fractional = np.flatnonzero(active & (values > tolerance))
+        if fractional.size == 0:
+            break
+        ranked = fractional[np.argsort(-values[fractional], kind="stable")]
+        top = values[ranked[0]]
+        tied = ranked[values[ranked] > top - tie_margin]
+        if tied.size > 1 and tied.size <= max_tie_pairs:
+            chosen = [int(tied[k]) for k in _best_matching(weights[tied], pair_rows[tied], pair_cols[tied])]
+            if chosen:
+                fix(chosen)
+            else:
+                active[tied] = False
+        else:
+            fix([int(ranked[0])])
+        remaining = np.flatnonzero(active)
+        if remaining.size == 0:
+            break
+        x, _ = lp(weights[remaining], pair_rows[remaining], pair_cols[remaining], n_rows, n_cols)
+        solves += 1
+        values[:] = 0.0
+        values[remaining] = x
+    fixed_array = np.asarray(fixed, np.int64)
+    return IhgrResult(pair_rows[fixed_array].astype(np.int64), pair_cols[fixed_array].astype(np.int64), lp_objective, solves)
+
+
+def _inverse_cholesky_2x2(s: np.ndarray) -> np.ndarray | None:
+    """L⁻¹ for the lower Cholesky factor L of a 2 × 2 matrix; None unless positive definite."""
+    if s[0, 0] <= 0.0:
+        return None
+    l11 = math.sqrt(s[0, 0])
+    l21 = s[1, 0] / l11
+    rest = s[1, 1] - l21 * l21
+    if rest <= 0.0:
+        return None
+    l22 = math.sqrt(rest)
+    return np.array([[1.0 / l11, 0.0], [-l21 / (l11 * l22), 1.0 / l22]])
+
+
+@dataclass
+class JcbbResult:
+    rows: np.ndarray
+    cols: np.ndarray
+    joint_nis: float
+    truncated: bool
+    nodes: int
+
+
+def solve_jcbb(
+    innovations: np.ndarray,
+    gated: np.ndarray,
+    nis: np.ndarray,
+    joint_blocks: np.ndarray,
+    noise: np.ndarray,
+    probability: float,
+    max_nodes: int = 200_000,
+) -> JcbbResult:
+    """Joint compatibility branch and bound (Neira & Tardós 2001).
+
+    Searches the interpretation tree measurement by measurement for the
+    hypothesis H with the most pairings whose joint innovation ν_H passes
+    ν_Hᵀ S_H⁻¹ ν_H ≤ χ²(2|H|) with S_H = C_H + blockdiag(R) (``joint_blocks``
+    (N, N, 2, 2) are the blocks of C, the joint covariance of the predicted
+    observations); ties go to the smaller joint NIS. The joint NIS is grown
+    incrementally with the inverse L⁻¹ of the Cholesky factor of S_H (a 2 × 2
+    Schur complement per new pair). Measurements are visited
+    fewest candidates first; a branch stops once it cannot beat the best
+    pairings found. ``max_nodes`` bounds the search (``truncated`` then).
+    """
+    m_count = innovations.shape[0]
+    candidates = [np.flatnonzero(gated[m])[np.argsort(nis[m, gated[m]], kind="stable")] for m in range(m_count)]
+    order = [m for m in sorted(range(m_count), key=lambda m: len(candidates[m])) if candidates[m].size]
+    if not order:
+        return JcbbResult(_EMPTY, _EMPTY, 0.0, False, 0)
+    bounds = [gate_value(probability, 2 * k) for k in range(1, len(order) + 1)]
+    best = {"pairs": [], "d2": np.inf}
+    nodes = 0
+    truncated = False
+
+    def search(depth: int, pairs: list[tuple[int, int]], inv_chol: np.ndarray, white: np.ndarray, d2: float) -> None:
+        nonlocal nodes, truncated
+        nodes += 1
+        if nodes > max_nodes:
+            truncated = True
+            return
+        if depth == len(order):
+            if len(pairs) > len(best["pairs"]) or (len(pairs) == len(best["pairs"]) and d2 < best["d2"]):
+                best["pairs"], best["d2"] = list(pairs), d2
+            return
+        m = order[depth]
+        features = [n for _, n in pairs]
+        for n in candidates[m]:
+            if n in features:
+                continue
+            b = inv_chol @ joint_blocks[features, n].reshape(-1, 2)  # L⁻¹ C_{H,n}
+            schur = joint_blocks[n, n] + noise - b.T @ b
+            residual = innovations[m, n] - b.T @ white
+            inv_lower = _inverse_cholesky_2x2(schur)
+            if inv_lower is None:
+                continue
+            u = inv_lower @ residual
+            d2_new = d2 + float(u @ u)
+            if d2_new > bounds[len(pairs)]:
+                continue
+            k = inv_chol.shape[0]
+            grown = np.zeros((k + 2, k + 2))
+            grown[:k, :k] = inv_chol
+            grown[k:, :k] = -inv_lower @ b.T @ inv_chol
+            grown[k:, k:] = inv_lower
+            search(depth + 1, pairs + [(m, int(n))], grown, np.concatenate([white, u]), d2_new)
+            if truncated:
+                return
+        if len(pairs) + len(order) - depth - 1 >= len(best["pairs"]):
+            search(depth + 1, pairs, inv_chol, white, d2)
+
+    search(0, [], np.zeros((0, 0)), np.zeros(0), 0.0)
+    pairs = best["pairs"]
+    rows = np.asarray([p[0] for p in pairs], np.int64)
+    cols = np.asarray([p[1] for p in pairs], np.int64)
+    return JcbbResult(rows, cols, float(best["d2"]) if pairs else 0.0, truncated, nodes)

@@ -1,0 +1,438 @@
+"""The D-SLAM estimator (paper 003): one shared static map, a 3-dof localisation per robot.
+
+Per scan of a robot:
+
+1. Association: known ids, or one call of the association entry point
+   (:func:`services.association.associate`, or the queryable in the service)
+   on the landmarks and tentative features near the robot.
+2. Localisation (phase II): the process-model estimate and the estimate from
+   the mapped landmarks seen, combined by covariance intersection
+   (:mod:`services.dslam.localization`). A robot whose start pose is unknown
+   is placed once it sees two mapped landmarks (ids needed then).
+3. Mapping.
+   Phase I (robot still at its known start pose): the raw observations give
+   absolute positions with the joint covariance of the start pose and the
+   noise. Phase II: with at least two mapped landmarks in the scan, the scan is
+   recast into z_map (eq. 3) around the best-conditioned reference pair, new
+   features are initialised by eq. 9 and the map updated by eq. 10. z_map is
+   free of any robot frame, so every robot's scans update the one map.
+4. Recovery of the mean by warm-started PCG.
+
+Features are first *tentative* (counted sightings, dropped after misses in
+view) and enter the map once confirmed (§3.1); sightings from the known
+start pose are kept and applied on confirmation.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import Counter
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+import scipy.linalg
+
+from robots.dataset import OdomEvent, ScanEvent
+from robots.models import RangeBearingSensor, in_field_of_view, motion_model
+from schemas.association import NEW, AssociationReply, AssociationRequest
+from schemas.config import DslamFilterSettings
+from schemas.messages import RobotInfo
+from services.dslam.information_filter import InformationMap, block_rows
+from services.dslam.localization import localise, observation_estimate, pose_from_points, predict
+from services.dslam.recast import scan_points
+from services.estimator import MapView, RunOptions
+
+MAPPED, TENTATIVE, FRESH, CLUTTER = 0, 1, 2, 3
+
+Associator = Callable[[AssociationRequest, str], AssociationReply]
+
+
+def in_process_associate(request: AssociationRequest, method: str) -> AssociationReply:
+    """The association entry point of :mod:`services.association`, called in this process."""
+    from services.association.core import associate
+
+    return associate(request, method)
+
+
+@dataclass
+class Tentative:
+    """A feature seen but not yet in the map."""
+
+    key: int
+    position: np.ndarray  # (2,) world estimate (NaN when seen by an unlocalised robot)
+    cov: np.ndarray  # (2, 2)
+    hits: int = 1
+    misses: int = 0
+    phase_one: list[tuple[np.ndarray, np.ndarray]] = field(default_factory=list)  # (position, cov) from a known pose
+
+
+@dataclass
+class RobotTrack:
+    """One robot's localisation state."""
+
+    info: RobotInfo
+    pose: np.ndarray | None
+    cov: np.ndarray | None
+    moved: bool = False
+    stamp: float = float("-inf")
+    omega: float = float("nan")
+    observed: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    streams: set = field(default_factory=set)
+
+    def __post_init__(self) -> None:
+        self.model = motion_model(self.info.motion_model, self.info.wheelbase or 2.83, self.info.encoder_offset)
+        self.sensor = RangeBearingSensor(tuple(float(v) for v in self.info.sensor.offset))
+
+    @property
+    def known_start(self) -> bool:
+        return self.info.start_pose is not None
+
+    def check_start(self, stream: str, seq: int) -> bool:
+        """False when a stream's first message is not its first (seq > 0): the start was missed, the pose is unknown."""
+        if stream in self.streams:
+            return True
+        self.streams.add(stream)
+        if seq > 0 and self.pose is not None and not self.moved:
+            self.pose = self.cov = None
+            return False
+        return True
+
+    @property
+    def phase_one(self) -> bool:
+        """Still at its known start pose: raw observations map directly (phase I)."""
+        return self.known_start and not self.moved and self.pose is not None
+
+
+class DSlam:
+    """The D-SLAM map of every robot, with each robot's localisation (implements the Estimator protocol)."""
+
+    def __init__(self, settings: DslamFilterSettings | None = None, associator: Associator | None = None,
+                 record: bool = False):
+        self.settings = settings or DslamFilterSettings()
+        s = self.settings
+        self.map = InformationMap(s.recovery_tol, s.recovery_max_iter, s.column_tol, s.column_max_iter, s.column_cache)
+        self.associator = associator or in_process_associate
+        self.ids: list[int] = []
+        self.index_of: dict[int, int] = {}
+        self.tentative: dict[int, Tentative] = {}
+        self.robots: dict[str, RobotTrack] = {}
+        self.counts: Counter = Counter()
+        self.last_step_ms = 0.0
+        self._next_key = 0
+        self.measurements: list[tuple] | None = [] if record else None
+
+    # ----------------------------------------------------------------- robots
+    def add_robot(self, info: RobotInfo) -> None:
+        pose = None if info.start_pose is None else np.asarray(info.start_pose, float).copy()
+        cov = None
+        if pose is not None:
+            cov = np.diag([1e-9, 1e-9, 1e-12]) if info.start_pose_cov is None else np.asarray(info.start_pose_cov, float)
+        self.robots[info.robot_id] = RobotTrack(info, pose, cov)
+
+    def on_odometry(self, event: OdomEvent) -> None:
+        robot = self.robots.get(event.robot_id)
+        if robot is None:
+            self.counts["unknown_robot"] += 1
+            return
+        if not robot.check_start("odom", event.seq):
+            self.counts["missed_start"] += 1
+        if np.any(np.asarray(event.control) != 0.0):
+            robot.moved = True
+        if robot.pose is None:
+            return
+        robot.pose, robot.cov = predict(robot.pose, robot.cov, robot.model, event.control, event.control_cov, event.dt)
+        robot.stamp = event.stamp
+
+    def poses(self) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+        return {rid: (r.pose.copy(), r.cov.copy()) for rid, r in self.robots.items() if r.pose is not None}
+
+    # ------------------------------------------------------------------ scans
+    def on_scan(self, event: ScanEvent) -> None:
+        started = time.perf_counter()
+        robot = self.robots.get(event.robot_id)
+        if robot is None:
+            self.counts["unknown_robot"] += 1
+            return
+        if not robot.check_start("scan", event.seq):
+            self.counts["missed_start"] += 1
+        spec = robot.info.sensor
+        obs = event.observations
+        keep = np.all(np.isfinite(obs), axis=1) & (obs[:, 0] > 1e-6) & (obs[:, 0] <= 2.0 * spec.max_range)
+        if not keep.all():
+            self.counts["bad_observations"] += int((~keep).sum())
+        obs = obs[keep]
+        ids = None if event.landmark_ids is None else np.asarray(event.landmark_ids)[keep]
+        noise = np.asarray(event.noise_cov, float)
+        robot.stamp = event.stamp
+        self.counts["scans"] += 1
+        labels = self._associate(robot, obs, noise, ids)
+        if labels is None:
+            self.counts["scans_unassociated"] += 1
+            return
+        kinds, refs = labels
+        phase_one = robot.phase_one
+        mapped = np.flatnonzero(kinds == MAPPED)
+        robot.observed = refs[mapped]
+        if not phase_one:
+            self._localise(robot, obs[mapped], noise, refs[mapped])
+        confirmed = self._bookkeep(robot, obs, noise, kinds, refs, phase_one)
+        mapped = np.flatnonzero(kinds == MAPPED)
+        if phase_one:
+            self._map_phase_one(robot, obs, noise, kinds, refs, confirmed)
+        else:
+            self._map_phase_two(obs, noise, kinds, refs, mapped, confirmed)
+        self.map.recover()
+        self.last_step_ms = (time.perf_counter() - started) * 1e3
+
+    # ------------------------------------------------------------ association
+    def _associate(self, robot: RobotTrack, obs: np.ndarray, noise: np.ndarray, ids: np.ndarray | None):
+        """(kinds (n,), refs (n,)): map index, tentative key, new key or -1 per observation; None if impossible.
+
+        Measurements that claim the same feature (per-measurement NN can do that)
+        are all set aside: z_map needs distinct features.
+        """
+        n = obs.shape[0]
+        kinds = np.full(n, CLUTTER, np.int64)
+        refs = np.full(n, -1, np.int64)
+        if self.settings.association == "known" and ids is not None:
+            for k, lm in enumerate(ids.tolist()):
+                if lm < 0:
+                    continue
+                if lm in self.index_of:
+                    kinds[k], refs[k] = MAPPED, self.index_of[lm]
+                elif lm in self.tentative:
+                    kinds[k], refs[k] = TENTATIVE, lm
+                else:
+                    kinds[k], refs[k] = FRESH, lm
+            return kinds, refs
+        if self.settings.association == "known":
+            self.counts["scans_without_ids"] += 1
+        if robot.pose is None:
+            return None
+        method = "auto" if self.settings.association == "known" else self.settings.association
+        candidates, tentative_keys, request = self.association_request(robot, obs, noise)
+        if n == 0:
+            return kinds, refs
+        reply = self.associator(request, method)
+        assignment = np.asarray(reply.assignment, np.int64)
+        if assignment.shape != (n,):
+            self.counts["assoc_bad_reply"] += 1
+            return None
+        self.counts[f"assoc_{reply.method}"] += 1
+        n_map = candidates.shape[0]
+        for k, a in enumerate(assignment.tolist()):
+            if 0 <= a < n_map:
+                kinds[k], refs[k] = MAPPED, candidates[a]
+            elif n_map <= a < n_map + len(tentative_keys):
+                kinds[k], refs[k] = TENTATIVE, tentative_keys[a - n_map]
+            elif a == NEW:
+                kinds[k], refs[k] = FRESH, self._new_key()
+        claimed = (kinds == MAPPED) | (kinds == TENTATIVE)
+        keys, counts = np.unique(np.stack([kinds[claimed], refs[claimed]], -1), axis=0, return_counts=True)
+        for kind, ref in keys[counts > 1]:
+            shared = (kinds == kind) & (refs == ref)
+            kinds[shared], refs[shared] = CLUTTER, -1
+            self.counts["assoc_shared_landmark"] += int(shared.sum())
+        return kinds, refs
+
+    def _new_key(self) -> int:
+        while self._next_key in self.index_of or self._next_key in self.tentative:
+            self._next_key += 1
+        self._next_key += 1
+        return self._next_key - 1
+
+    def association_request(self, robot: RobotTrack, obs: np.ndarray, noise: np.ndarray):
+        """(candidate map indices, candidate tentative keys, AssociationRequest in landmark form) near the robot."""
+        spec = robot.info.sensor
+        reach = spec.max_range + self.settings.candidate_margin
+        position = robot.sensor.sensor_position(robot.pose)[0]
+        means = self.map.means
+        near = np.flatnonzero(np.sum((means - position) ** 2, axis=1) <= reach * reach) if self.map.n else np.zeros(0, np.int64)
+        covs = np.zeros((0, 2, 2))
+        if near.size:
+            columns = self.map.covariance_columns(near)
+            sub = columns[block_rows(near)].reshape(near.size, 2, near.size, 2)
+            covs = sub[np.arange(near.size), :, np.arange(near.size), :]
+        keys = [key for key, t in self.tentative.items()
+                if np.all(np.isfinite(t.position)) and np.sum((t.position - position) ** 2) <= reach * reach]
+        landmarks = np.vstack([means[near], *[self.tentative[k].position[None] for k in keys]]) if near.size or keys else np.zeros((0, 2))
+        landmark_covs = np.concatenate([covs, *[self.tentative[k].cov[None] for k in keys]]) if near.size or keys else covs
+        area = max(spec.max_range - spec.min_range, 1e-3) * spec.fov
+        s = self.settings
+        request = AssociationRequest(
+            measurements=obs.reshape(-1, 2), noise=noise, landmarks=landmarks.reshape(-1, 2),
+            landmark_covs=0.5 * (landmark_covs + np.swapaxes(landmark_covs, 1, 2)), pose=robot.pose,
+            pose_cov=0.5 * (robot.cov + robot.cov.T), sensor_offset=np.asarray(spec.offset, float),
+            gate_probability=s.gate_probability, new_feature_gate_probability=s.new_feature_gate_probability,
+            clutter_density=max(spec.clutter_rate / area, 1e-9), new_feature_density=s.new_feature_density,
+            detection_probability=min(max(spec.detection_probability, 1e-3), 1 - 1e-3),
+        )
+        return near, keys, request
+
+    # ----------------------------------------------------------- localisation
+    def _localise(self, robot: RobotTrack, obs: np.ndarray, noise: np.ndarray, index: np.ndarray) -> None:
+        """CI of the process-model estimate with the estimate from the mapped landmarks seen (§2.3)."""
+        if index.size == 0 or (robot.pose is None and index.size < 2):
+            return
+        landmarks = self.map.means[index]
+        joint = self.map.joint_covariance(index)
+        if robot.pose is None:
+            points, _ = scan_points(obs, noise)
+            guess = pose_from_points(points, landmarks, tuple(robot.sensor.offset))
+            estimate = observation_estimate(robot.sensor, guess, obs, noise, landmarks, joint)
+            if estimate.full_rank:
+                robot.pose = estimate.pose
+                robot.cov = scipy.linalg.inv(estimate.info)
+                self.counts["robots_placed"] += 1
+            return
+        estimate = observation_estimate(robot.sensor, robot.pose, obs, noise, landmarks, joint)
+        robot.pose, robot.cov, robot.omega = localise(robot.pose, robot.cov, estimate, self.settings.ci_criterion)
+
+    # ---------------------------------------------------------- feature lists
+    def _bookkeep(self, robot: RobotTrack, obs: np.ndarray, noise: np.ndarray, kinds: np.ndarray, refs: np.ndarray,
+                  phase_one: bool) -> list[int]:
+        """Count sightings and misses of tentative features; return the observations of features confirmed now.
+
+        Features with stored phase-I sightings enter the map here (kinds become
+        MAPPED); the others are returned to be added by this scan's update.
+        """
+        known = self.settings.association == "known"
+        need = 1 if known else self.settings.confirm_hits
+        located = robot.pose is not None
+        world = robot.sensor.inverse(robot.pose, obs) if located and obs.size else np.full(obs.shape, np.nan)
+        covs = self._world_covs(robot, obs, noise) if located and obs.size else np.full((obs.shape[0], 2, 2), np.nan)
+        confirmed = []
+        seen = set()
+        for k in np.flatnonzero((kinds == TENTATIVE) | (kinds == FRESH)).tolist():
+            key = int(refs[k])
+            t = self.tentative.get(key)
+            if t is None:
+                t = Tentative(key, world[k].copy(), covs[k].copy(), hits=0)
+                self.tentative[key] = t
+                kinds[k] = TENTATIVE
+            t.hits += 1
+            t.misses = 0
+            seen.add(key)
+            if located:
+                t.position, t.cov = world[k].copy(), covs[k].copy()
+            if t.hits < need:
+                if phase_one:
+                    t.phase_one.append((world[k].copy(), covs[k].copy()))
+                continue
+            if t.phase_one:
+                (first_position, first_cov), *later = t.phase_one
+                index = self.map.update_absolute([], np.zeros((0, 2)), first_position, first_cov)
+                self._register([key], index)
+                self._record("absolute", index, first_position, first_cov)
+                for position, cov in later:
+                    self.map.update_absolute(index, position, np.zeros((0, 2)), cov)
+                    self._record("absolute", index, position, cov)
+                kinds[k], refs[k] = MAPPED, int(index[0])
+            else:
+                confirmed.append(k)
+        if located:
+            self._count_misses(robot, seen)
+        return confirmed
+
+    def _count_misses(self, robot: RobotTrack, seen: set[int]) -> None:
+        spec = robot.info.sensor
+        for key in [key for key in self.tentative if key not in seen]:
+            t = self.tentative[key]
+            if not np.all(np.isfinite(t.position)):
+                continue
+            predicted = robot.sensor.observe(robot.pose, t.position)
+            if in_field_of_view(predicted, spec.max_range, spec.fov, spec.min_range):
+                t.misses += 1
+                if t.misses >= self.settings.tentative_misses:
+                    del self.tentative[key]
+                    self.counts["tentative_dropped"] += 1
+
+    def _world_covs(self, robot: RobotTrack, obs: np.ndarray, noise: np.ndarray) -> np.ndarray:
+        """Covariances (n, 2, 2) of the world positions of observations from the robot's pose."""
+        g_pose, g_obs = robot.sensor.inverse_jacobians(robot.pose, obs)
+        return g_obs @ noise @ np.swapaxes(g_obs, 1, 2) + g_pose @ robot.cov @ np.swapaxes(g_pose, 1, 2)
+
+    def _register(self, keys: list[int], index: np.ndarray) -> None:
+        """Give map indices to features: they leave the tentative list."""
+        for key, i in zip(keys, np.asarray(index).tolist()):
+            self.ids.append(int(key))
+            self.index_of[int(key)] = i
+            self.tentative.pop(int(key), None)
+
+    # ---------------------------------------------------------------- mapping
+    def _map_phase_one(self, robot: RobotTrack, obs, noise, kinds, refs, confirmed: list[int]) -> None:
+        """Phase I: positions from the known start pose, joint covariance of pose and noise."""
+        old_rows = np.flatnonzero(kinds == MAPPED)
+        rows = np.concatenate([old_rows, np.asarray(confirmed, np.int64)]).astype(np.int64)
+        if rows.size == 0:
+            return
+        positions = robot.sensor.inverse(robot.pose, obs[rows])
+        g_pose, g_obs = robot.sensor.inverse_jacobians(robot.pose, obs[rows])
+        g = g_pose.reshape(-1, 3)
+        cov = g @ robot.cov @ g.T + scipy.linalg.block_diag(*(g_obs @ noise @ np.swapaxes(g_obs, 1, 2)))
+        old = refs[old_rows]
+        added = self.map.update_absolute(old, positions[: old_rows.size], positions[old_rows.size:], cov)
+        self._register([int(refs[k]) for k in confirmed], added)
+        refs[confirmed] = added
+        kinds[confirmed] = MAPPED
+        self._record("absolute", np.concatenate([old, added]), positions, cov)
+        self.counts["phase_one_updates"] += 1
+
+    def _map_phase_two(self, obs, noise, kinds, refs, mapped: np.ndarray, confirmed: list[int]) -> None:
+        """Phase II: recast the scan into z_map around a reference pair and update by eq. 10."""
+        if mapped.size < 2:
+            if mapped.size or confirmed:
+                self.counts["scans_too_few_mapped"] += 1
+            return
+        done = self.map.update_scan(obs, noise, mapped, refs[mapped], np.asarray(confirmed, np.int64),
+                                    self.settings.min_reference_distance, self.settings.map_gate_probability)
+        if done is None:
+            self.counts["z_map_refused"] += 1
+            return
+        added, chain, z_map, r_map = done
+        self._register([int(refs[k]) for k in confirmed], added)
+        refs[confirmed] = added
+        kinds[confirmed] = MAPPED
+        self._record("recast", chain, z_map, r_map)
+        self.counts["phase_two_updates"] += 1
+
+    def _record(self, kind: str, index, z, cov) -> None:
+        if self.measurements is not None:
+            self.measurements.append((kind, np.asarray(index, np.int64).copy(), np.asarray(z, float).copy(),
+                                      np.asarray(cov, float).copy()))
+
+    # ------------------------------------------------------------------- maps
+    def landmark_map(self) -> MapView:
+        """Means, marginal covariances (exact up to ``marginals_limit`` landmarks) and ids of the map."""
+        means = self.map.means.copy()
+        if self.map.n <= self.settings.marginals_limit:
+            covs = self.map.all_marginals()
+        else:
+            covs = np.linalg.inv(self.map.matrix.diagonal_blocks())
+            cached, cached_covs = self.map.cached_marginals()
+            covs[cached] = cached_covs
+        ids = np.asarray(self.ids, np.int64) if self.settings.association == "known" else None
+        return MapView(means, covs, ids)
+
+    def stats(self) -> dict[str, float]:
+        """Figures for the service's stats: sparsity, recovery, timing, list sizes."""
+        return {
+            "landmarks": float(self.map.n),
+            "tentative": float(len(self.tentative)),
+            "info_nnz": float(self.map.matrix.nnz),
+            "recovery_iterations": float(self.map.recovery_iterations),
+            "column_iterations": float(self.map.column_iterations),
+            "step_ms": float(self.last_step_ms),
+            "memory_mb": self.map.memory_bytes() / 2**20,
+            **{k: float(v) for k, v in self.counts.items()},
+        }
+
+
+def make_estimator(options: RunOptions, infos: list[RobotInfo]) -> DSlam:
+    """The "dslam" estimator of :data:`services.estimator.ESTIMATORS` (settings from ``options.extra``)."""
+    settings = DslamFilterSettings(association=options.association, **options.extra)
+    estimator = DSlam(settings)
+    for info in infos:
+        estimator.add_robot(info)
+    return estimator

@@ -1,0 +1,588 @@
+"""The static extended information filter of D-SLAM (paper 003, §2.2 and §3.2-3.3).
+
+The state is the absolute landmark positions X = (x_1, y_1, ..., x_n, y_n)
+only. The information matrix I is exactly sparse: a 2×2 block (i, j) is
+non-zero only if landmarks i and j were observed together, because there is
+no prediction step. I is kept as a :class:`BlockSparseMatrix` (blocks in a
+dict-indexed array, a scipy CSR copy updated in place, and a small CSR of the
+blocks created since the last rebuild), and the information vector i beside it.
+
+- :meth:`InformationMap.update_scan` is phase II: z_map around a reference pair,
+  new features first placed by eq. 9 (:func:`services.dslam.recast.initialise`),
+  then eq. 10; :meth:`InformationMap.update_absolute` is phase I (positions
+  measured from the known start pose); both go through :meth:`InformationMap.update`.
+- Recovery: the mean and the covariance columns of the landmarks near the
+  robots follow each update by its rank-k correction (a warm start that is
+  exact for the linearised update), and PCG warm-started there checks the
+  mean against I X̂ = i; columns not cached are solved by block PCG. Never an inverse of I.
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from functools import lru_cache
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg
+from scipy.stats import chi2
+
+from services.dslam.recast import choose_reference, initialise, innovation, map_measurement, recast, scan_points
+
+
+@lru_cache(maxsize=256)
+def chi2_quantile(probability: float, dof: int) -> float:
+    return float(chi2.ppf(probability, dof))
+
+
+def block_rows(index: np.ndarray) -> np.ndarray:
+    """Scalar rows (2k,) of the landmarks ``index`` (k,): 2i, 2i+1, ..."""
+    index = np.asarray(index, np.int64)
+    return (2 * index[:, None] + np.arange(2)).ravel()
+
+
+def inverse_2x2(blocks: np.ndarray) -> np.ndarray:
+    """Closed-form inverses of a stack of 2×2 blocks (the block-Jacobi preconditioner)."""
+    a, b, c, d = blocks[:, 0, 0], blocks[:, 0, 1], blocks[:, 1, 0], blocks[:, 1, 1]
+    det = a * d - b * c
+    det = np.where(np.abs(det) > 0.0, det, 1.0)
+    out = np.empty_like(blocks)
+    out[:, 0, 0], out[:, 0, 1], out[:, 1, 0], out[:, 1, 1] = d / det, -b / det, -c / det, a / det
+    return out
+
+
+def block_pcg(matvec, precondition, rhs: np.ndarray, start: np.ndarray, tol: np.ndarray | float,
+              max_iter: int) -> tuple[np.ndarray, int]:
+    """Preconditioned conjugate gradients on every column of ``rhs`` at once.
+
+    Stops when, in every column, the preconditioned residual (the block-Jacobi
+    step) is at most ``tol`` (per column) in every entry, or after ``max_iter``
+    iterations. Returns the solution and the iterations run.
+    """
+    x = np.array(start, float, copy=True)
+    r = rhs - matvec(x)
+    z = precondition(r)
+    tol = np.broadcast_to(np.asarray(tol, float), z.shape[1:] if z.ndim > 1 else ())
+    iterations = 0
+    if np.all(np.max(np.abs(z), axis=0) <= tol):
+        return x, 0
+    p = z.copy()
+    rz = np.sum(r * z, axis=0)
+    for iterations in range(1, max_iter + 1):
+        ap = matvec(p)
+        pap = np.sum(p * ap, axis=0)
+        alpha = np.divide(rz, pap, out=np.zeros_like(rz), where=pap > 0)
+        x += alpha * p
+        r -= alpha * ap
+        z = precondition(r)
+        if np.all(np.max(np.abs(z), axis=0) <= tol):
+            break
+        rz_next = np.sum(r * z, axis=0)
+        beta = np.divide(rz_next, rz, out=np.zeros_like(rz), where=rz > 0)
+        p = z + beta * p
+        rz = rz_next
+    return x, iterations
+
+
+class BlockSparseMatrix:
+    """A symmetric matrix of 2×2 blocks over n landmarks (both (i, j) and (j, i) stored).
+
+    Blocks live in one growing array indexed by a dict (i, j) → slot. A CSR
+    copy of the blocks that existed at its last build is updated in place;
+    blocks created since then are multiplied through a small second CSR until
+    they are more than ``rebuild_fraction`` of the total, when the CSR is rebuilt
+    (amortised O(1) per new block).
+    """
+
+    def __init__(self, capacity: int = 256, rebuild_fraction: float = 0.1):
+        self.n = 0
+        self.rebuild_fraction = rebuild_fraction
+        self._slot: dict[tuple[int, int], int] = {}
+        self._rows = np.zeros(capacity, np.int64)
+        self._cols = np.zeros(capacity, np.int64)
+        self._data = np.zeros((capacity, 2, 2))
+        self._count = 0
+        self._diag = np.zeros(capacity, np.int64)
+        self._csr: sp.csr_matrix | None = None
+        self._pos = np.zeros((0, 4), np.int64)
+        self._built = 0
+        self._built_n = 0
+        self._pending: sp.csr_matrix | None = None
+
+    @property
+    def blocks(self) -> int:
+        return self._count
+
+    @property
+    def nnz(self) -> int:
+        """Stored scalar entries (4 per block)."""
+        return 4 * self._count
+
+    def _new_slot(self, i: int, j: int) -> int:
+        if self._count == self._rows.shape[0]:
+            grow = self._rows.shape[0]
+            self._rows = np.concatenate([self._rows, np.zeros(grow, np.int64)])
+            self._cols = np.concatenate([self._cols, np.zeros(grow, np.int64)])
+            self._data = np.concatenate([self._data, np.zeros((grow, 2, 2))])
+        slot = self._count
+        self._rows[slot], self._cols[slot] = i, j
+        self._slot[(i, j)] = slot
+        self._count += 1
+        self._pending = None
+        return slot
+
+    def grow(self, count: int) -> None:
+        """Add ``count`` landmarks with zero blocks."""
+        if self.n + count > self._diag.shape[0]:
+            self._diag = np.concatenate([self._diag, np.zeros(max(count, self._diag.shape[0]), np.int64)])
+        for i in range(self.n, self.n + count):
+            self._diag[i] = self._new_slot(i, i)
+        self.n += count
+
+    def add(self, index: np.ndarray, dense: np.ndarray) -> None:
+        """Add a dense symmetric (2m, 2m) matrix over the distinct landmarks ``index`` (m,)."""
+        idx = [int(i) for i in index]
+        m = len(idx)
+        blocks = np.asarray(dense, float).reshape(m, 2, m, 2).transpose(0, 2, 1, 3)
+        lookup = self._slot
+        slots = np.array([lookup.get((i, j)) if (i, j) in lookup else self._new_slot(i, j) for i in idx for j in idx],
+                         np.int64).reshape(m, m)
+        self._data[slots] += blocks
+        built = slots < self._built
+        if built.any():
+            self._csr.data[self._pos[slots[built]]] += blocks[built].reshape(-1, 4)
+        if not built.all():
+            self._pending = None
+
+    def diagonal_blocks(self) -> np.ndarray:
+        """The (n, 2, 2) diagonal blocks."""
+        return self._data[self._diag[: self.n]]
+
+    def block(self, i: int, j: int) -> np.ndarray:
+        slot = self._slot.get((i, j))
+        return np.zeros((2, 2)) if slot is None else self._data[slot].copy()
+
+    def _assemble(self, start: int, stop: int, n: int) -> tuple[sp.csr_matrix, np.ndarray]:
+        """CSR of the slots [start, stop) and, per slot, its 4 positions in the CSR data."""
+        rows, cols = self._rows[start:stop], self._cols[start:stop]
+        count = stop - start
+        order = np.lexsort((cols, rows))
+        r, c = rows[order], cols[order]
+        per_row = np.bincount(r, minlength=n)
+        first = np.concatenate([[0], np.cumsum(per_row)])[:-1]
+        rank = np.arange(count) - first[r]
+        indptr = np.concatenate([[0], np.cumsum(np.repeat(2 * per_row, 2))])
+        top = indptr[2 * r] + 2 * rank
+        bottom = indptr[2 * r + 1] + 2 * rank
+        positions = np.stack([top, top + 1, bottom, bottom + 1], -1)
+        indices = np.empty(4 * count, np.int64)
+        indices[positions] = np.stack([2 * c, 2 * c + 1, 2 * c, 2 * c + 1], -1)
+        data = np.empty(4 * count)
+        data[positions] = self._data[start:stop][order].reshape(-1, 4)
+        pos = np.empty((count, 4), np.int64)
+        pos[order] = positions
+        return sp.csr_matrix((data, indices, indptr), shape=(2 * n, 2 * n)), pos
+
+    def rebuild(self) -> None:
+        self._csr, self._pos = self._assemble(0, self._count, self.n)
+        self._built, self._built_n = self._count, self.n
+        self._pending = None
+
+    def prepare(self) -> None:
+        """Rebuild the CSR when the blocks created since the last build are too many."""
+        pending = self._count - self._built
+        if self._csr is None or pending > max(64, self.rebuild_fraction * self._built):
+            self.rebuild()
+
+    def matvec(self, x: np.ndarray) -> np.ndarray:
+        """I @ x for x of shape (2n,) or (2n, k)."""
+        if self._csr is None:
+            self.rebuild()
+        nb = 2 * self._built_n
+        y = np.zeros_like(x)
+        y[:nb] = self._csr @ x[:nb]
+        if self._count > self._built:
+            if self._pending is None or self._pending.shape[0] != 2 * self.n:
+                self._pending, _ = self._assemble(self._built, self._count, self.n)
+            y += self._pending @ x
+        return y
+
+    def tocsr(self) -> sp.csr_matrix:
+        self.rebuild()
+        return self._csr.copy()
+
+    def memory_bytes(self) -> int:
+        arrays = [self._rows, self._cols, self._data, self._diag, self._pos]
+        total = sum(a.nbytes for a in arrays) + 100 * len(self._slot)  # dict entries, roughly
+        for m in (self._csr, self._pending):
+            if m is not None:
+                total += m.data.nbytes + m.indices.nbytes + m.indptr.nbytes
+        return int(total)
+
+
+class ColumnCache:
+    """Covariance columns (2n, 2) of recently used landmarks, in one dense array, least recently used first out."""
+
+    def __init__(self, capacity: int):
+        self.capacity = capacity
+        self.slot: OrderedDict[int, int] = OrderedDict()
+        self.data = np.zeros((0, 0))
+        self._free: list[int] = []
+
+    def __contains__(self, landmark: int) -> bool:
+        return landmark in self.slot
+
+    def __len__(self) -> int:
+        return len(self.slot)
+
+    def columns(self, landmarks) -> np.ndarray:
+        """Array positions (2k,) of the columns of ``landmarks`` (all cached)."""
+        slots = np.array([self.slot[int(i)] for i in landmarks], np.int64)
+        return (2 * slots[:, None] + np.arange(2)).ravel()
+
+    def used(self) -> np.ndarray:
+        """Array positions of every cached column, in the order of ``self.slot``."""
+        return self.columns(list(self.slot))
+
+    def touch(self, landmarks) -> None:
+        for i in landmarks:
+            self.slot.move_to_end(int(i))
+
+    def resize_rows(self, rows: int) -> None:
+        """Make room for ``rows`` state rows (new landmarks get zero rows, filled by the caller)."""
+        if rows > self.data.shape[0]:
+            grown = np.zeros((max(rows, 2 * self.data.shape[0]), self.data.shape[1]))
+            grown[: self.data.shape[0]] = self.data
+            self.data = grown
+
+    def insert(self, landmark: int, column: np.ndarray) -> None:
+        """Store the (2n, 2) column of ``landmark`` (a free slot, or a new one)."""
+        if landmark in self.slot:
+            slot = self.slot[landmark]
+        elif self._free:
+            slot = self._free.pop()
+        else:
+            slot = self.data.shape[1] // 2
+            self.data = np.concatenate([self.data, np.zeros((self.data.shape[0], 2))], axis=1)
+        self.resize_rows(column.shape[0])
+        self.data[:, 2 * slot: 2 * slot + 2] = 0.0
+        self.data[: column.shape[0], 2 * slot: 2 * slot + 2] = column
+        self.slot[landmark] = slot
+        self.slot.move_to_end(landmark)
+
+    def evict(self, keep=()) -> None:
+        """Drop least recently used columns beyond the capacity (never those in ``keep``)."""
+        keep = {int(i) for i in keep}
+        for landmark in list(self.slot):
+            if len(self.slot) <= self.capacity:
+                break
+            if landmark not in keep:
+                self._free.append(self.slot.pop(landmark))
+
+
+class InformationMap:
+    """Information matrix, information vector and recovered mean of the absolute landmark map.
+
+    Recovery (§3.2-3.3). Each update needs the covariance columns of the old
+    landmarks it involves; they are kept in a :class:`ColumnCache`, and a column
+    not there is solved by block PCG from a warm start (the column of the
+    nearest cached landmark). With those columns, the rank-k correction of the
+    update gives the new mean and the new cached columns exactly (for the
+    linearised measurement); the mean is then checked against I X̂ = i by PCG
+    warm-started there, which usually stops at once. Nothing inverts I.
+    """
+
+    def __init__(self, tol: float = 1e-6, max_iter: int = 200, column_tol: float = 1e-6,
+                 column_max_iter: int = 300, cache_columns: int = 64):
+        self.matrix = BlockSparseMatrix()
+        self.vector = np.zeros(0)
+        self.mean = np.zeros(0)
+        self.tol = tol
+        self.max_iter = max_iter
+        self.column_tol = column_tol
+        self.column_max_iter = column_max_iter
+        self.cache = ColumnCache(cache_columns)
+        self.recovery_iterations = 0
+        self.column_iterations = 0
+        self.column_solves = 0
+        self.column_iterations_total = 0
+
+    @property
+    def n(self) -> int:
+        return self.matrix.n
+
+    @property
+    def means(self) -> np.ndarray:
+        """Current landmark estimates (n, 2) (a view of the recovered mean)."""
+        return self.mean.reshape(-1, 2)
+
+    # ---------------------------------------------------------------- updates
+    def update(self, old: np.ndarray, jacobian: np.ndarray, residual: np.ndarray, noise: np.ndarray,
+               new_positions: np.ndarray | None = None, gate: float | None = None) -> np.ndarray | None:
+        """EIF update (eq. 10) with a measurement over old landmarks and new features; returns the new indices.
+
+        ``jacobian`` (k, 2m_old + 2m_new) has its columns in the order [old..., new...]
+        and is evaluated at the current estimates of the old landmarks and at
+        ``new_positions`` (m_new, 2), the first estimates of the new features
+        (eq. 9); ``residual`` is z − h at that point (angles wrapped); ``noise`` the
+        measurement covariance. Each new feature must own exactly two rows of the
+        measurement (the rows that involve it), through an invertible 2×2 block.
+
+        I += ∇Hᵀ R⁻¹ ∇H and i += ∇Hᵀ R⁻¹ (ν + ∇H X̂); the mean and the cached
+        columns follow by the rank-k correction (see the class docstring).
+
+        With ``gate``, the update is refused (None returned, nothing changed) when
+        the joint NIS of the rows predicted by the map, νᵀ(∇H P ∇Hᵀ + R)⁻¹ν, exceeds
+        it: one wrong association among the reference features would distort
+        every row of z_map.
+        """
+        old = np.asarray(old, np.int64)
+        if np.unique(old).shape[0] != old.shape[0]:
+            raise ValueError("a landmark appears twice in one measurement")
+        new_positions = np.zeros((0, 2)) if new_positions is None else np.asarray(new_positions, float).reshape(-1, 2)
+        m_old, m_new = old.shape[0], new_positions.shape[0]
+        jacobian = np.asarray(jacobian, float)
+        residual = np.asarray(residual, float)
+        noise = np.asarray(noise, float)
+        split = 2 * m_old
+        new_rows = np.any(jacobian[:, split:] != 0.0, axis=1) if m_new else np.zeros(jacobian.shape[0], bool)
+        if int(new_rows.sum()) != 2 * m_new:
+            raise ValueError("each new feature must own exactly two measurement rows")
+        rows_old = block_rows(old)
+        linearised = np.concatenate([self.mean[rows_old], new_positions.ravel()])
+        if m_old:
+            self._ensure_columns(old)
+        old_rows = ~new_rows
+        a = jacobian[old_rows][:, :split]
+        delta = np.zeros(2 * self.n)
+        if m_old and old_rows.any():
+            delta = self._correct_old(old, a, residual[old_rows], noise[np.ix_(old_rows, old_rows)], gate)
+            if delta is None:
+                return None
+        added = np.zeros(0, np.int64)
+        if m_new:
+            added = self._add_new(old, a, jacobian[new_rows], residual, noise, new_rows, new_positions, delta)
+        chain = np.concatenate([old, added])
+        weighted = np.linalg.solve(noise, np.column_stack([jacobian, residual + jacobian @ linearised]))
+        product = jacobian.T @ weighted
+        self.matrix.add(chain, 0.5 * (product[:, :-1] + product[:, :-1].T))
+        self.vector[block_rows(chain)] += product[:, -1]
+        self.cache.touch(chain)
+        self.cache.evict(keep=chain)
+        return added
+
+    def _correct_old(self, old: np.ndarray, a: np.ndarray, nu: np.ndarray, noise: np.ndarray,
+                     gate: float | None) -> np.ndarray | None:
+        """Kalman form of the update on the old landmarks: mean change, cached columns corrected.
+
+        Returns None, changing nothing, when the NIS of ``nu`` exceeds ``gate``.
+        """
+        size = 2 * self.n
+        cols = self.cache.data
+        p_old = cols[:size, self.cache.columns(old)]
+        rows_old = block_rows(old)
+        s = a @ p_old[rows_old] @ a.T + noise
+        solved = np.linalg.solve(s, np.column_stack([(p_old @ a.T).T, nu]))
+        if gate is not None and float(nu @ solved[:, -1]) > gate:
+            return None
+        gain = solved[:, :-1].T  # P_O Aᵀ S⁻¹ (2n, k)
+        delta = gain @ nu
+        self.mean += delta
+        cols[:size] -= gain @ (a @ cols[rows_old])  # every slot, free ones too: one contiguous pass
+        return delta
+
+    def _add_new(self, old, a, jac_new, residual, noise, new_rows, new_positions, delta) -> np.ndarray:
+        """Append the new features with their exact mean and covariance columns.
+
+        Rows of the new features: z_F = B x_O + C f + w_F, with w_F correlated
+        with the old rows' noise: w_F = K w_O + ε, K = R_FO R_OO⁻¹. The flat prior
+        of f makes f = C⁻¹(z_F − K z_O − (B − K A) x_O − ε): its cross-covariance
+        with the state is −P_O Mᵀ and its covariance M P_OO Mᵀ + C⁻¹ Σ_ε C⁻ᵀ,
+        with M = C⁻¹ (B − K A) and Σ_ε = R_FF − K R_OF.
+        """
+        m_old = old.shape[0]
+        split = 2 * m_old
+        old_rows = ~new_rows
+        b, c = jac_new[:, :split], jac_new[:, split:]
+        r_ff = noise[np.ix_(new_rows, new_rows)]
+        r_fo = noise[np.ix_(new_rows, old_rows)]
+        if old_rows.any():
+            gain = np.linalg.solve(noise[np.ix_(old_rows, old_rows)], r_fo.T).T
+        else:
+            gain = np.zeros((r_fo.shape[0], 0))
+        c_inv = np.linalg.inv(c)  # block-diagonal 2×2 blocks of the new features, not the information matrix
+        m = c_inv @ (b - gain @ a)
+        rows_old = block_rows(old)
+        shift = c_inv @ (residual[new_rows] - gain @ residual[old_rows]) - m @ delta[rows_old]
+        means = new_positions.ravel() + shift
+        size = 2 * self.n
+        cols = self.cache.data
+        p_old = cols[:size, self.cache.columns(old)] if m_old else np.zeros((size, 0))
+        new_block = m @ p_old[rows_old] @ m.T + c_inv @ (r_ff - gain @ r_fo.T) @ c_inv.T
+        cross = -p_old @ m.T
+        extension = -m @ cols[rows_old] if m_old else 0.0
+        added = self._grow(means.reshape(-1, 2))
+        self.cache.data[size: 2 * self.n] = extension
+        full = np.vstack([cross, 0.5 * (new_block + new_block.T)])
+        for j, landmark in enumerate(added.tolist()):
+            self.cache.insert(landmark, full[:, 2 * j: 2 * j + 2])
+        return added
+
+    def _grow(self, positions: np.ndarray) -> np.ndarray:
+        """Append landmarks with zero information and the given estimates; return their indices."""
+        start = self.n
+        self.matrix.grow(positions.shape[0])
+        self.vector = np.concatenate([self.vector, np.zeros(2 * positions.shape[0])])
+        self.mean = np.concatenate([self.mean, positions.ravel()])
+        self.cache.resize_rows(2 * self.n)
+        return np.arange(start, self.n)
+
+    def update_absolute(self, old: np.ndarray, old_positions: np.ndarray, new_positions: np.ndarray,
+                        cov: np.ndarray) -> np.ndarray:
+        """Phase I: positions measured from a known pose, of old landmarks and of new features; returns new indices.
+
+        ``cov`` is the joint covariance (2(m_old + m_new) square) of all the positions, old first.
+        """
+        old = np.asarray(old, np.int64)
+        old_positions = np.asarray(old_positions, float).reshape(-1, 2)
+        new_positions = np.asarray(new_positions, float).reshape(-1, 2)
+        residual = np.concatenate([old_positions.ravel() - self.mean[block_rows(old)], np.zeros(new_positions.size)])
+        jacobian = np.eye(residual.shape[0])
+        return self.update(old, jacobian, residual, cov, new_positions)
+
+    def update_scan(self, observations: np.ndarray, noise: np.ndarray, mapped: np.ndarray, index: np.ndarray,
+                    new: np.ndarray, min_reference_distance: float = 0.0,
+                    gate_probability: float | None = None) -> tuple[np.ndarray, ...] | None:
+        """Phase II with one scan: reference pair, z_map (eq. 3), new features (eq. 9), update (eq. 10).
+
+        ``mapped`` are the rows of ``observations`` (m, 2) of mapped landmarks,
+        ``index`` their map indices, ``new`` the rows of features to add. Returns
+        (indices given to the new features, map indices in z_map order, z_map,
+        R_map) or None when fewer than two mapped landmarks (far enough apart) are
+        seen, or when z_map fails the χ² test at ``gate_probability``.
+        """
+        mapped, index, new = (np.asarray(a, np.int64) for a in (mapped, index, new))
+        if mapped.size < 2:
+            return None
+        points, _ = scan_points(observations, noise)
+        first, second = choose_reference(points, mapped)
+        if np.linalg.norm(points[first] - points[second]) < min_reference_distance:
+            return None
+        where = dict(zip(mapped.tolist(), index.tolist()))
+        others = [k for k in mapped.tolist() if k not in (first, second)]
+        order = np.array([first, second, *others, *new.tolist()], np.int64)
+        z_map, r_map = recast(observations[order], noise)
+        old = np.array([where[first], where[second], *[where[k] for k in others]], np.int64)
+        positions = np.zeros((0, 2))
+        if new.size:
+            rows = 2 * (len(others) + np.arange(new.size)) + 1
+            positions = initialise(self.means[old[0]], self.means[old[1]], np.stack([z_map[rows], z_map[rows + 1]], -1))
+        predicted, jac = map_measurement(np.vstack([self.means[old], positions]))
+        gate = None
+        if gate_probability is not None:
+            gate = chi2_quantile(gate_probability, z_map.shape[0] - 2 * new.size)
+        added = self.update(old, jac.reshape(jac.shape[0], -1), innovation(z_map, predicted), r_map, positions, gate)
+        if added is None:
+            return None
+        return added, np.concatenate([old, added]), z_map, r_map
+
+    # --------------------------------------------------------------- recovery
+    def _precondition(self):
+        inverse = inverse_2x2(self.matrix.diagonal_blocks())
+
+        def apply(r: np.ndarray) -> np.ndarray:
+            if r.ndim == 1:
+                return np.einsum("nab,nb->na", inverse, r.reshape(-1, 2)).ravel()
+            k = r.shape[1]
+            return np.einsum("nab,nbk->nak", inverse, r.reshape(-1, 2, k)).reshape(-1, k)
+
+        return apply
+
+    def recover(self, max_iter: int | None = None) -> int:
+        """Solve I X̂ = i by PCG warm-started at the current X̂ (§3.3); return the iterations run."""
+        if self.n == 0:
+            return 0
+        self.matrix.prepare()
+        self.mean, iterations = block_pcg(self.matrix.matvec, self._precondition(), self.vector, self.mean,
+                                          self.tol, self.max_iter if max_iter is None else max_iter)
+        self.recovery_iterations = iterations
+        return iterations
+
+    def _ensure_columns(self, landmarks: np.ndarray) -> None:
+        """Solve the covariance columns of ``landmarks`` not in the cache (block PCG, warm start from a neighbour)."""
+        missing = [int(i) for i in landmarks if int(i) not in self.cache]
+        self.cache.touch([int(i) for i in landmarks if int(i) in self.cache])
+        if not missing:
+            return
+        missing_arr = np.array(missing, np.int64)
+        size, k = 2 * self.n, len(missing)
+        self.matrix.prepare()
+        rhs = np.zeros((size, 2 * k))
+        rhs[block_rows(missing_arr), np.arange(2 * k)] = 1.0
+        start = np.zeros((size, 2 * k))
+        cached = np.fromiter(self.cache.slot.keys(), np.int64, len(self.cache))
+        diag = self.matrix.diagonal_blocks()
+        for j, lm in enumerate(missing):
+            if cached.size:
+                nearest = int(cached[np.argmin(np.sum((self.means[cached] - self.means[lm]) ** 2, axis=1))])
+                start[:, 2 * j: 2 * j + 2] = self.cache.data[:size, self.cache.columns([nearest])]
+            else:
+                start[2 * lm: 2 * lm + 2, 2 * j: 2 * j + 2] = inverse_2x2(diag[lm: lm + 1])[0]
+        scale = np.abs(start[block_rows(missing_arr), np.arange(2 * k)])
+        columns, iterations = block_pcg(self.matrix.matvec, self._precondition(), rhs, start,
+                                        self.column_tol * np.maximum(scale, 1e-12), self.column_max_iter)
+        self.column_iterations = iterations
+        self.column_iterations_total += iterations
+        self.column_solves += k
+        for j, lm in enumerate(missing):
+            self.cache.insert(lm, columns[:, 2 * j: 2 * j + 2])
+
+    def covariance_columns(self, landmarks: np.ndarray) -> np.ndarray:
+        """Columns (2n, 2k) of I⁻¹ for ``landmarks`` (k,): from the cache, solved by PCG where missing."""
+        landmarks = np.asarray(landmarks, np.int64)
+        if landmarks.size == 0:
+            return np.zeros((2 * self.n, 0))
+        self._ensure_columns(landmarks)
+        columns = self.cache.data[: 2 * self.n, self.cache.columns(landmarks)].copy()
+        self.cache.evict(keep=landmarks)
+        return columns
+
+    def joint_covariance(self, landmarks: np.ndarray) -> np.ndarray:
+        """The (2k, 2k) covariance submatrix of ``landmarks``."""
+        columns = self.covariance_columns(landmarks)
+        sub = columns[block_rows(landmarks)]
+        return 0.5 * (sub + sub.T)
+
+    def cached_marginals(self) -> tuple[np.ndarray, np.ndarray]:
+        """(landmark indices, (k, 2, 2) marginal covariances) of the cached columns (the landmarks near the robots)."""
+        ids = np.fromiter(self.cache.slot.keys(), np.int64, len(self.cache))
+        if ids.size == 0:
+            return ids, np.zeros((0, 2, 2))
+        cols = self.cache.data[block_rows(ids)][:, self.cache.columns(ids)]
+        k = ids.size
+        covs = cols.reshape(k, 2, k, 2)[np.arange(k), :, np.arange(k), :]
+        return ids, 0.5 * (covs + np.swapaxes(covs, 1, 2))
+
+    def all_marginals(self, batch: int = 256) -> np.ndarray:
+        """Every landmark's (n, 2, 2) marginal covariance, by one sparse LU and batched solves (for reports)."""
+        if self.n == 0:
+            return np.zeros((0, 2, 2))
+        lu = scipy.sparse.linalg.splu(self.matrix.tocsr().tocsc())
+        out = np.empty((self.n, 2, 2))
+        for start in range(0, self.n, batch):
+            chunk = np.arange(start, min(self.n, start + batch))
+            rhs = np.zeros((2 * self.n, 2 * chunk.shape[0]))
+            rhs[block_rows(chunk), np.arange(2 * chunk.shape[0])] = 1.0
+            cols = lu.solve(rhs)
+            sub = cols[block_rows(chunk)].reshape(chunk.shape[0], 2, chunk.shape[0], 2)
+            out[chunk] = sub[np.arange(chunk.shape[0]), :, np.arange(chunk.shape[0]), :]
+        return 0.5 * (out + np.swapaxes(out, 1, 2))
+
+    def normalised_error(self, truth: np.ndarray) -> float:
+        """(X̂ − X)ᵀ I (X̂ − X): the map NEES with the full information matrix (χ² with 2n dof if consistent)."""
+        error = self.mean - np.asarray(truth, float).ravel()
+        self.matrix.prepare()
+        return float(error @ self.matrix.matvec(error))
+
+    def memory_bytes(self) -> int:
+        return self.matrix.memory_bytes() + self.vector.nbytes + self.mean.nbytes + self.cache.data.nbytes

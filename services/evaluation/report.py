@@ -1,0 +1,163 @@
+"""The report folder: ``metrics.json``, TUM trajectories (readable by evo), PNG plots.
+
+- ``metrics.json``: what :func:`services.evaluation.metrics.score_estimates` returns, plus context.
+- ``{estimator}_{robot}.tum`` and ``truth_{robot}.tum``: one line per pose,
+  ``stamp x y z qx qy qz qw`` with z = 0 and the heading as a yaw quaternion
+  (identity where the truth has no heading, e.g. GPS).
+- ``map_{estimator}.png``: true landmarks, estimated landmarks with their 95 %
+  covariance ellipses, true and estimated trajectories.
+- ``errors.png``: position error over time for every estimator and robot.
+
+Plots use matplotlib's Agg backend (no display needed).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+from matplotlib.collections import LineCollection  # noqa: E402
+from scipy.stats import chi2  # noqa: E402
+
+from robots.models import transform_points  # noqa: E402
+from services.evaluation.metrics import Trajectory  # noqa: E402
+
+
+def write_tum(path: Path, trajectory: Trajectory) -> None:
+    """Write a trajectory in TUM format (stamp x y z qx qy qz qw)."""
+    poses = trajectory.poses
+    half = np.where(np.isfinite(poses[:, 2]), 0.5 * poses[:, 2], 0.0)
+    zeros = np.zeros(len(trajectory))
+    table = np.column_stack([trajectory.stamps, poses[:, 0], poses[:, 1], zeros, zeros, zeros, np.sin(half), np.cos(half)])
+    np.savetxt(path, table, fmt="%.6f", header="timestamp tx ty tz qx qy qz qw", comments="# ")
+
+
+def ellipse_lines(means: np.ndarray, covs: np.ndarray, probability: float = 0.95, points: int = 36) -> np.ndarray:
+    """Outlines ``(n, points, 2)`` of the ``probability`` confidence ellipses of 2-D Gaussians."""
+    scale = math.sqrt(chi2.ppf(probability, 2))
+    values, vectors = np.linalg.eigh(0.5 * (covs + np.swapaxes(covs, -1, -2)))
+    radii = scale * np.sqrt(np.clip(values, 0.0, None))
+    angle = np.linspace(0.0, 2 * math.pi, points)
+    circle = np.stack([np.cos(angle), np.sin(angle)], -1)
+    return means[:, None, :] + np.einsum("nij,nj,pj->npi", vectors, radii, circle)
+
+
+def _colors(count: int):
+    cmap = plt.get_cmap("tab10")
+    return [cmap(i % 10) for i in range(count)]
+
+
+def plot_map(path: Path, title: str, estimator: str, truth: dict[str, Trajectory], estimated: dict[str, Trajectory],
+             means: np.ndarray, covs: np.ndarray | None, true_landmarks: np.ndarray | None,
+             truth_offset=(0.0, 0.0)) -> None:
+    """One estimator's map and trajectories over the truth (estimates drawn at the truth's body point)."""
+    offset = np.asarray(truth_offset, float)
+    fig, ax = plt.subplots(figsize=(11, 8), dpi=110)
+    robots = sorted(set(truth) | set(estimated))
+    for color, rid in zip(_colors(len(robots)), robots):
+        if rid in truth and len(truth[rid]):
+            t = truth[rid].poses
+            if truth[rid].has_heading:
+                ax.plot(t[:, 0], t[:, 1], color=color, lw=0.8, ls="--", alpha=0.6, label=f"{rid} truth")
+            else:
+                ax.plot(t[:, 0], t[:, 1], ".", color=color, ms=2, alpha=0.5, label=f"{rid} truth (GPS fixes)")
+        if rid in estimated and len(estimated[rid]):
+            e = transform_points(estimated[rid].poses, offset) if np.any(offset) else estimated[rid].poses
+            where = f" at ({offset[0]:g}, {offset[1]:g})" if np.any(offset) else ""
+            ax.plot(e[:, 0], e[:, 1], color=color, lw=1.4, label=f"{rid} {estimator}{where}")
+            ax.plot(e[0, 0], e[0, 1], "o", color=color, ms=5)
+    if true_landmarks is not None and len(true_landmarks):
+        ax.plot(true_landmarks[:, 0], true_landmarks[:, 1], "k+", ms=10, mew=1.8, label="true landmarks")
+    if len(means):
+        ax.plot(means[:, 0], means[:, 1], ".", color="crimson", ms=4, label=f"{estimator} landmarks")
+        if covs is not None and len(covs) == len(means):
+            outlines = ellipse_lines(means, covs)
+            ax.add_collection(LineCollection(outlines, colors="crimson", linewidths=0.6, alpha=0.7,
+                                             label="95 % ellipses"))
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.set_title(f"{title}: {estimator}")
+    ax.grid(True, alpha=0.3)
+    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, borderaxespad=0.0)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def plot_errors(path: Path, title: str, curves: dict[str, dict[str, dict]]) -> None:
+    """Position error over time: one panel per estimator, one line per robot."""
+    names = [n for n in sorted(curves) if curves[n]]
+    if not names:
+        return
+    fig, axes = plt.subplots(len(names), 1, figsize=(10, 2.8 * len(names) + 0.6), dpi=110, squeeze=False, sharex=True)
+    start = min(float(c["stamps"][0]) for n in names for c in curves[n].values() if len(c["stamps"]))
+    for ax, name in zip(axes[:, 0], names):
+        robots = sorted(curves[name])
+        for color, rid in zip(_colors(len(robots)), robots):
+            c = curves[name][rid]
+            ax.plot(c["stamps"] - start, c["position_error_m"], color=color, lw=1.0, label=rid)
+        ax.set_ylabel("position error (m)")
+        ax.set_title(name, fontsize=10)
+        ax.grid(True, alpha=0.3)
+        ax.legend(loc="upper left", fontsize=8, ncol=min(len(robots), 5))
+    axes[-1, 0].set_xlabel("time since start (s)")
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def _safe(name: str) -> str:
+    return "".join(ch if ch.isalnum() or ch in "-_" else "_" for ch in name)
+
+
+def write_report(folder: str | Path, metrics: dict, curves: dict, truth: dict[str, Trajectory],
+                 trajectories: dict[str, dict[str, Trajectory]], maps: dict[str, tuple[np.ndarray, np.ndarray | None]],
+                 true_landmarks: np.ndarray | None, title: str, truth_offset=(0.0, 0.0)) -> list[Path]:
+    """Write metrics.json, the TUM files and the plots into ``folder``; return the paths written."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    written = [folder / "metrics.json"]
+    written[0].write_text(json.dumps(clean_json(metrics), indent=2))
+    for rid, trajectory in sorted(truth.items()):
+        path = folder / f"truth_{_safe(rid)}.tum"
+        write_tum(path, trajectory)
+        written.append(path)
+    for name, robots in sorted(trajectories.items()):
+        for rid, trajectory in sorted(robots.items()):
+            if len(trajectory):
+                path = folder / f"{_safe(name)}_{_safe(rid)}.tum"
+                write_tum(path, trajectory)
+                written.append(path)
+    for name in sorted(set(trajectories) | set(maps)):
+        means, covs = maps.get(name, (np.zeros((0, 2)), None))
+        path = folder / f"map_{_safe(name)}.png"
+        plot_map(path, title, name, truth, trajectories.get(name, {}), means, covs, true_landmarks, truth_offset)
+        written.append(path)
+    if any(curves.values()):
+        path = folder / "errors.png"
+        plot_errors(path, title, curves)
+        written.append(path)
+    return written
+
+
+def clean_json(value):
+    """``value`` made JSON-safe: numpy scalars and arrays to Python, NaN and infinity to None."""
+    if isinstance(value, dict):
+        return {str(k): clean_json(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [clean_json(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return clean_json(value.tolist())
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value

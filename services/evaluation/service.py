@@ -1,0 +1,209 @@
+"""``fleetslam evaluate``: compare every live estimate with the truth; publish stats; write a report on exit.
+
+Subscribes to the robots' truth (``{prefix}/robots/*/truth``), the true map
+(``{prefix}/world/truth``, also asked for once at start for late joining), and
+every estimate: ``central/estimate`` (poses and map), ``dslam/map``,
+``dslam/pose/*`` and ``mcl/*/pose``. It keeps each estimator's trajectory per
+robot, publishes the live figures (ATE per estimator and robot, map RMSE) in
+the ``extra`` of its ServiceStats on ``{prefix}/eval/stats``, and on exit
+writes the report folder (:mod:`services.evaluation.report`). The scoring and
+plotting modules (scipy, matplotlib) are imported on first use, so that every
+``fleetslam`` command, which imports this module for its flags, starts fast.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import logging
+from dataclasses import dataclass, field
+
+import numpy as np
+import zenoh
+
+from schemas.codec import decode
+from schemas.config import EvaluateSettings, add_settings_arguments, settings_from_args
+from schemas.messages import Estimate, GroundTruth, MapEstimate, MclPose, PoseEstimate, WorldTruth
+from schemas.streams import StreamTracker, Verdict
+from schemas.transport import ConnectError
+from services.runtime import ServiceShell
+
+log = logging.getLogger("fleetslam.evaluate")
+
+
+@dataclass
+class Series:
+    """A growing trajectory; when it reaches ``limit`` samples every other one is dropped (the span stays)."""
+
+    limit: int
+    stamps: list[float] = field(default_factory=list)
+    poses: list[np.ndarray] = field(default_factory=list)
+    covs: list[np.ndarray] = field(default_factory=list)
+
+    def add(self, stamp: float, pose: np.ndarray, cov: np.ndarray | None = None) -> None:
+        if self.stamps and stamp == self.stamps[-1]:
+            self.poses[-1] = pose
+            if cov is not None and self.covs:
+                self.covs[-1] = cov
+            return
+        self.stamps.append(stamp)
+        self.poses.append(pose)
+        if cov is not None:
+            self.covs.append(cov)
+        if len(self.stamps) >= self.limit:
+            self.stamps, self.poses = self.stamps[::2], self.poses[::2]
+            self.covs = self.covs[::2]
+
+    def trajectory(self):
+        from services.evaluation.metrics import Trajectory
+
+        return Trajectory.from_lists(self.stamps, self.poses, self.covs if self.covs else None)
+
+
+class Evaluator(ServiceShell):
+    """Collects truth and estimates; scores them live and at the end."""
+
+    name = "eval"
+
+    def __init__(self, settings: EvaluateSettings):
+        super().__init__(settings)
+        self.settings: EvaluateSettings = settings
+        self.tick_period_s = settings.stats_period_s
+        self.tracker = StreamTracker()
+        self.truth: dict[str, Series] = {}
+        self.estimates: dict[str, dict[str, Series]] = {}
+        self.maps: dict[str, tuple[np.ndarray, np.ndarray | None]] = {}
+        self.world: WorldTruth | None = None
+        self.report_paths: list[str] = []
+
+    def setup(self, session: zenoh.Session) -> None:
+        prefix = self.settings.prefix
+        self.subscribe(self.keys.all_robot_stream("truth"), "truth")
+        self.subscribe(self.keys.world_truth, "world")
+        self.subscribe(self.keys.central_estimate, "central")
+        self.subscribe(self.keys.dslam_map, "dslam_map")
+        self.subscribe(f"{prefix}/dslam/pose/*", "dslam_pose")
+        self.subscribe(f"{prefix}/mcl/*/pose", "mcl")
+        session.get(self.keys.world_truth, self._on_world_reply)
+
+    def _on_world_reply(self, reply: zenoh.Reply) -> None:
+        if reply.ok is not None:
+            self.enqueue("world", str(reply.ok.key_expr), reply.ok.payload.to_bytes())
+
+    def _series(self, estimator: str, robot_id: str) -> Series:
+        return self.estimates.setdefault(estimator, {}).setdefault(robot_id, Series(self.settings.max_samples))
+
+    def _accept(self, robot_id: str, stream: str, seq: int, stamp: float, key: str) -> bool:
+        verdict = self.tracker.check(robot_id, stream, seq, stamp)
+        if verdict is not Verdict.ACCEPT:
+            self.reject(verdict.value, f"{key} seq {seq}")
+            return False
+        return True
+
+    def _robot_in_key(self, key: str, robot_id: str, position: int) -> bool:
+        """Whether the key names the message's robot (``position`` counts segments after the prefix)."""
+        parts = key[len(self.settings.prefix) + 1:].split("/")
+        if len(parts) <= position or parts[position] != robot_id:
+            self.reject("robot_id_mismatch", f"{key} carries {robot_id}")
+            return False
+        return True
+
+    async def handle(self, tag: str, key: str, payload: bytes) -> None:
+        if tag == "truth":
+            message = decode(payload, GroundTruth)
+            if self._robot_in_key(key, message.robot_id, 1) and self._accept(message.robot_id, "truth", message.seq,
+                                                                              message.stamp, key):
+                pose = message.pose if message.heading_known else np.array([*message.pose[:2], np.nan])
+                self.truth.setdefault(message.robot_id, Series(self.settings.max_samples)).add(message.stamp, pose)
+        elif tag == "world":
+            self.world = decode(payload, WorldTruth)
+        elif tag == "central":
+            message = decode(payload, Estimate)
+            if self._accept("central", "estimate", message.seq, message.stamp, key):
+                for robot in message.robots:
+                    self._series("central", robot.robot_id).add(robot.stamp, robot.pose, robot.cov)
+                self.maps["central"] = (message.landmarks, message.landmark_covs)
+        elif tag == "dslam_map":
+            message = decode(payload, MapEstimate)
+            if self._accept("dslam", "map", message.seq, message.stamp, key):
+                covs = np.zeros((message.landmarks.shape[0], 2, 2))
+                index = {int(i): k for k, i in enumerate(message.landmark_ids.tolist())}
+                for lid, cov in zip(message.covariance_ids.tolist(), message.covariances):
+                    if int(lid) in index:
+                        covs[index[int(lid)]] = cov
+                self.maps["dslam"] = (message.landmarks, covs)
+        elif tag == "dslam_pose":
+            message = decode(payload, PoseEstimate)
+            if self._robot_in_key(key, message.robot_id, 2) and self._accept(message.robot_id, "dslam_pose",
+                                                                              message.seq, message.stamp, key):
+                self._series("dslam", message.robot_id).add(message.stamp, message.pose, message.cov)
+        elif tag == "mcl":
+            message = decode(payload, MclPose)
+            if self._robot_in_key(key, message.robot_id, 1) and self._accept(message.robot_id, "mcl", message.seq,
+                                                                              message.stamp, key):
+                self._series("mcl", message.robot_id).add(message.stamp, message.best_pose, message.best_cov)
+
+    @property
+    def truth_offset(self) -> tuple[float, float]:
+        return self.settings.truth_offset_x, self.settings.truth_offset_y
+
+    @property
+    def true_landmarks(self) -> np.ndarray | None:
+        return None if self.world is None else self.world.landmarks
+
+    def collected(self) -> tuple[dict, dict]:
+        """(truth per robot, trajectories per estimator and robot) received so far."""
+        truth = {rid: series.trajectory() for rid, series in self.truth.items() if series.stamps}
+        trajectories = {name: {rid: s.trajectory() for rid, s in robots.items() if s.stamps}
+                        for name, robots in self.estimates.items()}
+        return truth, trajectories
+
+    def score(self) -> tuple[dict, dict]:
+        """Score everything received so far: (metrics, curves)."""
+        from services.evaluation.metrics import score_estimates
+
+        truth, trajectories = self.collected()
+        return score_estimates(trajectories, truth, self.maps, self.true_landmarks, self.truth_offset,
+                               self.settings.map_cutoff_m, self.settings.rpe_delta_s, self.settings.max_gap_s)
+
+    async def tick(self) -> None:
+        metrics, _ = self.score()
+        extra: dict[str, float] = {"robots_with_truth": float(len(self.truth))}
+        for name, entry in metrics["summary"].items():
+            for rid, value in entry["ate_rmse_m"].items():
+                if value is not None:
+                    extra[f"{name}.{rid}.ate_m"] = float(value)
+            if entry.get("map_rmse_m") is not None:
+                extra[f"{name}.map_rmse_m"] = float(entry["map_rmse_m"])
+            if entry["landmarks"] and entry["landmarks"].get("matched") is not None:
+                extra[f"{name}.landmarks_matched"] = float(entry["landmarks"]["matched"])
+        self.extra = extra
+
+    def on_stop(self) -> None:
+        from services.evaluation.report import write_report
+
+        metrics, curves = self.score()
+        metrics["messages_in"] = dict(self.messages_in)
+        metrics["rejected"] = dict(self.rejected)
+        metrics["missing"] = self.tracker.missing()
+        metrics["truth_offset"] = list(self.truth_offset)
+        truth, trajectories = self.collected()
+        title = self.world.world if self.world is not None else "live fleet"
+        written = write_report(self.settings.out, metrics, curves, truth, trajectories, self.maps,
+                               self.true_landmarks, title, self.truth_offset)
+        self.report_paths = [str(p) for p in written]
+        log.info("evaluation report in %s (%d files)", self.settings.out, len(written))
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    add_settings_arguments(parser, EvaluateSettings)
+
+
+def main(args: argparse.Namespace) -> int:
+    settings = settings_from_args(EvaluateSettings, args)
+    try:
+        asyncio.run(Evaluator(settings).run(duration=settings.duration))
+    except ConnectError as exc:
+        log.error("%s", exc)
+        return 2
+    return 0

@@ -1,0 +1,340 @@
+"""Monte Carlo localisation on a landmark map, in the six variants of paper 004.
+
+One :class:`MonteCarloLocalizer` tracks one robot. Odometry moves the
+particles (:meth:`predict`, Table 1 step 1); each scan runs the rest of the
+variant's table (:meth:`update`):
+
+- ``mcl``: weigh, resample systematically (Table 1).
+- ``kld``: weigh, resample with KLD-sampling: draw until n ≥ N(k) (Fox 2003, eq. 2).
+- ``srl``: weigh, resample, replace N_s = (1 − P̃/P_t)·N particles by poses drawn
+  from the scan (sensor resetting, eq. 1).
+- ``kld_srl`` (Table 2): N from eq. 2 on the predicted set; if N > N_old add
+  N − N_old poses drawn from the scan; weigh; resample to N.
+- ``csrl`` (Table 3): weigh, cluster, two-stage resampling, and sensor
+  resetting only while there is at most one significant cluster.
+- ``cluster_kld_srl`` (Table 4): as kld_srl, but the sample size only shrinks
+  while there is one significant cluster; two-stage resampling.
+
+Every variant clusters the weighted set after each scan to report its
+hypotheses, and detects a kidnapping (no cluster explains the scans for
+``kidnap_scans`` scans in a row), after which it starts global localisation
+again from the scan. Poses drawn from a scan are weighed by the whole scan's
+likelihood; a sample added before the update (KLD-SRL) enters the update
+with the candidates' mean likelihood rather than its own, so the scan is not
+counted twice for it, and with a prior weight of ``reset_prior`` times a
+tracked particle's: a new hypothesis must explain the scans clearly better
+than the tracked ones before it becomes significant.
+"""
+
+from __future__ import annotations
+
+import math
+import typing
+from dataclasses import dataclass
+
+import numpy as np
+
+from robots.models import motion_model, wrap_angle
+from schemas.config import MclFilterSettings
+from schemas.messages import RobotInfo
+from services.mcl.clustering import Clusters, cluster_particles
+from services.mcl.kld import bin_keys, kld_prefix_size, kld_sample_size, support
+from services.mcl.likelihood import LandmarkMap, ScanModel, scan_log_likelihood
+from services.mcl.resampling import systematic_resample, two_stage_resample
+from services.mcl.resetting import poses_from_scan, uniform_poses
+
+VARIANTS: tuple[str, ...] = typing.get_args(MclFilterSettings.model_fields["variant"].annotation)
+ADAPTIVE = frozenset({"kld_srl", "cluster_kld_srl"})
+CLUSTERED = frozenset({"csrl", "cluster_kld_srl"})
+RESETTING = frozenset({"srl", "csrl"})
+
+
+@dataclass
+class Hypothesis:
+    """One significant cluster: mean pose, covariance, weight share, particle count."""
+
+    mean: np.ndarray
+    cov: np.ndarray
+    weight: float
+    particles: int
+
+
+@dataclass
+class UpdateReport:
+    """What one scan did to the filter."""
+
+    particles_before: int
+    particles_after: int
+    added: int  # poses drawn from the scan (added by KLD-SRL, replaced by SRL, or a restart)
+    quality: float  # P̃: mean match quality of the particles
+    best_quality: float  # mean quality of the best-explaining cluster
+    hypotheses: int  # significant clusters
+    kidnapped: bool  # the filter declared itself lost and restarted
+    localized: bool
+
+
+def _sqrt_psd(cov: np.ndarray) -> np.ndarray:
+    """A square root L (L Lᵀ = cov) of a symmetric positive semi-definite matrix."""
+    values, vectors = np.linalg.eigh(0.5 * (cov + cov.T))
+    return vectors * np.sqrt(np.clip(values, 0.0, None))
+
+
+class MonteCarloLocalizer:
+    """Particle filter over one robot's pose (x, y, θ) on a fixed landmark map."""
+
+    def __init__(self, landmarks: np.ndarray, info: RobotInfo, settings: MclFilterSettings,
+                 rng: np.random.Generator | None = None):
+        if settings.variant not in VARIANTS:
+            raise ValueError(f"unknown MCL variant {settings.variant!r}; choose from {', '.join(VARIANTS)}")
+        self.settings = settings
+        self.variant = settings.variant
+        self.rng = rng if rng is not None else np.random.default_rng(settings.seed)
+        self.motion = motion_model(info.motion_model, info.wheelbase, info.encoder_offset)
+        self.model = ScanModel.from_spec(
+            info.sensor, settings.noise_scale, settings.clutter_weight, settings.miss_floor,
+            settings.view_margin_range, settings.view_margin_bearing, settings.match_sigmas,
+        )
+        self.map = LandmarkMap(landmarks, self.model, settings.lookup_cell, settings.match_candidates)
+        self.particles = np.zeros((0, 3))
+        self.weights = np.zeros(0)
+        self.size = settings.particles  # N_old: the sample size the next resampling draws
+        self.clusters: Clusters | None = None
+        self.significant = np.zeros(0, np.int64)
+        self.restarts = 0
+        self.kidnaps = 0
+        self._localized_run = 0
+        self._lost_run = 0
+        self.last_report: UpdateReport | None = None
+        if info.start_pose is not None:
+            self.initialize_at(info.start_pose, info.start_pose_cov)
+
+    # ----------------------------------------------------------------- state
+
+    @property
+    def initialized(self) -> bool:
+        return self.particles.shape[0] > 0
+
+    @property
+    def count(self) -> int:
+        return int(self.particles.shape[0])
+
+    @property
+    def localized(self) -> bool:
+        return self._localized_run >= self.settings.localized_scans
+
+    def set_map(self, landmarks: np.ndarray) -> None:
+        """Replace the map (a newer estimate of it); the particles stay."""
+        self.map = LandmarkMap(landmarks, self.model, self.settings.lookup_cell, self.settings.match_candidates)
+
+    def initialize_at(self, pose: np.ndarray, cov: np.ndarray | None = None, count: int | None = None) -> None:
+        """Position tracking: particles drawn around a known pose."""
+        count = count or self.settings.particles
+        self.size = count
+        cov = np.diag([1e-4, 1e-4, 1e-6]) if cov is None else np.asarray(cov, float)
+        self.particles = np.asarray(pose, float) + self.rng.standard_normal((count, 3)) @ _sqrt_psd(cov).T
+        self.particles[:, 2] = wrap_angle(self.particles[:, 2])
+        self.weights = np.full(count, 1.0 / count)
+        self._recluster(np.ones(count))
+
+    def initialize_global(self, observations: np.ndarray | None = None, count: int | None = None) -> None:
+        """Global localisation: particles from the scan and the map (or uniform), weighed by the scan."""
+        s = self.settings
+        count = count or s.particles
+        self.size = count
+        self.restarts += 1
+        self._localized_run = 0
+        self._lost_run = 0
+        if s.init == "uniform" or observations is None:
+            self.particles = uniform_poses(self.map, count, s.map_margin, self.rng)
+            self.weights = np.full(count, 1.0 / count)
+            self.clusters, self.significant = None, np.zeros(0, np.int64)
+            return
+        self.particles = self._scan_candidates(observations, count * s.reset_oversample)
+        self.weights = np.full(self.count, 1.0 / self.count)
+
+    def _scan_candidates(self, observations: np.ndarray, count: int) -> np.ndarray:
+        s = self.settings
+        return poses_from_scan(observations, self.map, self.model, count, s.pair_sigmas, s.reset_jitter_xy,
+                               s.reset_jitter_theta, s.map_margin, self.rng, s.reset_draws)
+
+    def _likelihood(self, poses: np.ndarray, observations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return scan_log_likelihood(poses, observations, self.map, self.model, self.settings.chunk_particles)
+
+    def _draw_from_scan(self, observations: np.ndarray, count: int) -> tuple[np.ndarray, float]:
+        """``count`` poses drawn from p(y | x) over the map, and the log of the candidates' mean likelihood."""
+        candidates = self._scan_candidates(observations, count * self.settings.reset_oversample)
+        loglik, _ = self._likelihood(candidates, observations)
+        top = loglik.max()
+        likelihood = np.exp(loglik - top)
+        chosen = candidates[systematic_resample(likelihood, count, self.rng)]
+        return chosen, float(top + math.log(likelihood.mean()))
+
+    # ------------------------------------------------------------ prediction
+
+    def predict(self, control: np.ndarray, dt: float, control_cov: np.ndarray) -> None:
+        """Move every particle with a control drawn from the odometry's noise (Table 1 step 1)."""
+        if not self.initialized:
+            return
+        s = self.settings
+        n = self.count
+        root = _sqrt_psd(np.asarray(control_cov, float)) * s.motion_noise_scale
+        controls = np.asarray(control, float) + self.rng.standard_normal((n, 2)) @ root.T
+        moved = self.motion.step(self.particles, controls, dt)
+        spread = math.sqrt(max(dt, 0.0))
+        moved[:, :2] += self.rng.normal(0.0, s.diffusion_xy * spread, size=(n, 2))
+        moved[:, 2] = wrap_angle(moved[:, 2] + self.rng.normal(0.0, s.diffusion_theta * spread, size=n))
+        self.particles = moved
+
+    # ---------------------------------------------------------------- update
+
+    def update(self, observations: np.ndarray) -> UpdateReport:
+        """Run the variant's table on one scan ``(n, 2)`` of (range, bearing)."""
+        s = self.settings
+        z = np.asarray(observations, float).reshape(-1, 2)
+        fresh = not self.initialized
+        if fresh:
+            self.initialize_global(z)
+        before = self.count
+        added = 0
+        override = np.zeros(0)
+        if self.variant in ADAPTIVE and not fresh:
+            needed = int(np.clip(kld_sample_size(support(self.particles, s.kld_bin_xy, s.kld_bin_theta),
+                                                 s.kld_epsilon, s.kld_delta), s.min_particles, s.max_particles))
+            if needed > self.size:
+                added = needed - self.size
+                new, log_evidence = self._draw_from_scan(z, added)
+                self.particles = np.vstack([self.particles, new])
+                self.weights = np.concatenate([self.weights, np.full(added, s.reset_prior * self.weights.mean())])
+                override = np.full(added, log_evidence)
+                self.size = needed
+            elif needed < self.size and (self.variant == "kld_srl" or self.significant.size <= 1):
+                self.size = needed
+        loglik, quality = self._likelihood(self.particles, z)
+        if override.size:
+            loglik[-override.size:] = override
+        self._reweigh(loglik, quality)
+        best_quality = self._best_quality()
+        kidnapped = self._check_lost(best_quality)
+        if kidnapped:
+            self.initialize_global(z)
+            loglik, quality = self._likelihood(self.particles, z)
+            self._reweigh(loglik, quality)
+            added += self.count
+            fresh = True
+        mean_quality = float(quality.mean())
+        hypotheses = int(self.significant.size)
+        self._update_localized()
+        added += self._resample(mean_quality, z, fresh)
+        self.last_report = UpdateReport(before, self.count, added, mean_quality, best_quality, hypotheses,
+                                        kidnapped, self.localized)
+        return self.last_report
+
+    def weigh(self, observations: np.ndarray) -> None:
+        """Weigh the particles by one scan and cluster them, without resampling (one-shot localisation)."""
+        z = np.asarray(observations, float).reshape(-1, 2)
+        if not self.initialized:
+            self.initialize_global(z)
+        loglik, quality = self._likelihood(self.particles, z)
+        self._reweigh(loglik, quality)
+
+    def _reweigh(self, loglik: np.ndarray, quality: np.ndarray) -> None:
+        """Multiply the weights by the scan's likelihood, normalise, cluster."""
+        logw = np.log(np.maximum(self.weights, 1e-300)) + loglik
+        weights = np.exp(logw - logw.max())
+        self.weights = weights / weights.sum()
+        self._recluster(quality)
+
+    def _recluster(self, quality: np.ndarray) -> None:
+        s = self.settings
+        self.clusters = cluster_particles(self.particles, self.weights, quality, s.cluster_cell_xy, s.cluster_cell_theta,
+                                          s.cluster_merge_xy, s.cluster_merge_theta, s.cluster_prune)
+        self.significant = self.clusters.significant(s.cluster_min_weight, s.cluster_min_quality, s.max_hypotheses)
+
+    def _best_quality(self) -> float:
+        """Mean match quality of the best-explaining cluster of a reasonable size."""
+        c = self.clusters
+        if c is None or len(c) == 0:
+            return 0.0
+        sized = c.count >= max(5, int(0.01 * self.count))
+        return float(c.quality[sized].max()) if sized.any() else float(c.quality.max())
+
+    def _check_lost(self, best_quality: float) -> bool:
+        s = self.settings
+        self._lost_run = self._lost_run + 1 if best_quality < s.kidnap_quality else 0
+        if self._lost_run >= s.kidnap_scans and s.kidnap_recovery:
+            self.kidnaps += 1
+            return True
+        return False
+
+    def dominant(self) -> bool:
+        """Does one hypothesis hold the weight now, compactly (``localized_*`` settings)?"""
+        s = self.settings
+        c = self.clusters
+        if c is None or not self.significant.size:
+            return False
+        top = int(self.significant[0])
+        cov = c.cov[top]
+        return bool(c.weight[top] >= s.localized_weight and math.sqrt(max(cov[0, 0] + cov[1, 1], 0.0)) <= s.localized_std_xy
+                    and math.sqrt(max(cov[2, 2], 0.0)) <= s.localized_std_theta)
+
+    def _update_localized(self) -> None:
+        self._localized_run = self._localized_run + 1 if self.dominant() else 0
+
+    def _resample(self, mean_quality: float, z: np.ndarray, fresh: bool) -> int:
+        """The variant's resampling step to ``self.size`` samples; returns how many poses it drew from the scan."""
+        s = self.settings
+        target = self.size
+        if self.variant == "kld" and not fresh:
+            draws = systematic_resample(self.weights, s.max_particles, self.rng)
+            draws = draws[self.rng.permutation(draws.size)]
+            keys = bin_keys(self.particles[draws], s.kld_bin_xy, s.kld_bin_theta)
+            n = kld_prefix_size(keys, s.kld_epsilon, s.kld_delta, s.min_particles, s.max_particles)
+            self.size = n
+            self._take(draws[:n], np.full(n, 1.0 / n))
+            return 0
+        if self.variant in CLUSTERED and self.significant.size > 1:
+            # right after a (re)start the weights reflect where candidates happened to fall, not evidence: forget them
+            memory = 0.0 if fresh else s.cluster_memory
+            index, weights = two_stage_resample(self.weights, self.clusters.labels, self.significant, target, self.rng,
+                                                memory)
+            self._take(index, weights)
+            return 0
+        if self.variant in CLUSTERED and self.significant.size == 1:
+            index, weights = two_stage_resample(self.weights, self.clusters.labels, self.significant, target, self.rng)
+        else:
+            index = systematic_resample(self.weights, target, self.rng)
+            weights = np.full(target, 1.0 / target)
+        self._take(index, weights)
+        if self.variant in RESETTING and not fresh:
+            return self._sensor_reset(mean_quality, z)
+        return 0
+
+    def _take(self, index: np.ndarray, weights: np.ndarray) -> None:
+        self.particles = self.particles[index]
+        self.weights = weights
+
+    def _sensor_reset(self, mean_quality: float, z: np.ndarray) -> int:
+        """Eq. 1: replace N_s = (1 − P̃/P_t)·N random particles by poses drawn from the scan."""
+        replace = int(self.count * max(0.0, 1.0 - mean_quality / self.settings.srl_threshold))
+        if replace <= 0:
+            return 0
+        slots = self.rng.choice(self.count, size=replace, replace=False)
+        self.particles[slots], _ = self._draw_from_scan(z, replace)
+        self.weights[slots] = 1.0 / self.count
+        self.weights /= self.weights.sum()
+        return replace
+
+    # --------------------------------------------------------------- outputs
+
+    def hypotheses(self) -> list[Hypothesis]:
+        """The significant clusters, heaviest first (the heaviest cluster when none is significant)."""
+        c = self.clusters
+        if c is None or len(c) == 0:
+            return []
+        chosen = self.significant if self.significant.size else np.array([0])
+        return [Hypothesis(c.mean[j].copy(), c.cov[j].copy(), float(c.weight[j]), int(c.count[j])) for j in chosen]
+
+    def best(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """(mean, covariance) of the heaviest hypothesis; None before the first scan."""
+        found = self.hypotheses()
+        return (found[0].mean, found[0].cov) if found else None

@@ -1,0 +1,298 @@
+"""``fleetslam mcl``: Monte Carlo localisation of robots against a map, over Zenoh.
+
+The map comes from the ``source`` setting: ``central`` (the latest
+:class:`Estimate` on ``{prefix}/central/estimate``), ``dslam`` (the
+:class:`MapEstimate` on ``{prefix}/dslam/map``), ``truth`` (the
+:class:`WorldTruth` on ``{prefix}/world/truth``, asked for at start too) or
+``file:PATH`` (an ``(L, 2)`` array in a .npy or text file). A newer map
+replaces the old one at most every ``map_period_s``.
+
+Every robot whose :class:`RobotInfo` announces no start pose (every robot with
+``all_robots``) gets a :class:`~services.mcl.core.MonteCarloLocalizer`; its
+odometry moves the particles, each scan runs the variant's update, and an
+:class:`MclPose` (every significant hypothesis, the best pose, ``localized``)
+goes to ``{prefix}/mcl/{rid}/pose``. The central FastSLAM service takes a
+robot with an unknown start pose in on its first ``localized`` message.
+
+The queryable ``{prefix}/mcl/localize`` answers a :class:`LocalizeRequest`
+(one scan and its sensor) with the hypotheses of a one-shot global
+localisation, or a tracked robot's belief. Bad input — undecodable payloads,
+out-of-order or duplicate stream messages, keys that disagree with the
+message's robot id, a map of the wrong shape — is counted and dropped.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import logging
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import zenoh
+
+from schemas.codec import DecodeError, decode, encode
+from schemas.config import MclSettings, add_settings_arguments, settings_from_args
+from schemas.mcl import LocalizeReply, LocalizeRequest
+from schemas.messages import Estimate, MapEstimate, MclPose, Odometry, PoseHypothesis, RobotInfo, Scan, WorldTruth
+from schemas.streams import Verdict, StreamTracker
+from schemas.transport import ConnectError, StreamPublisher
+from services.mcl.core import MonteCarloLocalizer
+from services.runtime import ServiceShell
+
+log = logging.getLogger(__name__)
+
+MAP_MESSAGES = {"central": Estimate, "dslam": MapEstimate, "truth": WorldTruth}
+
+
+def load_map_file(path: str) -> np.ndarray:
+    """An ``(L, 2)`` landmark array from a .npy or whitespace/comma-separated text file."""
+    file = Path(path)
+    data = np.load(file) if file.suffix == ".npy" else np.loadtxt(file, delimiter="," if file.suffix == ".csv" else None)
+    landmarks = np.asarray(data, float).reshape(-1, 2) if np.asarray(data).size else np.zeros((0, 2))
+    if np.asarray(data).ndim == 2 and np.asarray(data).shape[1] != 2:
+        raise ValueError(f"{path}: expected an (L, 2) array, got shape {np.asarray(data).shape}")
+    if not np.all(np.isfinite(landmarks)):
+        raise ValueError(f"{path}: the map holds NaN or infinite values")
+    return landmarks
+
+
+@dataclass
+class Tracked:
+    """One robot the service localises."""
+
+    info: RobotInfo
+    mcl: MonteCarloLocalizer | None = None
+    scans: int = 0
+    was_localized: bool = False
+
+
+def hypotheses_message(mcl: MonteCarloLocalizer) -> tuple[np.ndarray, np.ndarray, list[PoseHypothesis]]:
+    """(best pose, best covariance, hypotheses) of a filter, ready for a message."""
+    found = mcl.hypotheses()
+    hypotheses = [PoseHypothesis(mean=h.mean, cov=0.5 * (h.cov + h.cov.T), weight=min(max(h.weight, 0.0), 1.0),
+                                 particles=h.particles) for h in found]
+    if not hypotheses:
+        return np.zeros(3), np.diag([1e6, 1e6, 1e2]), []
+    return hypotheses[0].mean, hypotheses[0].cov, hypotheses
+
+
+class MclService(ServiceShell):
+    """Localises robots with unknown start poses against the chosen map; answers localisation queries."""
+
+    name = "mcl"
+
+    def __init__(self, settings: MclSettings, instance: str | None = None):
+        super().__init__(settings, instance)
+        self.settings: MclSettings = settings
+        self.source = settings.source.partition(":")[0]
+        self.landmarks: np.ndarray | None = None
+        self.map_applied = float("-inf")
+        self.robots: dict[str, Tracked] = {}
+        self.tracker = StreamTracker()
+        self.pose_pubs: dict[str, StreamPublisher] = {}
+        self.pose_seq: dict[str, int] = {}  # kept when a robot leaves: its MclPose stream goes on where it stopped
+        if self.source == "file":
+            self.landmarks = load_map_file(settings.source.partition(":")[2])
+
+    # ----------------------------------------------------------------- wiring
+
+    def setup(self, session: zenoh.Session) -> None:
+        keys = self.keys
+        for stream in ("info", "odom", "scan"):
+            self.subscribe(keys.all_robot_stream(stream), stream)
+        self._declared.append(session.liveliness().declare_subscriber(keys.alive_any, self._on_alive, history=False))
+        map_key = {"central": keys.central_estimate, "dslam": keys.dslam_map, "truth": keys.world_truth}.get(self.source)
+        if map_key is not None:
+            self.subscribe(map_key, "map")
+            session.get(map_key, self._on_reply("map"))
+        session.get(keys.all_robot_stream("info"), self._on_reply("info"))
+        self._declared.append(session.declare_queryable(keys.mcl_localize, self._on_query))
+
+    def _on_reply(self, tag: str):
+        def callback(reply: zenoh.Reply) -> None:
+            if reply.ok is not None:
+                self.enqueue(tag, str(reply.ok.key_expr), reply.ok.payload.to_bytes())
+
+        return callback
+
+    def _on_alive(self, sample: zenoh.Sample) -> None:
+        if sample.kind == zenoh.SampleKind.DELETE:
+            self.enqueue("gone", str(sample.key_expr), b"")
+
+    def _on_query(self, query: zenoh.Query) -> None:
+        self.enqueue("localize", str(query.key_expr), query)  # the query rides the queue; answered in handle()
+
+    # ---------------------------------------------------------------- handling
+
+    async def handle(self, tag: str, key: str, payload) -> None:
+        if tag == "localize":
+            try:
+                self._answer(payload)
+            finally:
+                payload.drop()
+            return
+        if tag == "map":
+            self._on_map(payload)
+        elif tag == "gone":
+            parsed = self.keys.parse_robot_key(key)
+            if parsed and parsed[0] in self.robots:
+                log.info("robot %s left", parsed[0])
+                del self.robots[parsed[0]]
+                self.tracker.forget(parsed[0])
+        elif tag in ("info", "odom", "scan"):
+            parsed = self.keys.parse_robot_key(key)
+            if parsed is None:
+                self.reject("bad_key", key)
+                return
+            {"info": self._on_info, "odom": self._on_odom, "scan": self._on_scan}[tag](parsed[0], payload)
+        self._refresh_extra()
+
+    def _on_map(self, payload: bytes) -> None:
+        message = decode(payload, MAP_MESSAGES[self.source])
+        landmarks = np.asarray(message.landmarks, float).reshape(-1, 2)
+        now = time.monotonic()
+        if landmarks.shape[0] == 0:
+            self.reject("empty_map")
+            return
+        if self.landmarks is not None and now - self.map_applied < self.settings.map_period_s:
+            return
+        self.landmarks, self.map_applied = landmarks, now
+        for tracked in self.robots.values():
+            if tracked.mcl is None:
+                tracked.mcl = self._make_filter(tracked.info)
+            else:
+                tracked.mcl.set_map(landmarks)
+
+    def _on_info(self, rid: str, payload: bytes) -> None:
+        info = decode(payload, RobotInfo)
+        if info.robot_id != rid:
+            self.reject("robot_id_mismatch", f"{info.robot_id} on the key of {rid}")
+            return
+        if rid in self.robots or not (info.start_pose is None or self.settings.all_robots):
+            return
+        log.info("localising robot %s (%s start pose)", rid, "unknown" if info.start_pose is None else "known")
+        self.robots[rid] = Tracked(info=info, mcl=self._make_filter(info))
+        self.pose_pubs.setdefault(rid, self.publisher(self.keys.mcl_pose(rid)))
+
+    def _make_filter(self, info: RobotInfo) -> MonteCarloLocalizer | None:
+        if self.landmarks is None:
+            return None
+        rng = np.random.default_rng([self.settings.seed, len(self.pose_pubs)])
+        return MonteCarloLocalizer(self.landmarks, info, self.settings, rng)
+
+    def _accept(self, rid: str, stream: str, message) -> Tracked | None:
+        """The tracked robot for a stream message that is in order, else None (counted)."""
+        if message.robot_id != rid:
+            self.reject("robot_id_mismatch", f"{message.robot_id} on the key of {rid}")
+            return None
+        tracked = self.robots.get(rid)
+        if tracked is None:
+            return None
+        verdict = self.tracker.check(rid, stream, message.seq, message.stamp)
+        if verdict is not Verdict.ACCEPT:
+            self.reject(verdict.value, f"{rid}/{stream} seq {message.seq}")
+            return None
+        if tracked.mcl is None:
+            self.rejected["no_map_yet"] += 1
+            return None
+        return tracked
+
+    def _on_odom(self, rid: str, payload: bytes) -> None:
+        odom = decode(payload, Odometry)
+        tracked = self._accept(rid, "odom", odom)
+        if tracked is not None:
+            tracked.mcl.predict(odom.control, odom.dt, odom.control_cov)
+
+    def _on_scan(self, rid: str, payload: bytes) -> None:
+        scan = decode(payload, Scan)
+        tracked = self._accept(rid, "scan", scan)
+        if tracked is None:
+            return
+        report = tracked.mcl.update(np.stack([scan.ranges, scan.bearings], -1))
+        tracked.scans += 1
+        if report.kidnapped:
+            log.warning("robot %s: no hypothesis explains its scans; global localisation again", rid)
+        changed = report.localized != tracked.was_localized
+        if report.localized and changed:
+            log.info("robot %s localised at %s after %d scans", rid, np.round(tracked.mcl.best()[0], 2), tracked.scans)
+        tracked.was_localized = report.localized
+        if changed or tracked.scans % self.settings.publish_every == 0:
+            self._publish(rid, tracked, scan.stamp)
+
+    def _publish(self, rid: str, tracked: Tracked, stamp: float) -> None:
+        mcl = tracked.mcl
+        best, cov, hypotheses = hypotheses_message(mcl)
+        seq = self.pose_seq.get(rid, 0)
+        message = MclPose(robot_id=rid, seq=seq, stamp=stamp, best_pose=best, best_cov=cov,
+                          localized=mcl.localized, hypotheses=hypotheses, particles=mcl.count, variant=mcl.variant)
+        self.pose_pubs[rid].put(message)
+        self.pose_seq[rid] = seq + 1
+        self.published += 1
+
+    def _answer(self, query: zenoh.Query) -> None:
+        """One-shot localisation (or a tracked robot's belief) for a LocalizeRequest."""
+        key = self.keys.mcl_localize
+        if query.payload is None:
+            self._refuse(query, "empty", "the query carries no LocalizeRequest payload")
+            return
+        try:
+            request = decode(query.payload.to_bytes(), LocalizeRequest)
+        except DecodeError as error:
+            self._refuse(query, error.reason, error.detail)
+            return
+        tracked = self.robots.get(request.robot_id) if request.robot_id else None
+        if request.ranges.size == 0 and tracked is not None and tracked.mcl is not None and tracked.mcl.initialized:
+            mcl, source = tracked.mcl, "track"
+        else:
+            sensor = request.sensor or (tracked.info.sensor if tracked else None)
+            if sensor is None:
+                self._refuse(query, "no_sensor", "a scan needs its sensor (or the id of a robot the service tracks)")
+                return
+            if self.landmarks is None:
+                self._refuse(query, "no_map", f"no map from source {self.settings.source!r} yet")
+                return
+            info = RobotInfo(robot_id=request.robot_id or "query", stamp=0.0, motion_model="unicycle", sensor=sensor,
+                             odom_rate_hz=1.0, scan_rate_hz=1.0)
+            count = request.particles or self.settings.localize_particles
+            mcl = MonteCarloLocalizer(self.landmarks, info, self.settings, np.random.default_rng(request.seed))
+            mcl.initialize_global(request.observations, count)
+            mcl.weigh(request.observations)
+            source = "scan"
+        best, cov, hypotheses = hypotheses_message(mcl)
+        reply = LocalizeReply(request_id=request.request_id, robot_id=request.robot_id, stamp=time.time(), source=source,
+                              best_pose=best, best_cov=cov,
+                              localized=mcl.localized if source == "track" else mcl.dominant(),
+                              hypotheses=hypotheses, particles=mcl.count, map_landmarks=mcl.map.count, variant=mcl.variant)
+        query.reply(key, encode(reply))
+        self.extra["localize_replies"] = self.extra.get("localize_replies", 0.0) + 1.0
+
+    def _refuse(self, query: zenoh.Query, reason: str, detail: str) -> None:
+        self.reject(reason, detail)
+        query.reply_err(f"{reason}: {detail}".encode())
+
+    def _refresh_extra(self) -> None:
+        self.extra["robots"] = float(len(self.robots))
+        self.extra["localized"] = float(sum(1 for t in self.robots.values() if t.mcl is not None and t.mcl.localized))
+        self.extra["map_landmarks"] = float(0 if self.landmarks is None else self.landmarks.shape[0])
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    add_settings_arguments(parser, MclSettings)
+
+
+def main(args: argparse.Namespace) -> int:
+    settings = settings_from_args(MclSettings, args)
+    try:
+        service = MclService(settings)
+    except (OSError, ValueError) as exc:
+        log.error("cannot load the map: %s", exc)
+        return 2
+    try:
+        asyncio.run(service.run())
+    except ConnectError as exc:
+        log.error("%s", exc)
+        return 2
+    return 0

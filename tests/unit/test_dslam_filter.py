@@ -1,0 +1,135 @@
+"""D-SLAM information filter: block-sparse storage, PCG, updates (eqs. 9, 10) and recovery against dense solves."""
+
+import numpy as np
+import pytest
+import scipy.linalg
+
+from robots.models import RangeBearingSensor, in_field_of_view
+from services.dslam.information_filter import BlockSparseMatrix, InformationMap, block_pcg, block_rows
+
+R = np.diag([0.05**2, np.radians(1.0) ** 2])
+
+
+def test_block_sparse_matrix_matches_dense_accumulation_through_rebuilds():
+    rng = np.random.default_rng(0)
+    matrix = BlockSparseMatrix(capacity=4, rebuild_fraction=0.5)
+    dense = np.zeros((0, 0))
+    for step in range(60):
+        if step % 5 == 0:
+            matrix.grow(3)
+            dense = np.pad(dense, ((0, 6), (0, 6)))
+        index = rng.choice(matrix.n, size=min(matrix.n, rng.integers(1, 5)), replace=False)
+        block = rng.standard_normal((2 * index.size, 2 * index.size))
+        block = block @ block.T
+        matrix.add(index, block)
+        rows = block_rows(index)
+        dense[np.ix_(rows, rows)] += block
+        if step % 7 == 0:
+            matrix.prepare()
+        x = rng.standard_normal((2 * matrix.n, 2))
+        np.testing.assert_allclose(matrix.matvec(x), dense @ x, atol=1e-9)
+    np.testing.assert_allclose(matrix.tocsr().toarray(), dense, atol=1e-12)
+    np.testing.assert_allclose(matrix.diagonal_blocks(), [dense[2 * i:2 * i + 2, 2 * i:2 * i + 2] for i in range(matrix.n)])
+    pattern = dense.reshape(matrix.n, 2, matrix.n, 2).any(axis=(1, 3)) | np.eye(matrix.n, dtype=bool)
+    assert matrix.nnz == 4 * np.count_nonzero(pattern)
+
+
+def test_block_pcg_solves_several_right_hand_sides():
+    rng = np.random.default_rng(1)
+    a = rng.standard_normal((40, 40))
+    a = a @ a.T + 40 * np.eye(40)
+    b = rng.standard_normal((40, 3))
+    x, iterations = block_pcg(lambda v: a @ v, lambda r: r / np.diag(a)[:, None], b, np.zeros_like(b), 1e-12, 200)
+    np.testing.assert_allclose(x, np.linalg.solve(a, b), atol=1e-9)
+    assert 0 < iterations <= 40
+    _, again = block_pcg(lambda v: a @ v, lambda r: r / np.diag(a)[:, None], b, x, 1e-9, 200)
+    assert again == 0
+
+
+def scan_sequence(seed: int, count: int = 60):
+    """Noisy scans of a small random world from poses along a line: (observations, true ids) per scan."""
+    rng = np.random.default_rng(seed)
+    landmarks = np.column_stack([rng.uniform(0, 30, 40), rng.uniform(-4, 4, 40)])
+    sensor = RangeBearingSensor()
+    scans = []
+    for k in range(count):
+        pose = np.array([0.5 * k, 0.3 * np.sin(0.2 * k), 0.1 * np.cos(0.3 * k)])
+        z = sensor.observe(pose, landmarks)
+        seen = np.flatnonzero(in_field_of_view(z, 6.0, np.pi))
+        z = z[seen] + rng.standard_normal((seen.size, 2)) @ np.linalg.cholesky(R).T
+        scans.append((pose, z, seen))
+    return landmarks, scans
+
+
+def run_map(scans, cache_columns=64, noise=R):
+    """Phase I on the first scan, phase II on the rest (known ids)."""
+    m = InformationMap(tol=1e-10, column_tol=1e-12, column_max_iter=2000, cache_columns=cache_columns)
+    sensor = RangeBearingSensor()
+    index_of = {}
+    pose, z, seen = scans[0]
+    g_pose, g_obs = sensor.inverse_jacobians(pose, z)
+    cov = scipy.linalg.block_diag(*(g_obs @ noise @ np.swapaxes(g_obs, 1, 2)))
+    added = m.update_absolute([], np.zeros((0, 2)), sensor.inverse(pose, z), cov)
+    index_of.update(zip(seen.tolist(), added.tolist()))
+    for pose, z, seen in scans[1:]:
+        known = np.array([i in index_of for i in seen.tolist()], bool)
+        mapped, new = np.flatnonzero(known), np.flatnonzero(~known)
+        done = m.update_scan(z, noise, mapped, [index_of[i] for i in seen[mapped].tolist()], new)
+        if done is not None:
+            index_of.update(zip(seen[new].tolist(), done[0].tolist()))
+        m.recover()
+    return m, index_of
+
+
+@pytest.mark.parametrize("cache_columns", [64, 3])
+def test_recovery_equals_dense_solve(cache_columns):
+    """Mean, cached covariance columns and every marginal equal dense solves of I X = i, even with a tiny cache."""
+    _, scans = scan_sequence(2)
+    m, _ = run_map(scans, cache_columns=cache_columns)
+    dense = m.matrix.tocsr().toarray()
+    np.testing.assert_allclose(m.mean, np.linalg.solve(dense, m.vector), atol=1e-7)
+    cov = np.linalg.inv(dense)  # the test's reference only
+    landmarks = np.array([0, m.n // 2, m.n - 1])
+    np.testing.assert_allclose(m.covariance_columns(landmarks), cov[:, block_rows(landmarks)], atol=1e-9, rtol=1e-6)
+    ids, marginals = m.cached_marginals()
+    np.testing.assert_allclose(marginals, [cov[2 * i:2 * i + 2, 2 * i:2 * i + 2] for i in ids], atol=1e-10, rtol=1e-6)
+    np.testing.assert_allclose(m.all_marginals(), [cov[2 * i:2 * i + 2, 2 * i:2 * i + 2] for i in range(m.n)],
+                               atol=1e-10, rtol=1e-6)
+    if cache_columns == 3:
+        assert m.column_solves > 0
+
+
+def test_information_matrix_links_only_landmarks_seen_together():
+    _, scans = scan_sequence(3)
+    m, index_of = run_map(scans)
+    together = np.zeros((m.n, m.n), bool)
+    for _, _, seen in scans[1:]:
+        idx = [index_of[i] for i in seen.tolist() if i in index_of]
+        if len(idx) >= 2:
+            together[np.ix_(idx, idx)] = True
+    pattern = m.matrix.tocsr().toarray().reshape(m.n, 2, m.n, 2).any(axis=(1, 3))
+    off = ~np.eye(m.n, dtype=bool)
+    assert not np.any(pattern & ~together & off)
+
+
+def test_noiseless_scans_give_the_exact_map():
+    landmarks, scans = scan_sequence(4)
+    sensor = RangeBearingSensor()
+    exact = [(pose, sensor.observe(pose, landmarks[seen]), seen) for pose, _, seen in scans]
+    m, index_of = run_map(exact, noise=np.diag([1e-12, 1e-14]))
+    order = np.array(sorted(index_of, key=index_of.get))
+    np.testing.assert_allclose(m.means, landmarks[order], atol=1e-6)
+
+
+def test_a_new_feature_must_own_two_rows():
+    m = InformationMap()
+    m.update_absolute([], np.zeros((0, 2)), np.array([[1.0, 2.0]]), np.eye(2))
+    with pytest.raises(ValueError):
+        m.update([0], np.ones((3, 4)), np.zeros(3), np.eye(3), np.array([[3.0, 3.0]]))
+
+
+def test_map_nees_uses_the_information_matrix():
+    m = InformationMap()
+    m.update_absolute([], np.zeros((0, 2)), np.array([[1.0, 2.0], [3.0, 4.0]]), np.diag([0.5, 0.5, 2.0, 2.0]))
+    truth = np.array([[0.0, 2.0], [3.0, 6.0]])
+    assert m.normalised_error(truth) == pytest.approx(1.0 / 0.5 + 4.0 / 2.0)

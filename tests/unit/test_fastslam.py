@@ -1,0 +1,263 @@
+"""Central FastSLAM core: batched prediction, noiseless worlds, consistency, MHT, clutter, bad input, robots joining."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+from scipy.stats import chi2
+
+from central.fastslam import FastSlam, FastSlamConfig, make_estimator
+from central.fastslam.landmarks import LandmarkMap
+from central.fastslam.motion import integrate_controls
+from central.paper001 import two_beacons
+from robots.dataset import OdomEvent, ScanEvent
+from robots.models import AckermannModel, UnicycleModel, se2_accumulate, se2_compose, wrap_angle
+from robots.simulator import simulate
+from robots.worlds import _sensor, make_world
+from services.estimator import RunOptions
+from services.estimator import make_estimator as registry_make
+
+
+def feed(estimator, dataset, robots=None):
+    for event in dataset.events(robots=robots):
+        if isinstance(event, OdomEvent):
+            estimator.on_odometry(event)
+        elif isinstance(event, ScanEvent):
+            estimator.on_scan(event)
+
+
+def nearest(means: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    """Distance from each estimated landmark to the nearest true one."""
+    return np.linalg.norm(means[:, None] - truth[None], axis=-1).min(1)
+
+
+def snapshot(f: FastSlam) -> list:
+    return [f.pose.copy(), f.logw.copy(), f.map.mean.copy(), f.map.cov.copy(), f.map.valid.copy(), f.map.exist.copy(),
+            {rid: (list(r.controls), r.pose_time, r.last_odom_stamp, r.last_scan_stamp) for rid, r in f.robots.items()}]
+
+
+def test_se2_accumulate_is_sequential_composition():
+    rng = np.random.default_rng(0)
+    increments = rng.normal(0, [0.3, 0.1, 0.4], (25, 3))
+    pose = np.zeros(3)
+    expected = [pose]
+    for inc in increments:
+        pose = se2_compose(pose, inc)
+        expected.append(pose)
+    np.testing.assert_allclose(se2_accumulate(increments), np.array(expected), atol=1e-12)
+
+
+@pytest.mark.parametrize("model, controls", [
+    (UnicycleModel(), np.column_stack([np.full(12, 1.0), np.linspace(-0.6, 0.8, 12)])),
+    (AckermannModel(2.83, 0.76), np.column_stack([np.full(12, 4.0), np.linspace(-0.2, 0.3, 12)])),
+])
+def test_batched_prediction_matches_stepwise_draws(model, controls):
+    """One draw from N(Δ̄, Σ_Δ) per interval has the moments of one draw per control (first order)."""
+    rng = np.random.default_rng(1)
+    dts = np.full(controls.shape[0], 0.05)
+    cov = np.diag([0.05**2, 0.03**2])
+    delta, sigma = integrate_controls(model, controls, dts, np.broadcast_to(cov, (controls.shape[0], 2, 2)))
+    n = 20000
+    pose = np.zeros((n, 3))
+    for u, dt in zip(controls, dts):
+        pose = model.step(pose, u + rng.multivariate_normal(np.zeros(2), cov, n), dt)
+    np.testing.assert_allclose(pose.mean(0), delta, atol=4e-3)
+    resid = pose - delta
+    resid[:, 2] = wrap_angle(resid[:, 2])
+    np.testing.assert_allclose(np.cov(resid.T), sigma, atol=0.05 * np.abs(sigma).max())
+
+
+def test_landmark_map_appends_compacts_and_grows():
+    lm = LandmarkMap(3, capacity=2)
+    lm.reserve(2)
+    slots = lm.append(np.array([0, 0, 2]), np.arange(6.0).reshape(3, 2), np.tile(np.eye(2), (3, 1, 1)), 1.0,
+                      np.array([7, 8, 9]))
+    assert slots.tolist() == [0, 1, 0] and lm.used.tolist() == [2, 0, 1]
+    lm.valid[0, 0] = False
+    lm.reserve(2)  # particle 0 needs 4 slots: compaction frees one, then the capacity doubles
+    assert lm.capacity == 4 and lm.used.tolist() == [1, 0, 1]
+    np.testing.assert_allclose(lm.mean[0, 0], [2.0, 3.0])
+    assert lm.label[0, 0] == 8
+    lm.select(np.array([2, 2, 0]))
+    assert lm.counts().tolist() == [1, 1, 1] and lm.label[:, 0].tolist() == [9, 9, 8]
+
+
+def quiet_world(name: str = "arena"):
+    """A world whose noise is negligible next to its sensor's stated accuracy."""
+    world = make_world(name, 0)
+    return dataclasses.replace(world, sensor=_sensor(6.0, 1.2, 1e-3, 1e-4, min_range=0.3), control_std=(1e-7, 1e-7))
+
+
+@pytest.mark.parametrize("association", ["known", "nn", "mht"])
+def test_noiseless_world_gives_the_true_map_and_path(association):
+    data = simulate(quiet_world(), robots=2, seed=0, duration=20.0)
+    infos = [log.info.model_copy(update={"start_pose_cov": np.zeros((3, 3))}) for log in data.robots.values()]
+    slam = FastSlam(FastSlamConfig(particles=10, association=association, seed=0), infos)
+    feed(slam, data)
+    estimate = slam.landmark_map()
+    seen = {int(i) for log in data.robots.values() for i in log.det_id if i >= 0}
+    assert len(estimate.means) == len(seen)
+    assert nearest(estimate.means, data.landmarks).max() < 0.01
+    for rid, (pose, _) in slam.poses().items():
+        error = pose - data.robots[rid].truth_pose[-1]
+        assert np.hypot(error[0], error[1]) < 0.01 and abs(wrap_angle(error[2])) < 1e-3
+    assert not slam.rejected
+
+
+def test_known_association_is_consistent():
+    """Pose NEES averaged over seeded runs stays within the two-sided 95 % χ² bounds at most time steps."""
+    runs = 5
+    nees = []
+    for seed in range(runs):
+        data = simulate("arena", robots=1, seed=seed, duration=10.0)
+        slam = make_estimator(RunOptions("fastslam", "known", 300, seed), [log.info for log in data.robots.values()])
+        values = []
+        for event in data.events():
+            if isinstance(event, OdomEvent):
+                slam.on_odometry(event)
+                continue
+            slam.on_scan(event)
+            mean, cov = slam.poses()["r1"]
+            error = mean - data.robots["r1"].truth_at(np.array([event.stamp]))[0]
+            error[2] = wrap_angle(error[2])
+            values.append(error @ np.linalg.solve(cov, error))
+        nees.append(values[1:])
+    average = np.mean(nees, 0)
+    low, high = chi2.ppf([0.025, 0.975], 3 * runs) / runs
+    inside = (average > low) & (average < high)
+    assert inside.mean() >= 0.8, f"ANEES inside [{low:.2f}, {high:.2f}] at only {inside.mean():.0%} of steps"
+
+
+def test_mht_keeps_and_separates_two_close_beacons():
+    """Paper 001 Fig. 2-3: two beacons 18 cm apart with 15 cm range noise end up as two landmarks, one each."""
+    world = two_beacons()
+    data = simulate(world, robots=1, seed=0, duration=70.0)
+    slam = FastSlam(FastSlamConfig(particles=50, association="mht", seed=0), [data.robots["r1"].info])
+    feed(slam, data)
+    assert slam.counts["mht_splits"] > 0
+    means = slam.landmark_map().means
+    pair = world.landmarks[:2]
+    near = means[np.linalg.norm(means - pair.mean(0), axis=1) < 0.4]
+    assert len(near) == 2
+    error = np.linalg.norm(near[:, None] - pair[None], axis=-1)
+    assignment = [0, 1] if error[0, 0] + error[1, 1] < error[0, 1] + error[1, 0] else [1, 0]
+    assert assignment in ([0, 1], [1, 0])
+    separation = np.linalg.norm(near[0] - near[1])
+    assert 0.09 < separation < 0.3
+
+
+@pytest.mark.parametrize("association", ["nn", "mht"])
+def test_clutter_born_landmarks_die(association):
+    """Clutter-born landmarks never reach the published map, and most die inside the filter too (those never seen
+    again stay tentative)."""
+    data = simulate("arena", robots=1, seed=3, duration=25.0, clutter_rate=1.5)
+    slam = FastSlam(FastSlamConfig(particles=20, association=association, seed=0), [data.robots["r1"].info])
+    feed(slam, data)
+    clutter = int((data.robots["r1"].det_id < 0).sum())
+    assert clutter > 250
+    assert slam.counts["landmarks_deleted"] > 0
+    means = slam.landmark_map().means
+    assert len(means) >= 10
+    assert nearest(means, data.landmarks).max() < 0.5, "a landmark born of clutter reached the map"
+    best = slam.best_particle()
+    valid = slam.map.valid[best]
+    survivors = int((nearest(slam.map.mean[best, valid], data.landmarks) > 0.5).sum())
+    assert survivors < 0.15 * clutter, f"{survivors} clutter-born landmarks of {clutter} clutter detections survive"
+
+
+def test_bad_input_is_counted_and_never_corrupts_the_state():
+    data = simulate("arena", robots=1, seed=0, duration=2.0)
+    slam = FastSlam(FastSlamConfig(particles=20, association="nn", seed=0), [data.robots["r1"].info])
+    feed(slam, data)
+    before = snapshot(slam)
+    good_odom = data.robots["r1"].odom(len(data.robots["r1"].odom_stamp) - 1)
+    good_scan = data.robots["r1"].scan(len(data.robots["r1"].scan_stamp) - 1)
+    bad = [
+        dataclasses.replace(good_odom, control=np.array([np.nan, 0.0]), stamp=good_odom.stamp + 1),
+        dataclasses.replace(good_odom, dt=-0.1, stamp=good_odom.stamp + 1),
+        dataclasses.replace(good_odom, control_cov=np.array([[1.0, 2.0], [2.0, 1.0]]), stamp=good_odom.stamp + 1),
+        dataclasses.replace(good_odom, control=np.zeros(3), stamp=good_odom.stamp + 1),
+        dataclasses.replace(good_odom, stamp=good_odom.stamp - 5.0),
+        dataclasses.replace(good_odom, robot_id="ghost"),
+        dataclasses.replace(good_scan, ranges=np.full(good_scan.ranges.shape, np.nan), stamp=good_scan.stamp + 1),
+        dataclasses.replace(good_scan, ranges=-np.abs(good_scan.ranges) - 1, stamp=good_scan.stamp + 1),
+        dataclasses.replace(good_scan, bearings=np.zeros(good_scan.ranges.size + 1), stamp=good_scan.stamp + 1),
+        dataclasses.replace(good_scan, noise_cov=np.array([[0.01, 0.0], [0.0, -1.0]]), stamp=good_scan.stamp + 1),
+        dataclasses.replace(good_scan, stamp=good_scan.stamp - 5.0),
+        dataclasses.replace(good_scan, stamp=float("nan")),
+    ]
+    for event in bad:
+        accepted = slam.on_odometry(event) if isinstance(event, OdomEvent) else slam.on_scan(event)
+        assert not accepted
+    after = snapshot(slam)
+    for a, b in zip(before[:-1], after[:-1]):
+        np.testing.assert_array_equal(a, b)
+    assert before[-1] == after[-1]
+    assert sum(slam.rejected.values()) == len(bad)
+    assert {"bad_odometry", "time_backwards", "unknown_robot", "bad_scan_values", "negative_range", "bad_scan_shape",
+            "bad_scan_noise"} <= set(slam.rejected)
+    assert not slam.place_robot("r1", np.zeros(3), np.eye(3))
+
+
+def test_robot_with_unknown_start_waits_until_placed():
+    data = simulate("arena", robots=2, seed=0, duration=5.0, unknown_start=[False, True])
+    slam = FastSlam(FastSlamConfig(particles=200, association="known", seed=0), [log.info for log in data.robots.values()])
+    assert set(slam.poses()) == {"r1"} and set(slam.parked) == {"r2"}
+    feed(slam, data, robots=["r2"])
+    assert slam.rejected["robot_not_placed"] > 0 and slam.map.counts().max() == 0
+    truth = data.robots["r2"].truth_pose[-1]
+    assert not slam.place_robot("r2", truth, np.full((3, 3), np.nan))
+    assert slam.place_robot("r2", truth, np.diag([0.04, 0.04, 0.01]))
+    pose, cov = slam.poses()["r2"]
+    np.testing.assert_allclose(pose[:2], truth[:2], atol=0.05)
+    np.testing.assert_allclose(np.diag(cov), [0.04, 0.04, 0.01], rtol=0.3)
+    assert not slam.place_robot("r2", truth, np.eye(3))
+
+
+def test_a_robot_joining_later_shares_the_map():
+    data = simulate("arena", robots=2, seed=1, duration=20.0)
+    slam = FastSlam(FastSlamConfig(particles=30, association="known", seed=0), [data.robots["r1"].info])
+    feed(slam, data, robots=["r1"])
+    landmarks_before = set(slam.known_slots)
+    slam.add_robot(data.robots["r2"].info)
+    feed(slam, data, robots=["r2"])
+    assert set(slam.poses()) == {"r1", "r2"}
+    assert len(set(slam.known_slots) & landmarks_before) > 0
+    pose, _ = slam.poses()["r2"]
+    assert np.hypot(*(pose[:2] - data.robots["r2"].truth_pose[-1, :2])) < 0.3
+
+
+def test_registered_as_an_estimator():
+    data = simulate("arena", robots=1, seed=0, duration=1.0)
+    infos = [data.robots["r1"].info]
+    slam = registry_make(RunOptions("fastslam", "mht", 7, 3, "fastslam2", {"exclusive": False}), infos)
+    assert isinstance(slam, FastSlam)
+    assert slam.config.particles == 7 and slam.config.proposal == "fastslam2" and not slam.config.exclusive
+    with pytest.raises(ValueError):
+        registry_make(RunOptions("fastslam", "jcbb"), infos)
+    with pytest.raises(ValueError):
+        registry_make(RunOptions("fastslam", "nn", extra={"no_such_setting": 1}), infos)
+
+
+def test_same_seed_same_result():
+    data = simulate("arena", robots=2, seed=2, duration=3.0, clutter_rate=1.0)
+    results = []
+    for _ in range(2):
+        slam = FastSlam(FastSlamConfig(particles=10, association="mht", seed=5), [log.info for log in data.robots.values()])
+        feed(slam, data)
+        results.append((slam.pose.copy(), slam.landmark_map().means))
+    np.testing.assert_array_equal(results[0][0], results[1][0])
+    np.testing.assert_array_equal(results[0][1], results[1][1])
+
+
+def test_fastslam2_proposal_tracks_a_robot():
+    data = simulate("arena", robots=1, seed=4, duration=20.0)
+    slam = FastSlam(FastSlamConfig(particles=20, association="nn", proposal="fastslam2", seed=0), [data.robots["r1"].info])
+    feed(slam, data)
+    pose, _ = slam.poses()["r1"]
+    assert np.hypot(*(pose[:2] - data.robots["r1"].truth_pose[-1, :2])) < 0.2
+    assert nearest(slam.landmark_map().means, data.landmarks).max() < 0.3
+    assert math.isfinite(slam.effective_particles())

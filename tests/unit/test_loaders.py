@@ -1,0 +1,211 @@
+"""Loaders: spec parsing, odometry intervals, MR.CLAM barcode mapping, the beacon detector,
+and the counts the data sets' SOURCE.md files state (skipped when the data folder is absent)."""
+
+import lzma
+import math
+
+import numpy as np
+import pytest
+
+from robots.loaders import data_root, detect_beacons, load_dataset
+from robots.loaders.common import group_by_stamp, odometry_intervals, read_table
+from robots.models import AckermannModel, RangeBearingSensor
+
+ROOT = data_root()
+needs_data = pytest.mark.skipif(ROOT is None, reason="real data sets not found (set FLEETSLAM_DATA or add ../shared/data)")
+
+HEADER = "# a\n# b\n# c\n# d\n"
+
+
+def _write(path, rows, packed=False):
+    text = HEADER + "".join("\t".join(str(v) for v in row) + "\n" for row in rows)
+    if packed:
+        with lzma.open(f"{path}.xz", "wt") as handle:
+            handle.write(text)
+    else:
+        path.write_text(text)
+
+
+@pytest.fixture
+def tiny_mrclam(tmp_path):
+    """Two robots, two landmarks; barcodes 5, 14 are robots 1, 2; 90, 61 landmarks 6, 7; 43 unknown."""
+    _write(tmp_path / "Barcodes.dat", [(1, 5), (2, 14), (6, 90), (7, 61)], packed=True)
+    _write(tmp_path / "Landmark_Groundtruth.dat", [(6, 1.0, 2.0, 0.0, 0.0), (7, -1.0, 3.0, 0.0, 0.0)])
+    for n in (1, 2):
+        _write(tmp_path / f"Robot{n}_Odometry.dat",
+               [(100.0, 0.1, 0.0), (100.5, 0.1, 0.0), (100.5, 0.2, 0.1), (101.0, 0.2, 0.1), (102.0, 0.0, 0.0)],
+               packed=n == 1)
+        _write(tmp_path / f"Robot{n}_Measurement.dat",
+               [(100.2, 90, 2.0, 0.1), (100.2, 14 if n == 1 else 5, 3.0, -0.2), (100.7, 43, 1.0, 0.0),
+                (101.5, 61, 4.0, 0.3)])
+        _write(tmp_path / f"Robot{n}_Groundtruth.dat", [(99.0, 0.0, 0.0, 0.0), (101.0, 2.0, 0.0, 0.2)])
+    return tmp_path
+
+
+def test_odometry_intervals_drop_readings_overtaken_at_the_same_stamp():
+    stamps = np.array([0.0, 0.5, 0.5, 1.0])
+    controls = np.array([[1.0, 0.0], [2.0, 0.0], [3.0, 0.0], [4.0, 0.0]])
+    end, dt, used, dropped = odometry_intervals(stamps, controls)
+    assert dropped == 1
+    np.testing.assert_allclose(end, [0.5, 1.0])
+    np.testing.assert_allclose(dt, [0.5, 0.5])
+    np.testing.assert_allclose(used[:, 0], [1.0, 3.0])
+
+
+def test_group_by_stamp_offsets():
+    stamps, offsets = group_by_stamp(np.array([1.0, 1.0, 2.0, 3.0, 3.0, 3.0]))
+    np.testing.assert_allclose(stamps, [1.0, 2.0, 3.0])
+    np.testing.assert_array_equal(offsets, [0, 2, 3, 6])
+
+
+def test_read_table_plain_and_xz_alike(tmp_path):
+    rows = [(1.0, 2.0), (3.0, 4.5)]
+    _write(tmp_path / "a.dat", rows)
+    _write(tmp_path / "b.dat", rows, packed=True)
+    np.testing.assert_array_equal(read_table(tmp_path / "a.dat", 2), read_table(tmp_path / "b.dat.xz", 2))
+    with pytest.raises(ValueError, match="columns"):
+        read_table(tmp_path / "a.dat", 3)
+
+
+def test_mrclam_maps_barcodes_keeps_robot_detections_and_counts_unknown(tiny_mrclam):
+    data = load_dataset(f"mrclam:{tiny_mrclam}")
+    assert list(data.robots) == ["r1", "r2"]
+    np.testing.assert_array_equal(data.landmark_ids, [6, 7])
+    r1 = data.robots["r1"]
+    np.testing.assert_array_equal(r1.det_id, [6, 7])
+    np.testing.assert_allclose(r1.scan_stamp, [100.2, 101.5])  # the unknown barcode's scan disappears
+    scan = r1.scan(0)
+    assert scan.robot_ids == ["r2"] and scan.robot_ranges[0] == 3.0 and scan.ranges.tolist() == [2.0]
+    assert r1.scan(1).robot_ids == [] and r1.scan(1).landmark_ids.tolist() == [7]
+    assert data.meta["unknown_barcodes"] == {"r1": 1, "r2": 1}
+    assert data.meta["odometry_duplicates"]["r1"] == 1
+    np.testing.assert_allclose(r1.odom_dt, [0.5, 0.5, 1.0])
+    np.testing.assert_allclose(r1.odom_control[:, 0], [0.1, 0.2, 0.2])
+    np.testing.assert_allclose(r1.info.start_pose, [1.0, 0.0, 0.1])  # truth interpolated at t = 100
+    assert data.robots["r2"].scan(0).robot_ids == ["r1"]
+
+
+def test_mrclam_spec_with_a_robot_number_loads_that_robot_only(tiny_mrclam):
+    data = load_dataset(f"mrclam:{tiny_mrclam}:2")
+    assert list(data.robots) == ["r2"]
+    with pytest.raises(ValueError, match="robots are 1-5"):
+        load_dataset(f"mrclam:{tiny_mrclam}:7")
+
+
+def test_bad_specs_are_refused_with_a_clear_error(tmp_path):
+    with pytest.raises(ValueError, match="expected one of"):
+        load_dataset("kitti:/nowhere")
+    with pytest.raises(FileNotFoundError):
+        load_dataset(f"victoria-park:{tmp_path / 'missing'}")
+
+
+def test_sim_spec_delegates_to_the_simulator():
+    data = load_dataset("sim:arena", robots=2, seed=1, duration=2.0)
+    assert list(data.robots) == ["r1", "r2"] and data.name == "sim:arena"
+
+
+def test_beacon_detector_clusters_reflective_beams_inside_the_range_window():
+    ranges = np.full((2, 361), 81.9)
+    intensity = np.zeros((2, 361), int)
+    ranges[0, 10:13], intensity[0, 10:13] = [5.0, 5.2, 5.4], 8192  # beacon: beams 10-12
+    ranges[0, 180], intensity[0, 180] = 12.0, 32768  # beacon straight ahead
+    ranges[0, 300:302], intensity[0, 300:302] = 40.0, 8192  # too far
+    ranges[1, 360], intensity[1, 360] = 2.0, 16384  # last beam: left
+    found = detect_beacons(ranges, intensity)
+    np.testing.assert_array_equal(found.scan, [0, 0, 1])
+    np.testing.assert_allclose(found.range, [5.2, 12.0, 2.0])
+    np.testing.assert_allclose(found.bearing, [math.radians(5.5 - 90.0), 0.0, math.radians(90.0)], atol=1e-12)
+    np.testing.assert_array_equal(found.beams, [3, 1, 1])
+    assert found.rejected == 1
+
+
+@needs_data
+def test_mrclam_dataset6_counts_match_source_md():
+    data = load_dataset("mrclam:utias_mrclam/MRCLAM_Dataset6")
+    odometry = {"r1": 61785, "r2": 65005, "r3": 61158, "r4": 52916, "r5": 60567}
+    split = {"r1": (1534, 407, 1), "r2": (3239, 792, 0), "r3": (4348, 1277, 2), "r4": (2023, 373, 3),
+             "r5": (4239, 1139, 0)}
+    truth = {"r1": 49241, "r2": 59705, "r3": 56977, "r4": 61714, "r5": 57467}
+    assert data.meta["odometry_rows"] == odometry
+    assert data.meta["truth_rows"] == truth
+    for rid, (landmark, robot, unknown) in split.items():
+        log = data.robots[rid]
+        assert (log.det_range.size, len(log.robot_det_ids), data.meta["unknown_barcodes"][rid]) == (landmark, robot, unknown)
+        assert log.odom_stamp.size == odometry[rid] - 1 - data.meta["odometry_duplicates"][rid]
+        assert np.all(log.odom_dt > 0) and np.all(np.diff(log.scan_stamp) > 0)
+        assert set(np.unique(log.det_id)) <= set(range(6, 21))
+        assert set(log.robot_det_ids) <= {"r1", "r2", "r3", "r4", "r5"} - {rid}
+        assert log.info.start_pose is not None
+    assert data.landmarks.shape == (15, 2)
+    span = data.robots["r1"].truth_stamp[-1] - data.robots["r2"].truth_stamp[0]
+    assert span == pytest.approx(771.9, abs=0.5)  # robot 1's truth stops early
+
+
+@needs_data
+def test_mrclam_observations_agree_with_vicon_truth():
+    """Observations predicted from the Vicon poses and the landmark truth match the measured ones."""
+    data = load_dataset("mrclam:utias_mrclam/MRCLAM_Dataset6:2")
+    log = data.robots["r2"]
+    scan_of = np.repeat(np.arange(log.scan_stamp.size), np.diff(log.scan_offsets))
+    poses = log.truth_at(log.scan_stamp[scan_of])
+    lookup = dict(zip(data.landmark_ids.tolist(), data.landmarks))
+    predicted = RangeBearingSensor().observe(poses, np.array([lookup[i] for i in log.det_id.tolist()]))
+    ok = np.isfinite(predicted[:, 0])
+    assert np.median(np.abs(log.det_range[ok] - predicted[ok, 0])) < 0.2
+    assert np.median(np.abs(log.det_bearing[ok] - predicted[ok, 1])) < 0.03
+
+
+@needs_data
+def test_mrclam_dataset1_partial_has_no_robot_truth_and_its_stated_counts():
+    data = load_dataset("mrclam:utias_mrclam/MRCLAM_Dataset1_partial")
+    rows = [97890, 94826, 97351, 100012, 100726]
+    measurements = [5723, 6699, 8742, 3991, 8792]
+    for n, rid in enumerate(data.robots):
+        log = data.robots[rid]
+        assert data.meta["odometry_rows"][rid] == rows[n]
+        assert log.det_range.size + len(log.robot_det_ids) + data.meta["unknown_barcodes"][rid] == measurements[n]
+        assert log.info.start_pose is None and log.truth_stamp.size == 0
+
+
+@needs_data
+def test_victoria_park_counts_and_vehicle_frame_bearings():
+    data = load_dataset("victoria-park:victoria_park")
+    log = data.robots["r1"]
+    assert data.meta["odometry_rows"] == 61945 and data.meta["detections"] == 52974 and data.meta["gps_fixes"] == 4466
+    assert log.scan_stamp.size == 7230 and log.det_range.size == 52974
+    assert np.all(np.abs(log.det_bearing) <= math.pi / 2)
+    assert math.degrees(log.det_bearing.min()) == pytest.approx(6.5 - 90.0, abs=0.1)
+    assert log.info.motion_model == "ackermann" and log.info.wheelbase == 2.83 and log.info.encoder_offset == 0.76
+    np.testing.assert_allclose(log.info.sensor.offset, [3.78, 0.50])
+    assert np.all(np.isnan(log.truth_pose[:, 2])) and log.truth_pose.shape == (4466, 3)
+    assert np.allclose(log.odom_dt, 0.025, atol=2e-3)
+    assert data.meta["diameter"].shape == (52974,)
+
+
+@needs_data
+def test_car_park_counts_detector_and_start_pose():
+    data = load_dataset("car-park:acfr_car_park")
+    log = data.robots["r1"]
+    assert data.meta["odometry_rows"] == 5001 and data.meta["gps_fixes"] == 626 and log.scan_stamp.size == 586
+    assert data.landmarks.shape == (15, 2)
+    assert data.meta["start_fit_rmse_m"] < 0.5
+    detector = data.meta["detector"]
+    assert detector["detections"] == log.det_range.size > 500
+    assert np.all((log.det_range >= 1.0) & (log.det_range <= 30.0))
+    # Over the first 30 s dead reckoning is good: every detection lands on a surveyed beacon.
+    model, sensor = AckermannModel(), RangeBearingSensor(tuple(log.info.sensor.offset))
+    pose, poses, t = log.info.start_pose, {}, log.odom_stamp[0] - log.odom_dt[0]
+    for k in range(log.odom_stamp.size):
+        if log.odom_stamp[k] > t + 30.0:
+            break
+        pose = model.step(pose, log.odom_control[k], log.odom_dt[k])
+        poses[k] = pose
+    stamps = log.odom_stamp[: len(poses)]
+    early = np.flatnonzero(log.scan_stamp < stamps[-1])
+    scan_of = np.repeat(early, np.diff(log.scan_offsets)[early])
+    nearest = np.searchsorted(stamps, log.scan_stamp[scan_of]).clip(0, len(poses) - 1)
+    at = np.array([poses[int(k)] for k in nearest])
+    index = np.concatenate([np.arange(log.scan_offsets[s], log.scan_offsets[s + 1]) for s in early])
+    placed = sensor.inverse(at, np.column_stack([log.det_range[index], log.det_bearing[index]]))
+    distance = np.min(np.linalg.norm(placed[:, None] - data.landmarks[None], axis=-1), axis=1)
+    assert distance.size > 100 and np.mean(distance < 1.0) > 0.95

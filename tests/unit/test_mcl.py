@@ -1,0 +1,208 @@
+"""Monte Carlo localisation (paper 004): KLD bound, resampling, clustering, likelihood, resetting."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from robots.models import RangeBearingSensor, wrap_angle
+from schemas.config import MclFilterSettings
+from schemas.messages import RobotInfo, SensorSpec
+from services.mcl.clustering import cluster_particles
+from services.mcl.core import VARIANTS, MonteCarloLocalizer
+from services.mcl.kld import bin_keys, kld_prefix_size, kld_sample_size, normal_quantile, support
+from services.mcl.likelihood import LandmarkMap, ScanModel, scan_log_likelihood
+from services.mcl.resampling import systematic_resample, two_stage_resample
+from services.mcl.resetting import poses_from_scan
+
+R = np.diag([0.05**2, math.radians(1.0) ** 2])
+
+
+def sensor(max_range=6.0, fov=2 * math.pi, p_detect=1.0) -> SensorSpec:
+    return SensorSpec(max_range=max_range, fov=fov, noise_cov=R, detection_probability=p_detect)
+
+
+def info(spec: SensorSpec | None = None) -> RobotInfo:
+    return RobotInfo(robot_id="r1", stamp=0.0, motion_model="unicycle", sensor=spec or sensor(), odom_rate_hz=10.0,
+                     scan_rate_hz=10.0)
+
+
+def scan_model(spec: SensorSpec, settings: MclFilterSettings) -> ScanModel:
+    return ScanModel.from_spec(spec, settings.noise_scale, settings.clutter_weight, settings.miss_floor,
+                               settings.view_margin_range, settings.view_margin_bearing, settings.match_sigmas)
+
+
+# ---------------------------------------------------------------- KLD bound
+
+
+def test_kld_bound_uses_the_normal_quantile_not_delta():
+    assert normal_quantile(0.01) == pytest.approx(2.3263478740408408, abs=1e-12)
+    assert normal_quantile(0.05) == pytest.approx(1.6448536269514722, abs=1e-12)
+    z = 2.3263478740408408
+    for k, epsilon in ((2, 0.05), (10, 0.05), (50, 0.1), (400, 0.02)):
+        a = 2.0 / (9.0 * (k - 1))
+        expected = math.ceil((k - 1) / (2 * epsilon) * (1 - a + math.sqrt(a) * z) ** 3)
+        assert kld_sample_size(k, epsilon, 0.01) == expected
+        wrong = math.ceil((k - 1) / (2 * epsilon) * (1 - a + math.sqrt(a) * 0.01) ** 3)  # δ in place of z_(1-δ)
+        assert kld_sample_size(k, epsilon, 0.01) > wrong
+
+
+def test_kld_bound_grows_with_bins_and_shrinks_with_epsilon():
+    sizes = kld_sample_size(np.arange(1, 200), 0.05, 0.01)
+    assert sizes[0] == 0 and np.all(np.diff(sizes) > 0)
+    assert kld_sample_size(100, 0.1, 0.01) < kld_sample_size(100, 0.05, 0.01)
+    assert kld_sample_size(100, 0.05, 0.05) < kld_sample_size(100, 0.05, 0.01)
+
+
+def test_kld_prefix_stops_at_the_first_n_that_meets_the_bound():
+    assert kld_prefix_size(np.zeros(5000, np.int64), 0.05, 0.01, 50, 5000) == 50  # one bin: the minimum
+    keys = np.arange(5000)  # every sample in a new bin: never enough, stop at the maximum
+    assert kld_prefix_size(keys, 0.05, 0.01, 50, 5000) == 5000
+    keys = np.repeat(np.arange(20), 250)[np.random.default_rng(0).permutation(5000)]  # 20 bins
+    n = kld_prefix_size(keys, 0.05, 0.01, 10, 5000)
+    k = np.unique(keys[:n]).size
+    assert n >= kld_sample_size(k, 0.05, 0.01) and n - 1 < kld_sample_size(np.unique(keys[: n - 1]).size, 0.05, 0.01)
+
+
+def test_bin_keys_separate_cells_and_wrap_heading():
+    poses = np.array([[0.1, 0.1, 0.0], [0.2, 0.3, 0.05], [0.6, 0.1, 0.0], [0.1, 0.1, math.pi - 1e-9]])
+    keys = bin_keys(poses, 0.5, math.radians(10))
+    assert keys[0] == keys[1] and len(set(keys.tolist())) == 3
+    assert support(poses, 0.5, math.radians(10)) == 3
+
+
+# ---------------------------------------------------------------- resampling
+
+
+def test_systematic_resampling_counts_follow_the_weights():
+    weights = np.array([0.5, 0.25, 0.125, 0.125])
+    index = systematic_resample(weights, 1000, np.random.default_rng(1))
+    counts = np.bincount(index, minlength=4)
+    assert np.all(np.abs(counts - 1000 * weights) <= 1)
+
+
+def test_two_stage_resampling_keeps_every_significant_cluster():
+    rng = np.random.default_rng(2)
+    labels = np.repeat([0, 1, 2, 3], 250)
+    weights = np.concatenate([np.full(250, 0.90), np.full(250, 0.09), np.full(250, 0.01), np.full(250, 1e-6)]) / 250
+    weights /= weights.sum()
+    plain = np.bincount(labels[systematic_resample(weights, 1000, rng)], minlength=4)
+    assert plain[2] <= 11 and plain[3] == 0  # ordinary resampling keeps about 1 % of the third hypothesis
+    index, new_weights = two_stage_resample(weights, labels, np.array([0, 1, 2]), 1000, rng, memory=0.0)
+    counts = np.bincount(labels[index], minlength=4)
+    assert counts[3] == 0 and np.all(np.abs(counts[:3] - 1000 / 3) <= 1)  # an equal share each; none for the dropped one
+    assert np.bincount(labels[index], new_weights, 3) == pytest.approx([1 / 3] * 3)  # eq. 7: every cluster weighs the same
+    _, carried = two_stage_resample(weights, labels, np.array([0, 1, 2]), 999, rng, memory=1.0)
+    shares = [carried[k * 333:(k + 1) * 333].sum() for k in range(3)]
+    assert shares == pytest.approx([0.90 / 1.0, 0.09, 0.01], rel=1e-3)  # the Bayesian weights survive
+
+
+# ---------------------------------------------------------------- clustering
+
+
+def test_grid_clustering_separates_rotated_hypotheses_and_merges_one_cloud():
+    rng = np.random.default_rng(3)
+    centres = np.array([[0.0, 1.0, math.pi / 2], [-1.0, 0.0, math.pi], [0.0, -1.0, -math.pi / 2], [1.0, 0.0, 0.0]])
+    poses = np.repeat(centres, 100, axis=0) + rng.normal(0.0, [0.1, 0.1, 0.05], size=(400, 3))
+    poses[:, 2] = wrap_angle(poses[:, 2])
+    weights = np.full(400, 1 / 400)
+    clusters = cluster_particles(poses, weights, np.ones(400), 2.0, math.pi / 4, 2.0, math.pi / 4, 1e-4)
+    assert len(clusters) == 4 and np.allclose(clusters.weight, 0.25)
+    assert sorted(clusters.count.tolist()) == [100] * 4
+    cloud = np.array([1.0, 1.0, 0.0]) + rng.normal(0.0, [0.6, 0.6, 0.15], size=(400, 3))  # straddles cell borders
+    single = cluster_particles(cloud, weights, np.ones(400), 2.0, math.pi / 4, 2.0, math.pi / 4, 1e-4)
+    assert len(single) == 1 and np.allclose(single.mean[0], [1.0, 1.0, 0.0], atol=0.1)
+    assert np.sqrt(single.cov[0, 0, 0]) == pytest.approx(0.6, rel=0.15)
+
+
+# ---------------------------------------------------------------- likelihood
+
+
+def test_likelihood_matches_the_exact_innovation_and_prefers_the_truth():
+    rng = np.random.default_rng(4)
+    landmarks = rng.uniform(-5.0, 5.0, size=(30, 2))
+    settings = MclFilterSettings(miss_floor=1.0)
+    spec = sensor()
+    model = scan_model(spec, settings)
+    lmap = LandmarkMap(landmarks, model, settings.lookup_cell, 4)
+    truth = np.array([0.3, -0.2, 0.4])
+    z = RangeBearingSensor().observe(truth, landmarks)
+    seen = z[:, 0] <= 5.5
+    z = z[seen] + rng.normal(0.0, [0.05, math.radians(1.0)], size=(int(seen.sum()), 2))
+    poses = truth + np.array([[0, 0, 0], [0.03, -0.02, 0.01], [0.1, 0.05, -0.02], [1.0, 0.0, 0.0]])
+    loglik, quality = scan_log_likelihood(poses, z, lmap, model)
+    nu = RangeBearingSensor.innovation(z[None], RangeBearingSensor().observe(poses[:, None], landmarks[seen][None]))
+    m2 = np.einsum("pni,ij,pnj->pn", nu, np.linalg.inv(model.noise_cov), nu)
+    density = (1 - model.clutter_weight) * np.exp(model.log_gauss_norm - 0.5 * m2) + math.exp(model.log_floor)
+    exact = np.log(density).sum(1)
+    assert loglik[:3] == pytest.approx(exact[:3], abs=0.05 * len(z))
+    assert loglik[0] > loglik[2] > loglik[3] and np.all((quality > 0) & (quality <= 1))
+    assert loglik[3] >= len(z) * model.log_floor  # the clutter floor bounds the damage of every observation
+
+
+def test_one_false_detection_costs_the_floor_and_a_missed_landmark_costs_p_miss():
+    landmarks = np.array([[2.0, 0.0], [0.0, 2.0], [-2.0, 0.5]])
+    settings = MclFilterSettings()
+    model = scan_model(sensor(), settings)
+    lmap = LandmarkMap(landmarks, model, settings.lookup_cell, 2)
+    pose = np.zeros((1, 3))
+    z = RangeBearingSensor().observe(pose[0], landmarks)
+    full, _ = scan_log_likelihood(pose, z, lmap, model)
+    clutter, _ = scan_log_likelihood(pose, np.vstack([z, [[4.0, 2.5]]]), lmap, model)
+    assert clutter[0] - full[0] == pytest.approx(model.log_floor, abs=1e-6)
+    missing, _ = scan_log_likelihood(pose, z[:2], lmap, model)
+    assert missing[0] - full[0] == pytest.approx(math.log(model.miss_probability) - model.log_peak, abs=1e-3)
+
+
+# ---------------------------------------------------------------- sensor resetting
+
+
+def test_poses_drawn_from_a_scan_include_the_true_pose():
+    rng = np.random.default_rng(5)
+    landmarks = rng.uniform(0.0, 20.0, size=(60, 2))
+    settings = MclFilterSettings()
+    model = scan_model(sensor(fov=math.pi), settings)
+    lmap = LandmarkMap(landmarks, model, settings.lookup_cell, 2)
+    truth = np.array([10.0, 10.0, 1.0])
+    z = RangeBearingSensor().observe(truth, landmarks)
+    z = z[(z[:, 0] < 6.0) & (np.abs(z[:, 1]) < math.pi / 2)]
+    def close(poses):
+        return int(((np.hypot(*(poses[:, :2] - truth[:2]).T) < 0.2) & (np.abs(wrap_angle(poses[:, 2] - truth[2])) < 0.05)).sum())
+
+    plain = poses_from_scan(z, lmap, model, 2000, 3.0, 0.05, 0.02, 2.0, rng, draws=1)
+    poses = poses_from_scan(z, lmap, model, 2000, 3.0, 0.05, 0.02, 2.0, rng, draws=8)
+    assert close(poses) >= 10 and close(poses) > 2 * close(plain)  # the one-point check enriches the right poses
+    loglik, _ = scan_log_likelihood(poses, z, lmap, model)
+    best = poses[np.argmax(loglik)]
+    assert np.hypot(*(best[:2] - truth[:2])) < 0.2
+
+
+# ---------------------------------------------------------------- the filter
+
+
+def test_every_variant_runs_and_unknown_variant_is_refused():
+    rng = np.random.default_rng(6)
+    landmarks = rng.uniform(-8.0, 8.0, size=(40, 2))
+    truth = np.array([0.0, 0.0, 0.3])
+    z = RangeBearingSensor().observe(truth, landmarks)
+    z = z[z[:, 0] < 6.0]
+    for variant in VARIANTS:
+        mcl = MonteCarloLocalizer(landmarks, info(), MclFilterSettings(variant=variant, particles=300, max_particles=2000))
+        for _ in range(4):
+            mcl.predict(np.zeros(2), 0.1, np.diag([1e-4, 1e-4]))
+            report = mcl.update(z)
+        assert report.particles_after == mcl.count > 0 and mcl.weights.sum() == pytest.approx(1.0)
+        assert np.hypot(*(mcl.best()[0][:2] - truth[:2])) < 0.3, variant
+    with pytest.raises(ValueError):
+        MonteCarloLocalizer(landmarks, info(), MclFilterSettings.model_construct(variant="nope"))
+
+
+def test_known_start_pose_tracks_without_global_initialisation():
+    landmarks = np.array([[2.0, 0.0], [0.0, 2.0], [-2.0, 0.5], [1.0, -3.0]])
+    start = info().model_copy(update={"start_pose": np.array([0.5, 0.5, 0.2]), "start_pose_cov": np.diag([1e-3] * 3)})
+    mcl = MonteCarloLocalizer(landmarks, start, MclFilterSettings(variant="csrl", particles=200))
+    assert mcl.initialized and mcl.restarts == 0
+    mcl.update(RangeBearingSensor().observe(np.array([0.5, 0.5, 0.2]), landmarks))
+    assert np.allclose(mcl.best()[0], [0.5, 0.5, 0.2], atol=0.05) and mcl.restarts == 0

@@ -1,0 +1,154 @@
+"""``fleetslam run`` and the dead-reckoning baseline: exact dead reckoning, JSON fields, pluggable extra metrics."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from robots.loaders import data_root
+from robots.models import motion_model
+from robots.simulator import simulate
+from schemas.config import RunSettings
+from services import estimator as registry
+from services.cli import main as cli_main
+from services.estimator import RunOptions, make_estimator
+from services.evaluation.odometry import DeadReckoning
+from services.offline import run, run_estimator
+
+ROOT = data_root()
+needs_data = pytest.mark.skipif(ROOT is None, reason="real data sets not found (set FLEETSLAM_DATA or add ../shared/data)")
+
+
+def _step_by_step(log):
+    """Reference: the EKF prediction applied one control at a time."""
+    model = motion_model(log.info.motion_model, log.info.wheelbase, log.info.encoder_offset)
+    pose, cov = np.array(log.info.start_pose, float), np.array(log.info.start_pose_cov, float)
+    for k in range(log.odom_stamp.size):
+        f_pose, f_control = model.jacobians(pose, log.odom_control[k], log.odom_dt[k])
+        pose = model.step(pose, log.odom_control[k], log.odom_dt[k])
+        cov = f_pose @ cov @ f_pose.T + f_control @ log.odom_cov @ f_control.T
+    return pose, cov
+
+
+@pytest.mark.parametrize("kind", ["unicycle", "ackermann"])
+def test_dead_reckoning_in_batches_equals_the_step_by_step_prediction(kind):
+    data = simulate("arena", robots=1, seed=3, duration=8.0)
+    log = data.robots["r1"]
+    if kind == "ackermann":
+        log.info = log.info.model_copy(update={"motion_model": "ackermann", "wheelbase": 2.83, "encoder_offset": 0.76})
+        log.odom_control = np.column_stack([log.odom_control[:, 0], 0.3 * np.sin(log.odom_stamp)])
+    estimator = DeadReckoning()
+    estimator.add_robot(log.info)
+    for k, event in enumerate(e for e in data.events() if e.__class__.__name__ == "OdomEvent"):
+        estimator.on_odometry(event)
+        if k % 7 == 3:
+            estimator.poses()  # flush at irregular points
+    pose, cov = estimator.poses()["r1"]
+    want_pose, want_cov = _step_by_step(log)
+    np.testing.assert_allclose(pose, want_pose, atol=1e-9)
+    np.testing.assert_allclose(cov, want_cov, atol=1e-12, rtol=1e-7)
+
+
+def test_dead_reckoning_maps_landmarks_by_true_id_from_its_poses():
+    data = simulate("arena", robots=1, seed=0, duration=5.0)
+    estimator = make_estimator(RunOptions(estimator="odometry"), [data.robots["r1"].info])
+    for event in data.events():
+        (estimator.on_scan if hasattr(event, "ranges") else estimator.on_odometry)(event)
+    view = estimator.landmark_map()
+    assert view.means.shape[0] == view.ids.size > 0
+    truth = dict(zip(data.landmark_ids.tolist(), data.landmarks))
+    errors = np.linalg.norm(view.means - np.array([truth[i] for i in view.ids.tolist()]), axis=1)
+    assert np.median(errors) < 0.5
+    blind = make_estimator(RunOptions(estimator="odometry", association="nn"), [data.robots["r1"].info])
+    for event in data.events():
+        (blind.on_scan if hasattr(event, "ranges") else blind.on_odometry)(event)
+    assert blind.landmark_map().means.shape == (0, 2)
+
+
+def test_run_estimator_samples_each_robot_at_its_odometry_stamps():
+    data = simulate("arena", robots=2, seed=1, duration=6.0)
+    result = run_estimator(data, RunOptions(), sample_period_s=0.5)
+    for rid, trajectory in result.trajectories.items():
+        assert np.all(np.diff(trajectory.stamps) > 0)
+        assert 12 <= len(trajectory) <= 14
+        assert set(trajectory.stamps[1:].round(6)) <= set(data.robots[rid].odom_stamp.round(6))
+    assert result.events == {"odometry": 120, "scan": 122}
+    assert result.data_s == pytest.approx(6.0)
+
+
+class _Constant:
+    """A fake estimator that never moves and reports its own figures."""
+
+    def __init__(self, infos):
+        self.infos = {i.robot_id: i for i in infos}
+        self.scans = 0
+
+    def add_robot(self, info):
+        self.infos[info.robot_id] = info
+
+    def on_odometry(self, event):
+        pass
+
+    def on_scan(self, event):
+        self.scans += 1
+
+    def poses(self):
+        return {rid: (np.array(i.start_pose), np.eye(3)) for rid, i in self.infos.items()}
+
+    def landmark_map(self):
+        return registry.MapView(np.zeros((0, 2)), np.zeros((0, 2, 2)))
+
+    def extra_metrics(self):
+        return {"association_accuracy": 0.5, "scans_seen": self.scans}
+
+
+def make_constant(options, infos):
+    return _Constant(infos)
+
+
+def test_run_writes_the_json_fields_and_merges_extra_metrics(tmp_path, monkeypatch):
+    monkeypatch.setitem(registry.ESTIMATORS, "constant", f"{__name__}:make_constant")
+    settings = RunSettings(dataset="sim:arena", estimator="constant", duration=5.0, sim_robots=2,
+                           json_out=str(tmp_path / "out.json"), progress=False)
+    output = run(settings)
+    written = json.loads((tmp_path / "out.json").read_text())
+    assert written == output
+    for key in ("wall_s", "data_s", "ate_rmse_m", "map_rmse_m", "landmarks", "gps_rmse_m", "settings"):
+        assert key in written
+    assert written["association_accuracy"] == 0.5 and written["scans_seen"] == written["events"]["scan"]
+    assert set(written["ate_rmse_m"]) == {"r1", "r2"} and min(written["ate_rmse_m"].values()) > 0.1
+    assert written["landmarks"] == {"estimated": 0, "matched": 0, "missed": 15, "spurious": 0}
+    assert written["settings"]["estimator"] == "constant"
+
+
+def test_fleetslam_run_command_writes_json_and_a_report_folder(tmp_path):
+    out, report = tmp_path / "run.json", tmp_path / "report"
+    code = cli_main(["run", "--dataset", "sim:arena", "--duration", "4", "--robots", "r1,r3", "--json", str(out),
+                     "--out", str(report), "--no-progress"])
+    assert code == 0
+    result = json.loads(out.read_text())
+    assert result["robots"] == ["r1", "r3"] and result["estimator"] == "odometry"
+    assert 0.0 < result["ate_rmse_m"]["r1"] < 1.0
+    assert result["landmarks"]["matched"] > 0 and result["map_rmse_m"] < 1.0
+    metrics = json.loads((report / "metrics.json").read_text())
+    assert metrics["summary"]["odometry"]["ate_rmse_m"] == result["ate_rmse_m"]
+    for name in ("truth_r1.tum", "odometry_r3.tum", "map_odometry.png", "errors.png"):
+        assert (report / name).stat().st_size > 0
+    line = (report / "odometry_r1.tum").read_text().splitlines()[1].split()
+    assert len(line) == 8 and float(line[6]) ** 2 + float(line[7]) ** 2 == pytest.approx(1.0, abs=1e-5)
+
+
+def test_unknown_estimator_and_robot_are_clear_errors():
+    with pytest.raises(ValueError, match="unknown estimator"):
+        run(RunSettings(dataset="sim:arena", estimator="nope", duration=1.0, progress=False))
+    with pytest.raises(ValueError, match="not in"):
+        run_estimator(simulate("arena", robots=2, duration=1.0), RunOptions(), robots=["r9"])
+
+
+@needs_data
+def test_car_park_dead_reckoning_scores_against_gps_at_the_antenna(tmp_path):
+    output = run(RunSettings(dataset="car-park:acfr_car_park", duration=30.0, progress=False))
+    assert output["gps_rmse_m"] is not None and output["gps_rmse_m"] < 1.0
+    assert output["landmarks"]["missed"] == 15 and output["heading_rmse_rad"] == {}
+    assert math.isfinite(output["ate_rmse_m"]["r1"])
