@@ -12,7 +12,6 @@ and its mean; the PNG shows the sample size over time.
 from __future__ import annotations
 
 import argparse
-import json
 
 import numpy as np
 
@@ -20,7 +19,7 @@ from robots.simulator import simulate
 from robots.worlds import make_world
 from schemas.config import MclFilterSettings
 from services.mcl.core import MonteCarloLocalizer
-from services.mcl.scenarios import kidnapped, random_starts, trace_run
+from services.mcl.scenarios import emit_json, kidnapped, random_starts, trace_run
 
 VARIANTS = ("kld", "kld_srl", "cluster_kld_srl")
 
@@ -82,11 +81,7 @@ def main() -> None:
         fig.tight_layout()
         fig.savefig(args.png, dpi=110)
         report["png"] = args.png
-    text = json.dumps(report, indent=2)
-    print(text)
-    if args.out:
-        with open(args.out, "w") as handle:
-            handle.write(text + "\n")
+    emit_json(report, args.out)
 
 
 if __name__ == "__main__":

@@ -15,7 +15,6 @@ unique features.
 from __future__ import annotations
 
 import argparse
-import json
 
 import numpy as np
 
@@ -23,7 +22,7 @@ from robots.simulator import simulate
 from robots.worlds import make_world
 from schemas.config import MclFilterSettings
 from services.mcl.core import MonteCarloLocalizer
-from services.mcl.scenarios import random_starts, trace_run
+from services.mcl.scenarios import emit_json, random_starts, trace_run
 
 
 def trial(world_name: str, variant: str, seed: int, duration: float, particles: int) -> dict:
@@ -61,11 +60,7 @@ def main() -> None:
             }
     report = {"benchmark": "mcl_global", "duration_s": args.duration, "particles": args.particles,
               "target": "success >= 95 % over random starts in the office layout", "summary": summary, "runs": runs}
-    text = json.dumps(report, indent=2)
-    print(text)
-    if args.out:
-        with open(args.out, "w") as handle:
-            handle.write(text + "\n")
+    emit_json(report, args.out)
 
 
 if __name__ == "__main__":

@@ -12,7 +12,6 @@ localised (one hypothesis holds) within 0.5 m / 0.2 rad of the truth.
 from __future__ import annotations
 
 import argparse
-import json
 
 import numpy as np
 
@@ -20,7 +19,7 @@ from robots.simulator import simulate
 from robots.worlds import make_world
 from schemas.config import MclFilterSettings
 from services.mcl.core import MonteCarloLocalizer
-from services.mcl.scenarios import kidnapped, random_starts, trace_run
+from services.mcl.scenarios import emit_json, kidnapped, random_starts, trace_run
 
 
 def trial(world: str, variant: str, seed: int, at: float, duration: float, particles: int) -> dict:
@@ -68,11 +67,7 @@ def main() -> None:
     report = {"benchmark": "mcl_kidnap", "world": args.world, "kidnap_at_s": args.at, "trials": args.trials,
               "particles": args.particles, "target": "recovery within 2 s of robot time", "summary": summary,
               "runs": runs}
-    text = json.dumps(report, indent=2)
-    print(text)
-    if args.out:
-        with open(args.out, "w") as handle:
-            handle.write(text + "\n")
+    emit_json(report, args.out)
 
 
 if __name__ == "__main__":

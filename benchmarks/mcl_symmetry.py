@@ -19,7 +19,6 @@ means of a clustered and a plain variant on the map.
 from __future__ import annotations
 
 import argparse
-import json
 
 import numpy as np
 
@@ -28,7 +27,7 @@ from robots.simulator import simulate
 from robots.worlds import make_world
 from schemas.config import MclFilterSettings
 from services.mcl.core import VARIANTS, MonteCarloLocalizer
-from services.mcl.scenarios import Trace, trace_run
+from services.mcl.scenarios import Trace, emit_json, trace_run
 
 
 def consistent_twins(world, truth: np.ndarray) -> np.ndarray:
@@ -167,11 +166,7 @@ def main() -> None:
     if args.png:
         plot(args.png, world, first)
         report["png"] = args.png
-    text = json.dumps(report, indent=2)
-    print(text)
-    if args.out:
-        with open(args.out, "w") as handle:
-            handle.write(text + "\n")
+    emit_json(report, args.out)
 
 
 if __name__ == "__main__":

@@ -4,8 +4,10 @@ A map of 200 landmarks uniform in a 40 m square and the ``random`` world's
 sensor (8 m range, 120° field of view, about 8 landmarks per scan); one robot
 tracked from its known start pose (``mcl``, fixed sample size), and the same
 robot in global localisation (``cluster_kld_srl``, adaptive). Reports, per
-particle count, the wall time of one scan update (weigh, cluster, resample)
-and of one prediction: median and 10th/90th percentiles over the run.
+particle count, the time of one scan update (weigh, cluster, resample) as
+wall time and as this process's CPU time (less disturbed by other work on a
+shared machine), of the likelihood alone (CPU) and of one prediction (wall):
+median and 10th/90th percentiles over the run.
 
     .venv/bin/python benchmarks/mcl_timing.py [--out FILE] [--particles 100,300,1000,3000]
 """
@@ -14,7 +16,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import time
 
 import numpy as np
@@ -25,6 +26,7 @@ from robots.worlds import make_world
 from schemas.config import MclFilterSettings
 from services.mcl.core import MonteCarloLocalizer
 from services.mcl.likelihood import scan_log_likelihood
+from services.mcl.scenarios import emit_json
 
 
 def landmark_world(count: int, seed: int):
@@ -42,33 +44,37 @@ def percentiles(samples: list[float]) -> dict:
             "p90_ms": round(float(np.percentile(ms, 90)), 3)}
 
 
+def timed(work) -> tuple[float, float]:
+    """(wall, CPU) seconds of ``work()``: the CPU time of this process is less disturbed by a busy machine."""
+    wall, cpu = time.perf_counter(), time.process_time()
+    work()
+    return time.perf_counter() - wall, time.process_time() - cpu
+
+
 def run(dataset, variant: str, particles: int, known_start: bool, seed: int) -> dict:
     log = dataset.robots["r1"]
     info = log.info if known_start else log.info.model_copy(update={"start_pose": None, "start_pose_cov": None})
     settings = MclFilterSettings(variant=variant, particles=particles, seed=seed,
                                  max_particles=max(particles, 5000), min_particles=min(100, particles))
     mcl = MonteCarloLocalizer(dataset.landmarks, info, settings)
-    updates, predictions, likelihoods, counts, observations = [], [], [], [], []
+    times: dict[str, list] = {"update": [], "update_cpu": [], "likelihood": [], "predict": []}
+    counts, observations = [], []
     for event in dataset.events():
         if isinstance(event, OdomEvent):
-            start = time.perf_counter()
-            mcl.predict(event.control, event.dt, event.control_cov)
-            predictions.append(time.perf_counter() - start)
+            times["predict"].append(timed(lambda: mcl.predict(event.control, event.dt, event.control_cov))[0])
         elif isinstance(event, ScanEvent):
             z = event.observations
             if mcl.initialized:
-                start = time.perf_counter()
-                scan_log_likelihood(mcl.particles, z, mcl.map, mcl.model)
-                likelihoods.append(time.perf_counter() - start)
-            start = time.perf_counter()
-            mcl.update(z)
-            updates.append(time.perf_counter() - start)
+                times["likelihood"].append(timed(lambda: scan_log_likelihood(mcl.particles, z, mcl.map, mcl.model))[1])
+            wall, cpu = timed(lambda: mcl.update(z))
+            times["update"].append(wall)
+            times["update_cpu"].append(cpu)
             counts.append(mcl.count)
             observations.append(len(z))
     return {"variant": variant, "particles": particles, "known_start": known_start,
-            "update": percentiles(updates[5:]), "likelihood": percentiles(likelihoods[5:]),
-            "predict": percentiles(predictions[5:]), "particles_median": int(np.median(counts)),
-            "observations_median": float(np.median(observations)), "scans": len(updates)}
+            **{name: percentiles(samples[5:]) for name, samples in times.items()},
+            "particles_median": int(np.median(counts)), "observations_median": float(np.median(observations)),
+            "scans": len(counts)}
 
 
 def main() -> None:
@@ -85,11 +91,7 @@ def main() -> None:
     results.append(run(dataset, "cluster_kld_srl", 1000, False, args.seed))
     report = {"benchmark": "mcl_timing", "landmarks": args.landmarks, "world": world.name, "duration_s": args.duration,
               "target": "update < 5 ms for 1000 particles with 200 landmarks", "runs": results}
-    text = json.dumps(report, indent=2)
-    print(text)
-    if args.out:
-        with open(args.out, "w") as handle:
-            handle.write(text + "\n")
+    emit_json(report, args.out)
 
 
 if __name__ == "__main__":

@@ -88,7 +88,8 @@ def run(settings: RobotSettings, shutdown: Shutdown) -> dict[str, int]:
                 world_pub.put(world_payload)
             log.info("robot %s publishing %s (%s) at speed-up %g", rid, robot.info.source, robot.info.motion_model,
                      settings.speedup)
-            wall0, data0 = time.monotonic(), robot.start_stamp
+            wall0 = time.monotonic()
+            data0 = min(robot.start_stamp, dataset.meta.get("fleet_start", robot.start_stamp))  # one clock for a fleet
             next_info = wall0 + settings.info_period_s
             for event in robot.events(until=until, with_truth=settings.publish_truth):
                 due = wall0 + (event.stamp - data0) / settings.speedup

@@ -205,6 +205,8 @@ class MclFilterSettings(BaseSettings):
     kidnap_quality: float = Field(0.05, gt=0, lt=1, description="the expected match quality below which the robot may be lost")
     kidnap_scans: int = Field(3, ge=1, description="lost after this many scans in a row below kidnap_quality")
     kidnap_recovery: bool = Field(True, description="when lost, start global localisation again from the scan")
+    kidnap_probe: int = Field(200, ge=1, description="poses drawn from the scan to confirm that the robot is lost")
+    kidnap_ratio: float = Field(3.0, ge=1, description="lost only if a drawn pose's match quality beats the best particle's by this factor")
     map_margin: float = Field(2.0, ge=0, description="uniform samples lie within the map's bounding box grown by this (m)")
     converge_xy: float = Field(0.5, gt=0, description="evaluation: converged when localised within this distance of the truth (m)")
     converge_theta: float = Field(0.2, gt=0, description="... and this heading error (rad)")
@@ -240,6 +242,10 @@ class DslamFilterSettings(BaseSettings):
     confirm_hits: int = Field(2, ge=1, description="sightings before a tentative feature enters the map (association methods; known ids map at once)")
     tentative_misses: int = Field(3, ge=1, description="scans in view without a sighting before a tentative feature is dropped")
     min_reference_distance: float = Field(0.3, gt=0, description="smallest distance (m) between the two reference features of z_map")
+    bootstrap_std: float = Field(
+        0.1, ge=0, description="a robot that moved before seeing two mapped features maps raw observations from its "
+        "dead-reckoned pose while its position std is below this (m; 0: only at the start pose)",
+    )
     map_gate_probability: float = Field(0.9999, gt=0, lt=1, description="z_map is refused when its χ² test fails at this probability")
     recovery_tol: float = Field(1e-6, gt=0, description="mean recovery stops when every block-Jacobi step is below this (m)")
     recovery_max_iter: int = Field(200, ge=1, description="most PCG iterations of one mean recovery")

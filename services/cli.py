@@ -39,7 +39,8 @@ def available_commands() -> dict[str, tuple[str, str]]:
     return found
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The CLI parser; only ``command``'s module is imported (each process pays for its own imports only)."""
     parser = argparse.ArgumentParser(
         prog="fleetslam",
         description="Distributed multi-robot landmark SLAM over Eclipse Zenoh. "
@@ -47,10 +48,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for name, (module_name, text) in available_commands().items():
+        if name != command:
+            sub.add_parser(name, help=text, add_help=False)
+            continue
         module = importlib.import_module(module_name)
-        command = sub.add_parser(name, help=text, description=(module.__doc__ or text).strip().splitlines()[0])
-        module.add_arguments(command)
-        command.set_defaults(_module=module)
+        parsed = sub.add_parser(name, help=text, description=(module.__doc__ or text).strip().splitlines()[0])
+        module.add_arguments(parsed)
+        parsed.set_defaults(_module=module)
     return parser
 
 
@@ -65,7 +69,9 @@ def configure_logging(level: str = "INFO") -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    argv = sys.argv[1:] if argv is None else argv
+    command = next((word for word in argv if not word.startswith("-")), None)
+    args = build_parser(command).parse_args(argv)
     configure_logging(getattr(args, "log_level", None) or "INFO")
     try:
         return int(args._module.main(args) or 0)

@@ -48,15 +48,15 @@ def sockets(tables=TABLES) -> list[tuple[int, int, str]]:
     return found
 
 
-def check(role: str, tables=TABLES) -> str | None:
-    """None when healthy, else why not."""
+def check(role: str, tables=TABLES, ports: set[int] | None = None) -> str | None:
+    """None when healthy, else why not (``ports``: the router's, by default from the settings)."""
     table = sockets(tables)
     if role == "router":
-        ports = endpoint_ports(RouterSettings().listen)
+        ports = endpoint_ports(RouterSettings().listen) if ports is None else ports
         if any(state == LISTEN and local in ports for local, _, state in table):
             return None
         return f"nothing listens on port(s) {sorted(ports)}"
-    ports = endpoint_ports(FleetSettings().zenoh_connect)
+    ports = endpoint_ports(FleetSettings().zenoh_connect) if ports is None else ports
     if any(state == ESTABLISHED and remote in ports for _, remote, state in table):
         return None
     return f"no established connection to the router port(s) {sorted(ports)}"

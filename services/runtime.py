@@ -18,6 +18,7 @@ import asyncio
 import logging
 import os
 import signal
+import threading
 import time
 from collections import Counter, deque
 from typing import Any
@@ -148,6 +149,7 @@ class ServiceShell:
     async def _consume(self) -> None:
         assert self._queue is not None
         while True:
+            await asyncio.sleep(0)  # a non-empty queue never suspends: yield so stop, ticks and stats still run
             tag, key, payload, arrived = await self._queue.get()
             self.messages_in[tag] += 1
             try:
@@ -170,16 +172,26 @@ class ServiceShell:
     async def _publish_stats(self) -> None:
         self._stats_pub.put(self.stats())
 
+    def _install_signal_handlers(self) -> dict:
+        """SIGINT/SIGTERM stop the service.
+
+        Python-level handlers, not ``loop.add_signal_handler``: under a flood of
+        samples the loop's self-pipe is full of wake-ups, the signal byte is lost
+        and a loop-level handler never runs; a Python-level handler always does.
+        """
+        if threading.current_thread() is not threading.main_thread():
+            return {}  # tests drive stop() instead
+        previous = {}
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            previous[sig] = signal.signal(sig, lambda *_: self.stop())
+        return previous
+
     async def run(self, duration: float | None = None) -> None:
         """Open the session, set up, consume until a signal (or ``duration``), close."""
         self._loop = asyncio.get_running_loop()
         self._queue = asyncio.Queue()
         self._stop = asyncio.Event()
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            try:
-                self._loop.add_signal_handler(sig, self._stop.set)
-            except (NotImplementedError, RuntimeError, ValueError):
-                pass  # not the main thread (tests): stop() still works
+        previous_handlers = self._install_signal_handlers()
         self.session = await asyncio.to_thread(open_session, self.settings)
         tasks: list[asyncio.Task] = []
         try:
@@ -209,3 +221,5 @@ class ServiceShell:
                 except Exception:  # noqa: BLE001
                     pass
             self.session.close()
+            for sig, handler in previous_handlers.items():
+                signal.signal(sig, handler)

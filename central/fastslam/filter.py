@@ -380,14 +380,20 @@ class FastSlam:
 
     # ----------------------------------------------------- unknown association
     def _candidates(self, robot: RobotSlot, extra: int, r: np.ndarray) -> ScanState:
-        """Landmarks each particle could see now (within reach of the sensor), padded to a common width."""
+        """Landmarks each particle could see now (within reach of the sensor's range and field of view, with a
+        margin for the noise), padded to a common width."""
         pose = self.pose[:, robot.index]
         width = int(self.map.used.max(initial=0))
         position, _ = robot.sensor.sensor_position(pose)
         delta = self.map.mean[:, :width] - position[:, None, :]
         reach = robot.info.sensor.max_range if self.config.max_obs_range is None else self.config.max_obs_range
         reach = reach + 3.0 * float(np.sqrt(r[0, 0])) + 1.0
-        near = self.map.valid[:, :width] & (np.einsum("pkj,pkj->pk", delta, delta) < reach * reach)
+        distance2 = np.einsum("pkj,pkj->pk", delta, delta)
+        near = self.map.valid[:, :width] & (distance2 < reach * reach)
+        half_view = 0.5 * robot.info.sensor.fov + 3.0 * float(np.sqrt(r[1, 1])) + 0.2
+        if half_view < np.pi:
+            ahead = delta[..., 0] * np.cos(pose[:, 2])[:, None] + delta[..., 1] * np.sin(pose[:, 2])[:, None]
+            near &= (ahead >= np.cos(half_view) * np.sqrt(distance2)) | (distance2 < 1.0)
         rows, cols = np.nonzero(near)
         k_view = int(near.sum(1).max(initial=0))
         n = self.pose.shape[0]
@@ -567,29 +573,34 @@ class FastSlam:
         the one with fewer associations goes. Two real landmarks that close cannot both be confirmed with
         covariances that small, so separate close beacons stay.
         """
-        hit = scan.hit & scan.mask
-        rows, cols = np.nonzero(hit)
+        particle = np.arange(scan.cand.shape[0])[:, None]
+        hits = self.map.hits[particle, scan.cand]
+        confirmed = scan.mask & (hits >= self.config.confirm_hits)
+        rows, cols = np.nonzero(scan.hit & confirmed)
         if rows.size == 0:
             return
-        n, width = hit.shape
         rank = np.arange(rows.size) - np.searchsorted(rows, rows)
-        hit_col = np.zeros((n, int(rank.max()) + 1), np.int64)
+        hit_col = np.zeros((scan.cand.shape[0], int(rank.max()) + 1), np.int64)
         hit_mask = np.zeros(hit_col.shape, bool)
         hit_col[rows, rank], hit_mask[rows, rank] = cols, True
-        particle = np.arange(n)[:, None]
-        slot_i, slot_j = scan.cand[particle, hit_col], scan.cand
-        delta = self.map.mean[particle, slot_i][:, :, None] - self.map.mean[particle, slot_j][:, None]
-        spread = self.map.cov[particle, slot_i][:, :, None] + self.map.cov[particle, slot_j][:, None]
-        close = quad2(delta, inv2(spread)[0]) < self.gate
-        hits_i, hits_j = self.map.hits[particle, slot_i], self.map.hits[particle, slot_j]
-        confirmed = (hits_i >= self.config.confirm_hits)[:, :, None] & (hits_j >= self.config.confirm_hits)[:, None]
-        other = hit_col[:, :, None] != np.arange(width)[None, None]
-        weaker = (hits_j[:, None] < hits_i[:, :, None]) | ((hits_j[:, None] == hits_i[:, :, None]) & other
-                                                          & (slot_j[:, None] > slot_i[:, :, None]))
-        duplicate = hit_mask[:, :, None] & scan.mask[:, None] & other & confirmed & close & weaker
-        p, _, j = np.nonzero(duplicate)
-        alive = self.map.valid[p, slot_j[p, j]]
-        self.map.valid[p, slot_j[p, j]] = False
+        mean = self.map.mean[particle, scan.cand]
+        trace = np.einsum("pkii->pk", self.map.cov[particle, scan.cand])
+        delta = np.take_along_axis(mean, hit_col[:, :, None], 1)[:, :, None] - mean[:, None]
+        distance2 = np.einsum("phkj,phkj->phk", delta, delta)
+        # |δ|² / (tr Σ₁ + tr Σ₂) bounds δᵀ(Σ₁+Σ₂)⁻¹δ from below: only pairs passing it need the full test
+        maybe = (hit_mask[:, :, None] & confirmed[:, None] & (hit_col[:, :, None] != np.arange(scan.cand.shape[1]))
+                 & (distance2 < self.gate * (np.take_along_axis(trace, hit_col, 1)[:, :, None] + trace[:, None])))
+        p, h, j = np.nonzero(maybe)
+        if p.size == 0:
+            return
+        i = hit_col[p, h]
+        slot_i, slot_j = scan.cand[p, i], scan.cand[p, j]
+        spread = self.map.cov[p, slot_i] + self.map.cov[p, slot_j]
+        close = quad2(delta[p, h, j], inv2(spread)[0]) < self.gate
+        weaker = (hits[p, j] < hits[p, i]) | ((hits[p, j] == hits[p, i]) & (slot_j > slot_i))
+        drop = close & weaker
+        alive = self.map.valid[p[drop], slot_j[drop]]
+        self.map.valid[p[drop], slot_j[drop]] = False
         self.counts["landmarks_merged"] += int(alive.sum())
 
     # ------------------------------------------------------- FastSLAM 2.0

@@ -29,6 +29,16 @@ def read_table(path: Path, columns: int | None = None) -> np.ndarray:
     return table.reshape(-1, columns) if columns is not None and not table.size else table
 
 
+def first_stamp(path: Path) -> float | None:
+    """The first column of the first data line of a table (reads only the file's head)."""
+    opener = lzma.open if path.suffix == ".xz" else open
+    with opener(path, "rt") as handle:
+        for line in handle:
+            if line.strip() and not line.lstrip().startswith("#"):
+                return float(line.split()[0])
+    return None
+
+
 def odometry_intervals(stamps: np.ndarray, controls: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
     """Per-interval controls from time-stamped readings.
 

@@ -10,7 +10,9 @@ Barcodes.dat. Subjects 1-5 are robots (kept as robot-to-robot detections of
 ``r1`` … ``r5``), 6-20 landmarks (their subject number is the landmark id);
 barcodes not in the table are dropped and counted in ``Dataset.meta``. Each
 robot starts at its Vicon pose at its first odometry stamp. Stamps stay in
-the data set's Unix seconds, shared by all robots.
+the data set's Unix seconds, shared by all robots; ``meta["fleet_start"]`` is the
+first odometry stamp of any robot of the folder (also when one robot is loaded),
+so separate replay processes can share one clock origin.
 
 Default noise: fitted to Dataset 6 residuals against Vicon (robust spread,
 rounded up): σ_range 0.15 m, σ_bearing 0.025 rad; odometry σ_v 0.02 m/s,
@@ -24,7 +26,9 @@ from pathlib import Path
 import numpy as np
 
 from robots.dataset import Dataset, RobotLog
-from robots.loaders.common import find_file, group_by_stamp, median_rate, odometry_intervals, offsets_at, read_table
+from robots.loaders.common import (
+    find_file, first_stamp, group_by_stamp, median_rate, odometry_intervals, offsets_at, read_table,
+)
 from schemas.messages import RobotInfo, SensorSpec
 
 ROBOT_SUBJECTS = range(1, 6)
@@ -73,7 +77,9 @@ def load_mrclam(
     sensor = SensorSpec(min_range=0.0, max_range=max_range, fov=fov,
                         noise_cov=np.diag([range_std**2, bearing_std**2]))
     logs: dict[str, RobotLog] = {}
-    meta: dict = {"folder": str(folder), "unknown_barcodes": {}, "landmark_detections": {}, "robot_detections": {},
+    starts = [first_stamp(find_file(folder, f"Robot{s}_Odometry.dat")) for s in ROBOT_SUBJECTS
+              if _has_file(folder, f"Robot{s}_Odometry.dat")]
+    meta: dict = {"folder": str(folder), "fleet_start": min(t for t in starts if t is not None), "unknown_barcodes": {}, "landmark_detections": {}, "robot_detections": {},
                   "odometry_rows": {}, "odometry_duplicates": {}, "truth_rows": {}}
     for subject in subjects:
         rid = robot_id(subject)

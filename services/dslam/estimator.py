@@ -10,9 +10,10 @@ Per scan of a robot:
    (:mod:`services.dslam.localization`). A robot whose start pose is unknown
    is placed once it sees two mapped landmarks (ids needed then).
 3. Mapping.
-   Phase I (robot still at its known start pose): the raw observations give
-   absolute positions with the joint covariance of the start pose and the
-   noise. Phase II: with at least two mapped landmarks in the scan, the scan is
+   Phase I (robot still at its known start pose; or, to start a map, moved but
+   not yet localised against it, with a small dead-reckoning error and fewer
+   than two mapped features in view): the raw observations give absolute
+   positions with the joint covariance of the pose and the noise. Phase II: with at least two mapped landmarks in the scan, the scan is
    recast into z_map (eq. 3) around the best-conditioned reference pair, new
    features are initialised by eq. 9 and the map updated by eq. 10. z_map is
    free of any robot frame, so every robot's scans update the one map.
@@ -38,7 +39,7 @@ from robots.models import RangeBearingSensor, in_field_of_view, motion_model
 from schemas.association import NEW, AssociationReply, AssociationRequest
 from schemas.config import DslamFilterSettings
 from schemas.messages import RobotInfo
-from services.dslam.information_filter import InformationMap, block_rows
+from services.dslam.information_filter import InformationMap, block_rows, inverse_2x2
 from services.dslam.localization import localise, observation_estimate, pose_from_points, predict
 from services.dslam.recast import scan_points
 from services.estimator import MapView, RunOptions
@@ -79,6 +80,7 @@ class RobotTrack:
     omega: float = float("nan")
     observed: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     streams: set = field(default_factory=set)
+    localised: bool = False
 
     def __post_init__(self) -> None:
         self.model = motion_model(self.info.motion_model, self.info.wheelbase or 2.83, self.info.encoder_offset)
@@ -98,10 +100,19 @@ class RobotTrack:
             return False
         return True
 
-    @property
-    def phase_one(self) -> bool:
-        """Still at its known start pose: raw observations map directly (phase I)."""
-        return self.known_start and not self.moved and self.pose is not None
+    def in_phase_one(self, mapped: int, bootstrap_std: float) -> bool:
+        """Raw observations map directly from this robot's pose (phase I) for this scan?
+
+        Yes while it stands at its known start pose (the paper's phase I). Also,
+        to start a map when the robot moves before it sees anything (MR.CLAM), while
+        it has not yet been localised against the map, sees fewer than two mapped
+        features and its dead-reckoned position std is at most ``bootstrap_std``.
+        """
+        if self.pose is None or not self.known_start or self.localised:
+            return False
+        if not self.moved:
+            return True
+        return mapped < 2 and float(np.sqrt(np.max(np.linalg.eigvalsh(self.cov[:2, :2])))) <= bootstrap_std
 
 
 class DSlam:
@@ -171,8 +182,8 @@ class DSlam:
             self.counts["scans_unassociated"] += 1
             return
         kinds, refs = labels
-        phase_one = robot.phase_one
         mapped = np.flatnonzero(kinds == MAPPED)
+        phase_one = robot.in_phase_one(mapped.size, self.settings.bootstrap_std)
         robot.observed = refs[mapped]
         if not phase_one:
             self._localise(robot, obs[mapped], noise, refs[mapped])
@@ -284,10 +295,12 @@ class DSlam:
             if estimate.full_rank:
                 robot.pose = estimate.pose
                 robot.cov = scipy.linalg.inv(estimate.info)
+                robot.localised = True
                 self.counts["robots_placed"] += 1
             return
         estimate = observation_estimate(robot.sensor, robot.pose, obs, noise, landmarks, joint)
         robot.pose, robot.cov, robot.omega = localise(robot.pose, robot.cov, estimate, self.settings.ci_criterion)
+        robot.localised = True
 
     # ---------------------------------------------------------- feature lists
     def _bookkeep(self, robot: RobotTrack, obs: np.ndarray, noise: np.ndarray, kinds: np.ndarray, refs: np.ndarray,
@@ -403,17 +416,33 @@ class DSlam:
                                       np.asarray(cov, float).copy()))
 
     # ------------------------------------------------------------------- maps
+    def adopt(self, information_map: InformationMap, keys: list[int]) -> None:
+        """Continue from a map built elsewhere (``keys``: the feature key of each landmark index)."""
+        information_map.track_columns = True
+        self.map = information_map
+        self.ids, self.index_of, self.tentative = [], {}, {}
+        self._register(list(keys), np.arange(information_map.n))
+
     def landmark_map(self) -> MapView:
-        """Means, marginal covariances (exact up to ``marginals_limit`` landmarks) and ids of the map."""
+        """Means, marginal covariances and ids (true ids with known association) of the map.
+
+        Up to ``marginals_limit`` landmarks every marginal is exact; beyond, the
+        landmarks with a cached column get theirs and the others the inverse of
+        their own information block (a lower bound: the reports' cost stays O(N)).
+        """
         means = self.map.means.copy()
         if self.map.n <= self.settings.marginals_limit:
             covs = self.map.all_marginals()
         else:
-            covs = np.linalg.inv(self.map.matrix.diagonal_blocks())
+            covs = inverse_2x2(self.map.matrix.diagonal_blocks())
             cached, cached_covs = self.map.cached_marginals()
             covs[cached] = cached_covs
         ids = np.asarray(self.ids, np.int64) if self.settings.association == "known" else None
         return MapView(means, covs, ids)
+
+    def extra_metrics(self) -> dict:
+        """Figures for ``fleetslam run``: the core's counters and sparsity."""
+        return {"dslam": self.stats()}
 
     def stats(self) -> dict[str, float]:
         """Figures for the service's stats: sparsity, recovery, timing, list sizes."""
@@ -423,6 +452,7 @@ class DSlam:
             "info_nnz": float(self.map.matrix.nnz),
             "recovery_iterations": float(self.map.recovery_iterations),
             "column_iterations": float(self.map.column_iterations),
+            "column_solves": float(self.map.column_solves),
             "step_ms": float(self.last_step_ms),
             "memory_mb": self.map.memory_bytes() / 2**20,
             **{k: float(v) for k, v in self.counts.items()},

@@ -246,7 +246,8 @@ class ColumnCache:
 
     def touch(self, landmarks) -> None:
         for i in landmarks:
-            self.slot.move_to_end(int(i))
+            if int(i) in self.slot:
+                self.slot.move_to_end(int(i))
 
     def resize_rows(self, rows: int) -> None:
         """Make room for ``rows`` state rows (new landmarks get zero rows, filled by the caller)."""
@@ -293,8 +294,9 @@ class InformationMap:
     """
 
     def __init__(self, tol: float = 1e-6, max_iter: int = 200, column_tol: float = 1e-6,
-                 column_max_iter: int = 300, cache_columns: int = 64):
+                 column_max_iter: int = 300, cache_columns: int = 64, track_columns: bool = True):
         self.matrix = BlockSparseMatrix()
+        self.track_columns = track_columns
         self.vector = np.zeros(0)
         self.mean = np.zeros(0)
         self.tol = tol
@@ -331,6 +333,9 @@ class InformationMap:
         I += ∇Hᵀ R⁻¹ ∇H and i += ∇Hᵀ R⁻¹ (ν + ∇H X̂); the mean and the cached
         columns follow by the rank-k correction (see the class docstring).
 
+        Without column tracking (``track_columns`` False: a map built in bulk),
+        only I and i change and the mean waits for :meth:`recover`.
+
         With ``gate``, the update is refused (None returned, nothing changed) when
         the joint NIS of the rows predicted by the map, νᵀ(∇H P ∇Hᵀ + R)⁻¹ν, exceeds
         it: one wrong association among the reference features would distort
@@ -350,18 +355,21 @@ class InformationMap:
             raise ValueError("each new feature must own exactly two measurement rows")
         rows_old = block_rows(old)
         linearised = np.concatenate([self.mean[rows_old], new_positions.ravel()])
-        if m_old:
-            self._ensure_columns(old)
         old_rows = ~new_rows
-        a = jacobian[old_rows][:, :split]
-        delta = np.zeros(2 * self.n)
-        if m_old and old_rows.any():
-            delta = self._correct_old(old, a, residual[old_rows], noise[np.ix_(old_rows, old_rows)], gate)
-            if delta is None:
-                return None
         added = np.zeros(0, np.int64)
-        if m_new:
-            added = self._add_new(old, a, jacobian[new_rows], residual, noise, new_rows, new_positions, delta)
+        if not self.track_columns:
+            added = self._grow(new_positions)
+        else:
+            if m_old:
+                self._ensure_columns(old)
+            a = jacobian[old_rows][:, :split]
+            delta = np.zeros(2 * self.n)
+            if m_old and old_rows.any():
+                delta = self._correct_old(old, a, residual[old_rows], noise[np.ix_(old_rows, old_rows)], gate)
+                if delta is None:
+                    return None
+            if m_new:
+                added = self._add_new(old, a, jacobian[new_rows], residual, noise, new_rows, new_positions, delta)
         chain = np.concatenate([old, added])
         weighted = np.linalg.solve(noise, np.column_stack([jacobian, residual + jacobian @ linearised]))
         product = jacobian.T @ weighted

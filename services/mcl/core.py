@@ -214,7 +214,7 @@ class MonteCarloLocalizer:
             loglik[-override.size:] = override
         self._reweigh(loglik, quality)
         best_quality = self._best_quality()
-        kidnapped = self._check_lost(best_quality)
+        kidnapped = self._check_lost(best_quality, float(quality.max()), z)
         if kidnapped:
             self.initialize_global(z)
             loglik, quality = self._likelihood(self.particles, z)
@@ -258,13 +258,20 @@ class MonteCarloLocalizer:
         sized = c.count >= max(5, int(0.01 * self.count))
         return float(c.quality[sized].max()) if sized.any() else float(c.quality.max())
 
-    def _check_lost(self, best_quality: float) -> bool:
+    def _check_lost(self, best_quality: float, particle_best: float, z: np.ndarray) -> bool:
+        """Lost: no cluster has explained the scans for ``kidnap_scans`` scans, and poses drawn from the scan do
+        clearly better (``kidnap_ratio``) than the best particle — with a partial map even the true pose
+        explains a scan poorly, and starting again would not help."""
         s = self.settings
         self._lost_run = self._lost_run + 1 if best_quality < s.kidnap_quality else 0
-        if self._lost_run >= s.kidnap_scans and s.kidnap_recovery:
-            self.kidnaps += 1
-            return True
-        return False
+        if self._lost_run < s.kidnap_scans or not s.kidnap_recovery:
+            return False
+        probe = self._scan_candidates(z, s.kidnap_probe)
+        _, probe_quality = self._likelihood(probe, z)
+        if probe_quality.max() <= s.kidnap_ratio * particle_best:
+            return False
+        self.kidnaps += 1
+        return True
 
     def dominant(self) -> bool:
         """Does one hypothesis hold the weight now, compactly (``localized_*`` settings)?"""

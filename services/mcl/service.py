@@ -50,13 +50,16 @@ MAP_MESSAGES = {"central": Estimate, "dslam": MapEstimate, "truth": WorldTruth}
 def load_map_file(path: str) -> np.ndarray:
     """An ``(L, 2)`` landmark array from a .npy or whitespace/comma-separated text file."""
     file = Path(path)
-    data = np.load(file) if file.suffix == ".npy" else np.loadtxt(file, delimiter="," if file.suffix == ".csv" else None)
-    landmarks = np.asarray(data, float).reshape(-1, 2) if np.asarray(data).size else np.zeros((0, 2))
-    if np.asarray(data).ndim == 2 and np.asarray(data).shape[1] != 2:
-        raise ValueError(f"{path}: expected an (L, 2) array, got shape {np.asarray(data).shape}")
-    if not np.all(np.isfinite(landmarks)):
+    data = np.asarray(np.load(file) if file.suffix == ".npy" else np.loadtxt(file, delimiter="," if file.suffix == ".csv" else None),
+                      float)
+    if data.size == 0:
+        return np.zeros((0, 2))
+    data = data.reshape(1, -1) if data.ndim == 1 else data
+    if data.ndim != 2 or data.shape[1] != 2:
+        raise ValueError(f"{path}: expected an (L, 2) array, got shape {data.shape}")
+    if not np.all(np.isfinite(data)):
         raise ValueError(f"{path}: the map holds NaN or infinite values")
-    return landmarks
+    return data
 
 
 @dataclass

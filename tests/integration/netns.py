@@ -127,12 +127,13 @@ class NetnsLab:
     def restore(self, host: str) -> None:
         _ip("-n", self.switch, "link", "set", self.ports[host], "up")
 
-    def close(self) -> None:
-        """Stop every process started here, delete every namespace and hosts file."""
+    def close(self, grace_s: float = 5.0) -> None:
+        """Stop every process started here (SIGTERM, SIGKILL after ``grace_s``), delete every namespace
+        and hosts file."""
         for process in self.processes:
             if process.poll() is None:
                 process.send_signal(signal.SIGTERM)
-        deadline = time.monotonic() + 10.0
+        deadline = time.monotonic() + grace_s
         for process in self.processes:
             try:
                 process.wait(timeout=max(0.1, deadline - time.monotonic()))

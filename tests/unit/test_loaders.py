@@ -88,6 +88,7 @@ def test_mrclam_maps_barcodes_keeps_robot_detections_and_counts_unknown(tiny_mrc
 def test_mrclam_spec_with_a_robot_number_loads_that_robot_only(tiny_mrclam):
     data = load_dataset(f"mrclam:{tiny_mrclam}:2")
     assert list(data.robots) == ["r2"]
+    assert data.meta["fleet_start"] == 100.0  # the clock origin every replay process can share
     with pytest.raises(ValueError, match="robots are 1-5"):
         load_dataset(f"mrclam:{tiny_mrclam}:7")
 

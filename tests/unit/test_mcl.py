@@ -206,3 +206,19 @@ def test_known_start_pose_tracks_without_global_initialisation():
     assert mcl.initialized and mcl.restarts == 0
     mcl.update(RangeBearingSensor().observe(np.array([0.5, 0.5, 0.2]), landmarks))
     assert np.allclose(mcl.best()[0], [0.5, 0.5, 0.2], atol=0.05) and mcl.restarts == 0
+
+
+def test_map_files_load_as_landmark_arrays(tmp_path):
+    from services.mcl.service import load_map_file
+
+    landmarks = np.array([[1.0, 2.0], [3.5, -4.0]])
+    np.save(tmp_path / "map.npy", landmarks)
+    np.savetxt(tmp_path / "map.txt", landmarks)
+    assert np.array_equal(load_map_file(str(tmp_path / "map.npy")), landmarks)
+    assert np.allclose(load_map_file(str(tmp_path / "map.txt")), landmarks)
+    np.savetxt(tmp_path / "bad.txt", np.ones((3, 3)))
+    with pytest.raises(ValueError):
+        load_map_file(str(tmp_path / "bad.txt"))
+    np.save(tmp_path / "nan.npy", np.array([[np.nan, 1.0]]))
+    with pytest.raises(ValueError):
+        load_map_file(str(tmp_path / "nan.npy"))
