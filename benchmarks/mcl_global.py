@@ -30,7 +30,8 @@ def trial(world_name: str, variant: str, seed: int, duration: float, particles: 
     start = world.start_poses(0)
     dataset = simulate(world, seed=seed, duration=duration, unknown_start=True)
     log = dataset.robots["r1"]
-    mcl = MonteCarloLocalizer(dataset.landmarks, log.info, MclFilterSettings(variant=variant, seed=seed, particles=particles))
+    settings = MclFilterSettings(variant=variant, seed=seed, particles=particles)
+    mcl = MonteCarloLocalizer(dataset.landmarks, log.info, settings)
     trace = trace_run(mcl, dataset.events(), lambda t: log.truth_at(np.array([t]))[0])
     return {"seed": seed, "start": np.round(start, 2).tolist(), "success": bool(trace.converged(0.5, 0.2)[-1]),
             "converge_s": trace.first_converged(0.5, 0.2), "hypotheses_max": int(max(trace.hypotheses)),

@@ -43,7 +43,8 @@ def consistent_twins(world, truth: np.ndarray) -> np.ndarray:
             twin = np.concatenate([rotation(angle) @ pose[:2], [pose[2] + angle]])
             twin_seen = sensor.observe(twin, world.landmarks)[:, 0] <= world.sensor.max_range
             back = world.landmarks[twin_seen] @ rotation(angle)  # rotate the twin's view back by -angle
-            alive[k] &= twin_seen.sum() == seen.sum() and np.allclose(np.sort(np.round(back, 3), axis=0), reference, atol=1e-2)
+            same = twin_seen.sum() == seen.sum() and np.allclose(np.sort(np.round(back, 3), axis=0), reference, atol=1e-2)
+            alive[k] &= same
         counts.append(int(alive.sum()))
     return np.array(counts)
 

@@ -234,6 +234,26 @@ class RangeBearingSensor:
         h_pose[..., 1, 2] = -(h_lm[..., 1, 0] * d_theta[..., 0] + h_lm[..., 1, 1] * d_theta[..., 1]) - 1.0
         return h_pose, h_lm
 
+    def observe_with_jacobian(self, pose, landmarks) -> tuple[np.ndarray, np.ndarray]:
+        """(:meth:`observe`, H_landmark of :meth:`jacobians`) in one pass, for filters that need both per landmark."""
+        pose = np.asarray(pose, float)
+        position, _ = self.sensor_position(pose)
+        delta = np.asarray(landmarks, float) - position
+        dx, dy = delta[..., 0], delta[..., 1]
+        q = dx * dx + dy * dy
+        r = np.sqrt(q)
+        q = np.maximum(q, 1e-18)
+        rs = np.maximum(r, 1e-9)
+        z = np.empty(delta.shape)
+        z[..., 0] = r
+        z[..., 1] = wrap_angle(np.arctan2(dy, dx) - pose[..., 2])
+        h_lm = np.empty(delta.shape[:-1] + (2, 2))
+        h_lm[..., 0, 0] = dx / rs
+        h_lm[..., 0, 1] = dy / rs
+        h_lm[..., 1, 0] = -dy / q
+        h_lm[..., 1, 1] = dx / q
+        return z, h_lm
+
     def inverse(self, pose, observation) -> np.ndarray:
         """Landmark position ``(..., 2)`` that would produce ``observation`` from ``pose``."""
         pose, observation = np.asarray(pose, float), np.asarray(observation, float)

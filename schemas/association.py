@@ -70,7 +70,7 @@ class AssociationRequest(Message):
     )
     gate_probability: float = Field(0.99, gt=0.0, lt=1.0, allow_inf_nan=False, description="chi-square gate probability")
     new_feature_gate_probability: float = Field(
-        0.9999, gt=0.0, lt=1.0, allow_inf_nan=False,
+        0.999999, gt=0.0, lt=1.0, allow_inf_nan=False,
         description="an unassigned measurement starts a feature only outside this gate of every landmark",
     )
     clutter_density: float = Field(1e-3, ge=0.0, allow_inf_nan=False, description="false alarms per m·rad")

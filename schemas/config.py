@@ -205,6 +205,7 @@ class MclFilterSettings(BaseSettings):
     kidnap_quality: float = Field(0.05, gt=0, lt=1, description="the expected match quality below which the robot may be lost")
     kidnap_scans: int = Field(3, ge=1, description="lost after this many scans in a row below kidnap_quality")
     kidnap_recovery: bool = Field(True, description="when lost, start global localisation again from the scan")
+    kidnap_min_observations: int = Field(3, ge=1, description="scans with fewer observations do not count towards being lost")
     kidnap_probe: int = Field(200, ge=1, description="poses drawn from the scan to confirm that the robot is lost")
     kidnap_ratio: float = Field(3.0, ge=1, description="lost only if a drawn pose's match quality beats the best particle's by this factor")
     map_margin: float = Field(2.0, ge=0, description="uniform samples lie within the map's bounding box grown by this (m)")

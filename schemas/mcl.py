@@ -26,7 +26,7 @@ class LocalizeRequest(Message):
     ranges: Array(None, nonnegative=True) = Field(default_factory=lambda: np.zeros(0))
     bearings: Array(None) = Field(default_factory=lambda: np.zeros(0))
     sensor: SensorSpec | None = Field(None, description="the sensor that took the scan (else the tracked robot's)")
-    particles: int | None = Field(None, ge=10, le=200_000, description="sample size (default: the service's setting)")
+    particles: int | None = Field(None, ge=10, le=50_000, description="sample size (default: the service's setting)")
     seed: int = Field(0, ge=0, description="seed of the draw")
 
     @model_validator(mode="after")

@@ -89,10 +89,16 @@ class ScanState:
     used: np.ndarray
     hit: np.ndarray
     k_view: int
+    rival: np.ndarray | None = None  # landmarks gated by a detection that went to another landmark (duplicate suspects)
     terms: tuple = ()  # (ẑ, H, S, S⁻¹, |S|) of every candidate from the last scoring, reused by the updates
+
+    def __post_init__(self) -> None:
+        if self.rival is None:
+            self.rival = np.zeros_like(self.mask)
 
     def select(self, index: np.ndarray) -> None:
         self.cand, self.mask, self.used, self.hit = self.cand[index], self.mask[index], self.used[index], self.hit[index]
+        self.rival = self.rival[index]
         self.terms = tuple(t[index] for t in self.terms)
 
     def terms_at(self, p: np.ndarray, k: np.ndarray) -> tuple:
@@ -313,10 +319,9 @@ class FastSlam:
     def _ekf_terms(self, robot: RobotSlot, p: np.ndarray, slot: np.ndarray, r: np.ndarray) -> tuple:
         """(ẑ, H, S, S⁻¹, |S|) of landmark ``slot`` seen from particle ``p`` (broadcast over any leading shape)."""
         pose = self.pose[p, robot.index]
-        mu, sig = self.map.mean[p, slot], self.map.cov[p, slot]
-        zhat = robot.sensor.observe(pose, mu)
-        _, h = robot.sensor.jacobians(pose, mu)
-        s = sandwich2(h, sig) + r
+        flat = self.map.flat(p, slot)
+        zhat, h = robot.sensor.observe_with_jacobian(pose, self.map.mean_rows()[flat])
+        s = sandwich2(h, self.map.cov_rows()[flat]) + r
         s_inv, det = inv2(s)
         return zhat, h, s, s_inv, det
 
@@ -327,13 +332,16 @@ class FastSlam:
         ``terms`` are the (ẑ, H, S, S⁻¹, |S|) of these pairs if already computed by the association.
         """
         zhat, h, s, s_inv, det = terms if terms is not None else self._ekf_terms(robot, p, slot, r)
-        sig = self.map.cov[p, slot]
+        flat = self.map.flat(p, slot)
+        means, covs = self.map.mean_rows(), self.map.cov_rows()
+        exist, hits = self.map.exist.reshape(-1), self.map.hits.reshape(-1)
+        sig = covs[flat]
         nu = robot.sensor.innovation(z, zhat)
         gain = sig @ np.swapaxes(h, -1, -2) @ s_inv
-        self.map.mean[p, slot] += (gain @ nu[..., None])[..., 0]
-        self.map.cov[p, slot] = sig - sandwich2(gain, s)
-        self.map.exist[p, slot] = np.minimum(self.map.exist[p, slot] + self.config.exist_hit, self.config.exist_max)
-        self.map.hits[p, slot] += 1
+        means[flat] += (gain @ nu[..., None])[..., 0]
+        covs[flat] = sig - sandwich2(gain, s)
+        exist[flat] = np.minimum(exist[flat] + self.config.exist_hit, self.config.exist_max)
+        hits[flat] += 1
         return -0.5 * quad2(nu, s_inv) - 0.5 * np.log(np.maximum(det, 1e-300)) - LOG_2PI
 
     def _create(self, robot: RobotSlot, p: np.ndarray, z: np.ndarray, r: np.ndarray, label: np.ndarray) -> np.ndarray:
@@ -457,31 +465,67 @@ class FastSlam:
         finally:
             self._scan = None
 
+    def _near_pairs(self, robot: RobotSlot, scan: ScanState, z: np.ndarray, r: np.ndarray, available: np.ndarray):
+        """(particle, detection, candidate, d², log N) of the pairs that may pass the new-landmark gate.
+
+        A cheap Cartesian pre-test keeps the work O(pairs) instead of O(P·m·K): with y the detection projected
+        from the particle's pose, d² ≥ |y − μ|² / (tr Σ + σ_r² + r²σ_φ²) (the largest eigenvalue of the
+        innovation covariance in the landmark plane), so pairs farther than that bound (×1.5 for the
+        linearisation) cannot pass; the rest get the exact d² from the candidates' (ẑ, S⁻¹, |S|).
+        """
+        pose = self.pose[:, robot.index]
+        particle = np.arange(pose.shape[0])[:, None]
+        flat = self.map.flat(particle, scan.cand)
+        mean = self.map.mean_rows()[flat]
+        spread = np.einsum("pkii->pk", self.map.cov_rows()[flat])
+        y = robot.sensor.inverse(pose[:, None, :], z[None])
+        dx = y[:, :, None, 0] - mean[:, None, :, 0]
+        dy = y[:, :, None, 1] - mean[:, None, :, 1]
+        sensor_var = r[0, 0] + z[:, 0] ** 2 * r[1, 1]
+        bound = 1.5 * self.new_gate * (spread[:, None, :] + sensor_var[None, :, None])
+        p, i, k = np.nonzero(available[:, None, :] & (dx * dx + dy * dy < bound))
+        zhat, _, _, s_inv, det = scan.terms
+        nu = z[i] - zhat[p, k]
+        nu[:, 1] = wrap_angle(nu[:, 1])
+        d2 = quad2(nu, s_inv[p, k])
+        ll = -0.5 * d2 - 0.5 * np.log(np.maximum(det[p, k], 1e-300)) - LOG_2PI
+        return p, i, k, d2, ll
+
     def _nearest_neighbour(self, robot: RobotSlot, scan: ScanState, z, r, labels, weigh: bool) -> None:
-        n = z.shape[0]
+        n_particles, n = self.pose.shape[0], z.shape[0]
         ll_new = self._new_log_likelihood(r)
         dz = z[:, None, :] - z[None, :, :]
         dz[..., 1] = wrap_angle(dz[..., 1])
         close = quad2(dz, inv2(2.0 * r)[0]) < self.new_gate
-        pending = np.ones((self.pose.shape[0], n), bool)
+        pending = np.ones((n_particles, n), bool)
         while pending.any():
             self.counts["nn_rounds"] += 1
             cols = np.flatnonzero(pending.any(0))
+            m = cols.size
             self._prepare(robot, scan, r)
-            d2, ll = self._score(robot, scan, z[cols])
-            available = scan.mask[:, None, :] & ~scan.used[:, None, :] if self.config.exclusive else scan.mask[:, None, :]
-            gated = available & (d2 < self.gate)
-            best = np.argmax(np.where(gated, ll, -np.inf), 2)
-            has = gated.any(2)
-            fresh = ~has & (np.where(available, d2, np.inf).min(2, initial=np.inf) >= self.new_gate)
+            available = scan.mask & ~scan.used if self.config.exclusive else scan.mask
+            p, i, k, d2, ll = self._near_pairs(robot, scan, z[cols], r, available)
+            gated = d2 < self.gate
+            key = p * m + i
+            order = np.lexsort((-ll, ~gated, key))
+            first = order[np.flatnonzero(np.r_[True, key[order][1:] != key[order][:-1]])] if key.size else order
+            first = first[gated[first]]
+            best = np.full((n_particles, m), -1, np.int64)
+            best[p[first], i[first]] = k[first]
+            has = best >= 0
+            near = np.zeros((n_particles, m), bool)
+            near[p[d2 < self.new_gate], i[d2 < self.new_gate]] = True
+            fresh = ~near
             waiting = pending[:, cols]
             target = np.where(has & waiting, best, -1)
             same = (target[:, :, None] == target[:, None, :]) & (target[:, :, None] >= 0)
             near_new = (fresh & waiting)[:, :, None] & close[np.ix_(cols, cols)][None]
-            earlier = np.triu(np.ones((cols.size, cols.size), bool), 1)[None]
+            earlier = np.triu(np.ones((m, m), bool), 1)[None]
             act = waiting & ~((same | near_new) & earlier & waiting[:, :, None]).any(1)
             p_u, c_u = np.nonzero(act & has)
             k_u = best[p_u, c_u]
+            rival = gated & act[p, i] & (k != best[p, i])
+            scan.rival[p[rival], k[rival]] = True
             ll_u = self._ekf_update(robot, p_u, z[cols[c_u]], scan.cand[p_u, k_u], r, scan.terms_at(p_u, k_u))
             scan.used[p_u, k_u] = scan.hit[p_u, k_u] = True
             p_n, c_n = np.nonzero(act & fresh)
@@ -491,7 +535,7 @@ class FastSlam:
             unexplained = (act & ~has).sum(1)
             self.counts["detections_ignored"] += int((act & ~has & ~fresh).sum())
             if weigh:
-                self.logw += np.bincount(p_u, ll_u, self.pose.shape[0])
+                self.logw += np.bincount(p_u, ll_u, n_particles)
             self.logw += ll_new * unexplained
             pending[:, cols] &= ~act
 
@@ -507,7 +551,8 @@ class FastSlam:
             available = scan.mask & ~scan.used if self.config.exclusive else scan.mask
             width = scan.cand.shape[1]
             hyp = np.empty((self.pose.shape[0], width + 2))
-            hyp[:, :width] = np.where(available & (d2 < self.gate), ll, -np.inf)
+            gated = available & (d2 < self.gate)
+            hyp[:, :width] = np.where(gated, ll, -np.inf)
             hyp[:, width], hyp[:, width + 1] = ll_new, ll_spurious
             best = hyp.max(1)
             keep = hyp >= (best + log_prune)[:, None]
@@ -517,11 +562,15 @@ class FastSlam:
             else:
                 parent, choice = np.nonzero(keep)
                 child_logw = self.logw[parent] + hyp[parent, choice]
+                gated = gated[parent]
                 self._select(parent)
                 self.logw = child_logw
                 self.counts["mht_splits"] += 1
             p_u = np.flatnonzero(choice < width)
             k_u = choice[p_u]
+            rivals = gated[p_u]
+            rivals[np.arange(p_u.size), k_u] = False
+            scan.rival[p_u] |= rivals
             self._ekf_update(robot, p_u, np.broadcast_to(z[i], (p_u.size, 2)), scan.cand[p_u, k_u], r,
                              scan.terms_at(p_u, k_u))
             scan.used[p_u, k_u] = scan.hit[p_u, k_u] = True
@@ -568,40 +617,38 @@ class FastSlam:
     def _merge_duplicates(self, scan: ScanState) -> None:
         """Delete a confirmed landmark that is statistically the same as one associated in this scan.
 
-        Two landmarks of one particle whose means differ by less than the χ² gate of Σ₁ + Σ₂ are one
-        landmark seen twice (split hypotheses can leave both alive, each taking every other detection);
-        the one with fewer associations goes. Two real landmarks that close cannot both be confirmed with
-        covariances that small, so separate close beacons stay.
+        Suspects are the rivals: landmarks that a detection gated but did not pick. Two landmarks of one
+        particle whose means differ by less than the χ² gate of Σ₁ + Σ₂ are one landmark seen twice (split
+        hypotheses can leave both alive, each taking every other detection); the one with fewer associations
+        goes. Two real landmarks that close cannot both be confirmed with covariances that small, so separate
+        close beacons stay.
         """
         particle = np.arange(scan.cand.shape[0])[:, None]
         hits = self.map.hits[particle, scan.cand]
         confirmed = scan.mask & (hits >= self.config.confirm_hits)
+        p, j = np.nonzero(scan.rival & confirmed & ~scan.hit)
+        if p.size == 0:
+            return
         rows, cols = np.nonzero(scan.hit & confirmed)
         if rows.size == 0:
             return
         rank = np.arange(rows.size) - np.searchsorted(rows, rows)
-        hit_col = np.zeros((scan.cand.shape[0], int(rank.max()) + 1), np.int64)
-        hit_mask = np.zeros(hit_col.shape, bool)
-        hit_col[rows, rank], hit_mask[rows, rank] = cols, True
-        mean = self.map.mean[particle, scan.cand]
-        trace = np.einsum("pkii->pk", self.map.cov[particle, scan.cand])
-        delta = np.take_along_axis(mean, hit_col[:, :, None], 1)[:, :, None] - mean[:, None]
-        distance2 = np.einsum("phkj,phkj->phk", delta, delta)
-        # |δ|² / (tr Σ₁ + tr Σ₂) bounds δᵀ(Σ₁+Σ₂)⁻¹δ from below: only pairs passing it need the full test
-        maybe = (hit_mask[:, :, None] & confirmed[:, None] & (hit_col[:, :, None] != np.arange(scan.cand.shape[1]))
-                 & (distance2 < self.gate * (np.take_along_axis(trace, hit_col, 1)[:, :, None] + trace[:, None])))
-        p, h, j = np.nonzero(maybe)
-        if p.size == 0:
-            return
-        i = hit_col[p, h]
-        slot_i, slot_j = scan.cand[p, i], scan.cand[p, j]
-        spread = self.map.cov[p, slot_i] + self.map.cov[p, slot_j]
-        close = quad2(delta[p, h, j], inv2(spread)[0]) < self.gate
-        weaker = (hits[p, j] < hits[p, i]) | ((hits[p, j] == hits[p, i]) & (slot_j > slot_i))
-        drop = close & weaker
-        alive = self.map.valid[p[drop], slot_j[drop]]
-        self.map.valid[p[drop], slot_j[drop]] = False
-        self.counts["landmarks_merged"] += int(alive.sum())
+        hit_col = np.full((scan.cand.shape[0], int(rank.max()) + 1), -1, np.int64)
+        hit_col[rows, rank] = cols
+        pair_p = np.repeat(p, hit_col.shape[1])
+        pair_j = np.repeat(j, hit_col.shape[1])
+        pair_i = hit_col[p].ravel()
+        keep = pair_i >= 0
+        pair_p, pair_i, pair_j = pair_p[keep], pair_i[keep], pair_j[keep]
+        slot_i, slot_j = scan.cand[pair_p, pair_i], scan.cand[pair_p, pair_j]
+        fi, fj = self.map.flat(pair_p, slot_i), self.map.flat(pair_p, slot_j)
+        means, covs = self.map.mean_rows(), self.map.cov_rows()
+        close = quad2(means[fi] - means[fj], inv2(covs[fi] + covs[fj])[0]) < self.gate
+        hits_i, hits_j = hits[pair_p, pair_i], hits[pair_p, pair_j]
+        drop = close & ((hits_j < hits_i) | ((hits_j == hits_i) & (slot_j > slot_i)))
+        valid = self.map.valid.reshape(-1)
+        self.counts["landmarks_merged"] += int(np.unique(fj[drop][valid[fj[drop]]]).size)
+        valid[fj[drop]] = False
 
     # ------------------------------------------------------- FastSLAM 2.0
     def _propose(self, robot: RobotSlot, z, r, ids) -> bool:

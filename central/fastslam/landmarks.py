@@ -32,6 +32,18 @@ class LandmarkMap:
     def capacity(self) -> int:
         return self.valid.shape[1]
 
+    def flat(self, particle: np.ndarray, slot: np.ndarray) -> np.ndarray:
+        """Row of (particle, slot) in the flattened arrays (one index array is cheaper than two)."""
+        return particle * self.capacity + slot
+
+    def mean_rows(self) -> np.ndarray:
+        """``mean`` as ``(P·C, 2)`` (a view: writes go through)."""
+        return self.mean.reshape(-1, 2)
+
+    def cov_rows(self) -> np.ndarray:
+        """``cov`` as ``(P·C, 2, 2)`` (a view: writes go through)."""
+        return self.cov.reshape(-1, 2, 2)
+
     def counts(self) -> np.ndarray:
         """Landmarks per particle ``(P,)``."""
         return self.valid.sum(1)

@@ -17,6 +17,8 @@ landmark remembers the true id of the measurement that started it):
 
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -27,6 +29,8 @@ from schemas.messages import RobotInfo
 from services.association.core import associate
 from services.estimator import MapView, RunOptions
 from services.evaluation.metrics import association_accuracy
+
+log = logging.getLogger(__name__)
 
 SUCCESS_CRITERION = (
     "no wrong association during the run: no measurement of true landmark A is fused into a landmark started "
@@ -40,7 +44,7 @@ class EkfOptions(BaseModel):
 
     model_config = ConfigDict(extra="ignore")
     gate_probability: float = Field(0.99, gt=0, lt=1, description="chi-square gate of the association")
-    new_feature_gate_probability: float = Field(0.9999, gt=0, lt=1, description="start a landmark only outside this gate of all")
+    new_feature_gate_probability: float = Field(0.999999, gt=0, lt=1, description="start a landmark only outside this gate of all")
     new_feature_density: float = Field(1e-3, gt=0, description="new landmarks per m·rad of measurement space")
     detection_probability_max: float = Field(0.99, gt=0, lt=1, description="cap on the sensor's detection probability")
     view_margin_m: float = Field(1.0, ge=0, description="landmarks this far beyond the maximum range are still candidates")
@@ -81,6 +85,8 @@ class EkfSlam:
         self.detection_probability = min(max(spec.detection_probability, 0.01), self.settings.detection_probability_max)
 
     def on_odometry(self, event: OdomEvent) -> None:
+        if event.robot_id != self.info.robot_id:
+            return
         pose = self.x[:3]
         f_pose, f_control = self.motion.jacobians(pose, event.control, event.dt)
         self.x[:3] = self.motion.step(pose, event.control, event.dt)
@@ -90,14 +96,15 @@ class EkfSlam:
 
     def on_scan(self, event: ScanEvent) -> None:
         z = event.observations
-        if z.shape[0] == 0:
+        if event.robot_id != self.info.robot_id or z.shape[0] == 0:
             return
         self.scans += 1
         noise = np.asarray(event.noise_cov, float)
-        candidates = self._candidates()
+        expected = self.sensor.observe(self.x[:3], self.x[3:].reshape(-1, 2))
+        candidates = self._candidates(expected)
         if self.method == "known":
             assignment, candidates = self._known(event, candidates)
-        predicted, h = self._jacobian(candidates)
+        predicted, h = expected[candidates], self._jacobian(candidates)
         if self.method != "known":
             assignment = self._associate(z, noise, predicted, h)
         labels = np.where(assignment >= 0, candidates[np.maximum(assignment, 0)] if candidates.size else -1, -1)
@@ -153,28 +160,23 @@ class EkfSlam:
     def landmark_count(self) -> int:
         return (self.x.shape[0] - 3) // 2
 
-    def _candidates(self) -> np.ndarray:
-        """Indices of the landmarks predicted near the sensor's view."""
-        n = self.landmark_count
-        if n == 0:
-            return np.zeros(0, np.int64)
+    def _candidates(self, expected: np.ndarray) -> np.ndarray:
+        """Indices of the landmarks whose predicted observations ``expected`` lie near the sensor's view."""
         spec = self.info.sensor
-        predicted = self.sensor.observe(self.x[:3], self.x[3:].reshape(n, 2))
-        near = (predicted[:, 0] <= spec.max_range + self.settings.view_margin_m) & (
-            np.abs(predicted[:, 1]) <= 0.5 * spec.fov + self.settings.view_margin_rad
+        near = (expected[:, 0] <= spec.max_range + self.settings.view_margin_m) & (
+            np.abs(expected[:, 1]) <= 0.5 * spec.fov + self.settings.view_margin_rad
         )
         return np.flatnonzero(near)
 
-    def _jacobian(self, landmarks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Predicted observations (k, 2) of the given landmarks and the stacked Jacobian (2k, state)."""
-        means = self.x[3:].reshape(-1, 2)[landmarks]
-        predicted = self.sensor.observe(self.x[:3], means)
-        h_pose, h_lm = self.sensor.jacobians(self.x[:3], means)
-        h = np.zeros((2 * landmarks.size, self.x.shape[0]))
-        for k, j in enumerate(landmarks):
-            h[2 * k:2 * k + 2, :3] = h_pose[k]
-            h[2 * k:2 * k + 2, 3 + 2 * j:5 + 2 * j] = h_lm[k]
-        return predicted, h
+    def _jacobian(self, landmarks: np.ndarray) -> np.ndarray:
+        """The stacked Jacobian (2k, state) of the observations of the given landmarks."""
+        k = landmarks.size
+        h_pose, h_lm = self.sensor.jacobians(self.x[:3], self.x[3:].reshape(-1, 2)[landmarks])
+        h = np.zeros((k, 2, self.x.shape[0]))
+        h[:, :, :3] = h_pose
+        cols = 3 + 2 * landmarks[:, None] + np.arange(2)
+        h[np.arange(k)[:, None, None], np.arange(2)[None, :, None], cols[:, None, :]] = h_lm
+        return h.reshape(2 * k, self.x.shape[0])
 
     def _associate(self, z: np.ndarray, noise: np.ndarray, predicted: np.ndarray, h: np.ndarray) -> np.ndarray:
         """Assignment (M,) of local candidate indices / NEW / CLUTTER from :func:`associate`.
@@ -186,7 +188,7 @@ class EkfSlam:
         k = predicted.shape[0]
         blocks = joint.reshape(k, 2, k, 2)[np.arange(k), :, np.arange(k), :] if k else np.zeros((0, 2, 2))
         s = self.settings
-        request = AssociationRequest(
+        request = AssociationRequest.model_construct(  # this filter's own well-formed arrays: no validation pass
             measurements=z, noise=noise, predicted=predicted, innovation_covs=blocks + noise,
             joint_cov=0.5 * (joint + joint.T) if self.method in ("jcbb", "auto") else None,
             gate_probability=s.gate_probability, new_feature_gate_probability=s.new_feature_gate_probability,
@@ -256,9 +258,15 @@ class EkfSlam:
 
 
 def make_estimator(options: RunOptions, infos: list[RobotInfo]) -> EkfSlam:
-    """Build the EKF-SLAM baseline for one robot (``options.association`` picks the association method)."""
-    if len(infos) != 1:
-        raise ValueError(f"the EKF-SLAM baseline is single-robot; got {len(infos)} robots (pick one with --robots)")
+    """Build the EKF-SLAM baseline for the first robot (``options.association`` picks the association method).
+
+    It is single-robot: given a fleet, it follows ``infos[0]`` and ignores the other robots' events.
+    """
+    if not infos:
+        raise ValueError("the EKF-SLAM baseline needs one robot")
+    if len(infos) > 1:
+        log.warning("EKF-SLAM is single-robot: following %s, ignoring %s", infos[0].robot_id,
+                    ", ".join(i.robot_id for i in infos[1:]))
     estimator = EkfSlam(options, EkfOptions.model_validate(options.extra or {}))
     estimator.add_robot(infos[0])
     return estimator

@@ -33,9 +33,10 @@ from typing import Callable
 
 import numpy as np
 import scipy.linalg
+from scipy.stats import chi2
 
 from robots.dataset import OdomEvent, ScanEvent
-from robots.models import RangeBearingSensor, in_field_of_view, motion_model
+from robots.models import RangeBearingSensor, in_field_of_view, motion_model, wrap_angle
 from schemas.association import NEW, AssociationReply, AssociationRequest
 from schemas.config import DslamFilterSettings
 from schemas.messages import RobotInfo
@@ -45,6 +46,7 @@ from services.dslam.recast import scan_points
 from services.estimator import MapView, RunOptions
 
 MAPPED, TENTATIVE, FRESH, CLUTTER = 0, 1, 2, 3
+RELOCALISE_GATE = float(chi2.ppf(1 - 1e-6, 3))  # prediction and observation estimate cannot both be right
 
 Associator = Callable[[AssociationRequest, str], AssociationReply]
 
@@ -283,7 +285,11 @@ class DSlam:
 
     # ----------------------------------------------------------- localisation
     def _localise(self, robot: RobotTrack, obs: np.ndarray, noise: np.ndarray, index: np.ndarray) -> None:
-        """CI of the process-model estimate with the estimate from the mapped landmarks seen (§2.3)."""
+        """CI of the process-model estimate with the estimate from the mapped landmarks seen (§2.3).
+
+        When the two disagree beyond any doubt (the robot was moved, or its
+        odometry failed), the observation estimate replaces the prediction.
+        """
         if index.size == 0 or (robot.pose is None and index.size < 2):
             return
         landmarks = self.map.means[index]
@@ -299,6 +305,15 @@ class DSlam:
                 self.counts["robots_placed"] += 1
             return
         estimate = observation_estimate(robot.sensor, robot.pose, obs, noise, landmarks, joint)
+        if estimate.full_rank:
+            cov = np.linalg.inv(estimate.info)
+            delta = estimate.pose - robot.pose
+            delta[2] = wrap_angle(delta[2])
+            if delta @ np.linalg.solve(robot.cov + cov, delta) > RELOCALISE_GATE:
+                robot.pose, robot.cov = estimate.pose, 0.5 * (cov + cov.T)
+                robot.localised = True
+                self.counts["relocalised"] += 1
+                return
         robot.pose, robot.cov, robot.omega = localise(robot.pose, robot.cov, estimate, self.settings.ci_criterion)
         robot.localised = True
 

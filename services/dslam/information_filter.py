@@ -14,7 +14,8 @@ blocks created since the last rebuild), and the information vector i beside it.
 - Recovery: the mean and the covariance columns of the landmarks near the
   robots follow each update by its rank-k correction (a warm start that is
   exact for the linearised update), and PCG warm-started there checks the
-  mean against I X̂ = i; columns not cached are solved by block PCG. Never an inverse of I.
+  mean against I X̂ = i; columns not cached are solved by block PCG (finished by a
+  sparse LU solve if PCG has not converged in its budget). Never an inverse of I.
 """
 
 from __future__ import annotations
@@ -52,20 +53,23 @@ def inverse_2x2(blocks: np.ndarray) -> np.ndarray:
 
 
 def block_pcg(matvec, precondition, rhs: np.ndarray, start: np.ndarray, tol: np.ndarray | float,
-              max_iter: int) -> tuple[np.ndarray, int]:
+              max_iter: int) -> tuple[np.ndarray, int, bool]:
     """Preconditioned conjugate gradients on every column of ``rhs`` at once.
 
     Stops when, in every column, the preconditioned residual (the block-Jacobi
     step) is at most ``tol`` (per column) in every entry, or after ``max_iter``
-    iterations. Returns the solution and the iterations run.
+    iterations. Returns the solution, the iterations run and whether it converged.
     """
     x = np.array(start, float, copy=True)
     r = rhs - matvec(x)
     z = precondition(r)
     tol = np.broadcast_to(np.asarray(tol, float), z.shape[1:] if z.ndim > 1 else ())
-    iterations = 0
-    if np.all(np.max(np.abs(z), axis=0) <= tol):
-        return x, 0
+
+    def converged(z: np.ndarray) -> bool:
+        return bool(np.all(np.max(np.abs(z), axis=0) <= tol))
+
+    if converged(z):
+        return x, 0, True
     p = z.copy()
     rz = np.sum(r * z, axis=0)
     for iterations in range(1, max_iter + 1):
@@ -75,13 +79,13 @@ def block_pcg(matvec, precondition, rhs: np.ndarray, start: np.ndarray, tol: np.
         x += alpha * p
         r -= alpha * ap
         z = precondition(r)
-        if np.all(np.max(np.abs(z), axis=0) <= tol):
-            break
+        if converged(z):
+            return x, iterations, True
         rz_next = np.sum(r * z, axis=0)
         beta = np.divide(rz_next, rz, out=np.zeros_like(rz), where=rz > 0)
         p = z + beta * p
         rz = rz_next
-    return x, iterations
+    return x, max_iter, False
 
 
 class BlockSparseMatrix:
@@ -287,7 +291,8 @@ class InformationMap:
     Recovery (§3.2-3.3). Each update needs the covariance columns of the old
     landmarks it involves; they are kept in a :class:`ColumnCache`, and a column
     not there is solved by block PCG from a warm start (the column of the
-    nearest cached landmark). With those columns, the rank-k correction of the
+    nearest cached landmark; a sparse LU solve if it has not converged within
+    its budget). With those columns, the rank-k correction of the
     update gives the new mean and the new cached columns exactly (for the
     linearised measurement); the mean is then checked against I X̂ = i by PCG
     warm-started there, which usually stops at once. Nothing inverts I.
@@ -308,6 +313,8 @@ class InformationMap:
         self.column_iterations = 0
         self.column_solves = 0
         self.column_iterations_total = 0
+        self.column_direct_solves = 0
+        self.recovery_unconverged = 0
 
     @property
     def n(self) -> int:
@@ -511,9 +518,10 @@ class InformationMap:
         if self.n == 0:
             return 0
         self.matrix.prepare()
-        self.mean, iterations = block_pcg(self.matrix.matvec, self._precondition(), self.vector, self.mean,
-                                          self.tol, self.max_iter if max_iter is None else max_iter)
+        self.mean, iterations, converged = block_pcg(self.matrix.matvec, self._precondition(), self.vector, self.mean,
+                                                     self.tol, self.max_iter if max_iter is None else max_iter)
         self.recovery_iterations = iterations
+        self.recovery_unconverged += not converged
         return iterations
 
     def _ensure_columns(self, landmarks: np.ndarray) -> None:
@@ -537,8 +545,11 @@ class InformationMap:
             else:
                 start[2 * lm: 2 * lm + 2, 2 * j: 2 * j + 2] = inverse_2x2(diag[lm: lm + 1])[0]
         scale = np.abs(start[block_rows(missing_arr), np.arange(2 * k)])
-        columns, iterations = block_pcg(self.matrix.matvec, self._precondition(), rhs, start,
-                                        self.column_tol * np.maximum(scale, 1e-12), self.column_max_iter)
+        columns, iterations, converged = block_pcg(self.matrix.matvec, self._precondition(), rhs, start,
+                                                   self.column_tol * np.maximum(scale, 1e-12), self.column_max_iter)
+        if not converged:  # the rank-k corrections need exact columns: finish with a sparse LU solve
+            columns = scipy.sparse.linalg.splu(self.matrix.tocsr().tocsc()).solve(rhs)
+            self.column_direct_solves += k
         self.column_iterations = iterations
         self.column_iterations_total += iterations
         self.column_solves += k

@@ -81,12 +81,18 @@ def observation_estimate(sensor: RangeBearingSensor, pose: np.ndarray, observati
     pose = np.asarray(pose, float)
     residual, h_pose, s = _stacked(sensor, pose, observations, noise, landmarks, landmark_cov)
     info, gradient = _information(residual, h_pose, s)
+    if not (np.all(np.isfinite(info)) and np.all(np.isfinite(gradient))):
+        return ObservationEstimate(pose, np.zeros((3, 3)), np.zeros(3), False)
     if landmarks.shape[0] < 2 or np.linalg.cond(info) > 1e12:
         return ObservationEstimate(pose, info, gradient, False)
     current = pose.copy()
     done = 0
     for done in range(1, iterations + 1):
         step = np.linalg.solve(info, gradient)
+        if not np.all(np.isfinite(step)) or np.max(np.abs(step[:2])) > 1e3:
+            residual, h_pose, s = _stacked(sensor, pose, observations, noise, landmarks, landmark_cov)
+            info, gradient = _information(residual, h_pose, s)
+            return ObservationEstimate(pose, info, gradient, False, done)
         current = current + step
         current[2] = wrap_angle(current[2])
         residual, h_pose, s = _stacked(sensor, current, observations, noise, landmarks, landmark_cov)

@@ -63,7 +63,8 @@ def grid_labels(poses: np.ndarray, cell_xy: float, cell_theta: float, merge_xy: 
     cy, ct = np.divmod(rest, turns)
     theta_steps = (-1, 0, 1) if turns > 2 else ((0, 1) if turns == 2 else (0,))
     steps = np.array([d for d in itertools.product((-1, 0, 1), (-1, 0, 1), theta_steps) if any(d)])  # (S, 3)
-    neighbour = ((cx[:, None] + steps[:, 0]) * ny + (cy[:, None] + steps[:, 1])) * turns + np.mod(ct[:, None] + steps[:, 2], turns)
+    neighbour = ((cx[:, None] + steps[:, 0]) * ny + (cy[:, None] + steps[:, 1])) * turns
+    neighbour += np.mod(ct[:, None] + steps[:, 2], turns)
     pos = np.minimum(np.searchsorted(cells, neighbour), m - 1)
     hit = cells[pos] == neighbour
     a, b = np.nonzero(hit)[0], pos[hit]

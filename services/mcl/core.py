@@ -263,6 +263,8 @@ class MonteCarloLocalizer:
         clearly better (``kidnap_ratio``) than the best particle — with a partial map even the true pose
         explains a scan poorly, and starting again would not help."""
         s = self.settings
+        if len(z) < s.kidnap_min_observations:
+            return False  # too few observations to tell a lost robot from an ambiguous view: the run neither grows nor ends
         self._lost_run = self._lost_run + 1 if best_quality < s.kidnap_quality else 0
         if self._lost_run < s.kidnap_scans or not s.kidnap_recovery:
             return False

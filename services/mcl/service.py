@@ -50,8 +50,10 @@ MAP_MESSAGES = {"central": Estimate, "dslam": MapEstimate, "truth": WorldTruth}
 def load_map_file(path: str) -> np.ndarray:
     """An ``(L, 2)`` landmark array from a .npy or whitespace/comma-separated text file."""
     file = Path(path)
-    data = np.asarray(np.load(file) if file.suffix == ".npy" else np.loadtxt(file, delimiter="," if file.suffix == ".csv" else None),
-                      float)
+    if file.suffix == ".npy":
+        data = np.asarray(np.load(file), float)
+    else:
+        data = np.asarray(np.loadtxt(file, delimiter="," if file.suffix == ".csv" else None), float)
     if data.size == 0:
         return np.zeros((0, 2))
     data = data.reshape(1, -1) if data.ndim == 1 else data

@@ -7,7 +7,8 @@ Lines, flushed at once so the test reads them while the fleet runs:
 
 - ``{"t": wall time, "kind": "sample", "robot": rid, "stream": s, "seq": n}`` per robot stream message,
 - ``{"t": ..., "kind": "alive" | "gone", "robot": rid}`` per liveliness change of a robot,
-- ``{"t": ..., "kind": "other", "key": key}`` per message on any other key (estimates, maps, stats).
+- ``{"t": ..., "kind": "stats", "key": key, "stats": ServiceStats as JSON}`` per service statistics,
+- ``{"t": ..., "kind": "other", "key": key}`` per message on any other key (estimates, maps).
 
     python -m tests.integration.observer --out FILE
 """
@@ -23,7 +24,7 @@ import zenoh
 
 from schemas.codec import decode
 from schemas.config import FleetSettings
-from schemas.messages import GroundTruth, Odometry, Scan
+from schemas.messages import GroundTruth, Odometry, Scan, ServiceStats
 from services.runtime import ServiceShell
 
 MODELS = {"odom": Odometry, "scan": Scan, "truth": GroundTruth}
@@ -55,7 +56,9 @@ class Observer(ServiceShell):
             return
         parsed = self.keys.parse_robot_key(key)
         if tag == "other":
-            if parsed is None:
+            if parsed is None and key.endswith("/stats"):
+                self._write(kind="stats", key=key, stats=decode(payload, ServiceStats).model_dump(mode="json"))
+            elif parsed is None:
                 self._write(kind="other", key=key)
         elif parsed is not None and parsed[1] in MODELS:
             message = decode(payload, MODELS[parsed[1]])

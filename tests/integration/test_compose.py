@@ -127,7 +127,7 @@ def test_compose_services_as_processes_in_their_own_namespaces_produce_estimates
         for name, process in fleet.processes.items():
             assert process.poll() is None, f"{name} exited with {process.returncode}: {fleet.log(name)[-1500:]}"
         rows = read_rows(observed)
-        seen_keys = {r["key"] for r in rows if r["kind"] == "other"}
+        seen_keys = {r["key"] for r in rows if r["kind"] in ("other", "stats")}
         robots_heard = {r["robot"] for r in rows if r["kind"] == "sample"}
         return wanted <= seen_keys and robots_heard >= {fleet.service(r)["environment"]["FLEETSLAM_ROBOT_ID"] for r in robots}
 

@@ -3,9 +3,9 @@
 The compose fleet's router and three robots run in their own network
 namespaces (their commands and environment from docker-compose.yml: robots
 publish through the advanced publisher with a cache, FLEETSLAM_PUBLISHER_CACHE;
-services subscribe with recovery, FLEETSLAM_SUBSCRIBER_RECOVERY). A receiver
-built on the services' shell (tests/integration/observer.py, with recovery on)
-records every sample. Then:
+services subscribe with recovery, FLEETSLAM_SUBSCRIBER_RECOVERY), with the
+central service when it is installed. A receiver built on the services' shell
+(tests/integration/observer.py, with recovery on) records every sample. Then:
 
 1. robot r1's cable is unplugged at the switch for 15 s: longer than the
    Zenoh lease (10 s), so the router drops r1 (its liveliness token goes) and
@@ -15,7 +15,8 @@ records every sample. Then:
    every receiver recovers.
 
 At the end every stream of every robot has arrived complete, each seq once, in
-order: no gap, no duplicate. The figures (lease detection, reconnect time,
+order: no gap, no duplicate; and the central service's own counters say it took
+in every odometry and scan message with no seq missing and none out of order. The figures (lease detection, reconnect time,
 router recovery, messages lost) are printed as JSON (run with ``-s`` to see them).
 """
 
@@ -29,7 +30,7 @@ import time
 import pytest
 
 from tests.helpers import wait_until
-from tests.integration.compose import ComposeFleet, compose_config
+from tests.integration.compose import ComposeFleet, compose_config, module_exists
 from tests.integration.observer import read_rows
 
 pytestmark = pytest.mark.integration
@@ -52,6 +53,17 @@ def _complete_so_far(rows: list[dict], robot: str, since: float) -> bool:
     return True
 
 
+def _summary(rows: list[dict], robots) -> str:
+    """Per robot and stream: messages received, and the first place its seqs stop being 0, 1, 2, ..."""
+    parts = []
+    for robot in robots:
+        for stream in STREAMS:
+            seqs = _seqs(rows, robot, stream)
+            broken = next((i for i, seq in enumerate(seqs) if seq != i), None)
+            parts.append(f"{robot}/{stream}: {len(seqs)}" + ("" if broken is None else f" (seq {seqs[broken]} at {broken})"))
+    return ", ".join(parts)
+
+
 def _first(rows: list[dict], kind: str, robot: str, since: float) -> float | None:
     return next((r["t"] for r in rows if r["kind"] == kind and r.get("robot") == robot and r["t"] >= since), None)
 
@@ -61,12 +73,15 @@ def test_no_observation_lost_across_a_15s_link_cut_and_a_router_restart(compose_
     fleet = ComposeFleet(netns_lab, project, tmp_path)
     robots = [n for n, s in project["services"].items() if s["command"] == ["robot"]]
     rids = {name: fleet.service(name)["environment"]["FLEETSLAM_ROBOT_ID"] for name in robots}
-    fleet.add_hosts(["router", *robots, "observer"])
+    receivers = ["central"] if module_exists("central") else []  # the fusing service, when it exists
+    fleet.add_hosts(["router", *robots, *receivers, "observer"])
     # real-time robots that outlive the faults; the test stops them
     running = {"FLEETSLAM_DURATION": "600", "FLEETSLAM_SPEEDUP": "1", "FLEETSLAM_START_DELAY": "0.5"}
     fleet.start("router")
     fleet.wait_healthy("router", 20)
     observed = fleet.start_observer("observer", like="monitor")
+    for name in receivers:
+        fleet.start(name)
     for name in robots:
         fleet.start(name, running)
     cut_name = robots[0]
@@ -82,19 +97,25 @@ def test_no_observation_lost_across_a_15s_link_cut_and_a_router_restart(compose_
         rows = read_rows(observed)
         return all(_complete_so_far(rows, rid, since) for rid in rids.values())
 
-    wait_until(lambda: all_flowing(0.0), 40, 0.2, "every robot's streams at the receiver")
+    def wait(predicate, timeout: float, what: str) -> None:
+        try:
+            wait_until(predicate, timeout, 0.1, what)
+        except AssertionError as error:
+            raise AssertionError(f"{error}; the receiver holds {_summary(read_rows(observed), rids.values())}") from None
+
+    wait(lambda: all_flowing(0.0), 60, "every robot's streams at the receiver")
 
     # 1. unplug r1 for 15 s
     t_cut = time.time()
     netns_lab.cut(cut_name)
-    wait_until(lambda: _first(read_rows(observed), "gone", cut, t_cut), CUT_S, 0.2, f"the router to drop {cut}")
+    wait(lambda: _first(read_rows(observed), "gone", cut, t_cut), CUT_S, f"the router to drop {cut}")
     figures["lease_detection_s"] = round(_first(read_rows(observed), "gone", cut, t_cut) - t_cut, 2)
     time.sleep(max(0.0, t_cut + CUT_S - time.time()))  # the cut lasts its full 15 s, whatever happens meanwhile
     t_restore = time.time()
     netns_lab.restore(cut_name)
-    wait_until(lambda: _first(read_rows(observed), "alive", cut, t_restore), 20, 0.1, f"{cut} to reconnect by itself")
+    wait(lambda: _first(read_rows(observed), "alive", cut, t_restore), 20, f"{cut} to reconnect by itself")
     figures["reconnect_s"] = round(_first(read_rows(observed), "alive", cut, t_restore) - t_restore, 2)
-    wait_until(lambda: all_flowing(t_restore), 30, 0.1, f"{cut}'s missed observations to be recovered")
+    wait(lambda: all_flowing(t_restore), 30, f"{cut}'s missed observations to be recovered")
     figures["link_recovered_s"] = round(time.time() - t_restore, 2)
 
     # 2. kill the router and start it again
@@ -104,7 +125,7 @@ def test_no_observation_lost_across_a_15s_link_cut_and_a_router_restart(compose_
     router.wait(timeout=10)
     fleet.start("router")
     figures["router_restart_s"] = round(fleet.wait_healthy("router", 20) - t_kill, 2)
-    wait_until(lambda: all_flowing(t_kill), 40, 0.1, "every stream after the router restart")
+    wait(lambda: all_flowing(t_kill), 40, "every stream after the router restart")
     figures["router_recovered_s"] = round(time.time() - t_kill, 2)
 
     # stop the robots; each says how many messages it sent; the receiver must hold them all, once, in order
@@ -123,14 +144,29 @@ def test_no_observation_lost_across_a_15s_link_cut_and_a_router_restart(compose_
         return all(len(_seqs(rows, rid, s)) >= n for rid, counts in sent.items() for s, n in counts.items())
 
     try:
-        wait_until(everything_arrived, 15, 0.2, "every message the robots sent")
+        wait(everything_arrived, 15, "every message the robots sent")
     finally:
         rows = read_rows(observed)
         lost = {rid: {s: n - len(set(_seqs(rows, rid, s))) for s, n in counts.items()} for rid, counts in sent.items()}
         figures["sent"] = sum(sum(c.values()) for c in sent.values())
         figures["lost"] = sum(sum(c.values()) for c in lost.values())
-        print("LINK-FAULT FIGURES " + json.dumps(figures))
+        print("LINK-FAULT RECEIVER " + json.dumps(figures))
     for rid, counts in sent.items():
         for stream, n in counts.items():
             assert _seqs(rows, rid, stream) == list(range(n)), f"{rid}/{stream}: not every seq once and in order"
     assert figures["lost"] == 0
+    for name in receivers:  # the service's own counters: everything in, nothing missing, nothing out of order
+        totals = {stream: sum(c[stream] for c in sent.values()) for stream in ("odom", "scan")}
+
+        def caught_up() -> dict | None:
+            stats = [r["stats"] for r in read_rows(observed) if r["kind"] == "stats" and r["key"].endswith(f"/{name}/stats")]
+            last = stats[-1] if stats else None
+            done = last and all(last["messages_in"].get(s, 0) >= n for s, n in totals.items()) and not last["queue_depth"]
+            return last if done else None
+
+        wait(caught_up, 60, f"{name} to take in the {totals} messages sent")
+        last = caught_up()
+        assert last["extra"].get("missing") == 0, last
+        assert not {"duplicate", "out_of_order", "time_backwards"} & set(last["rejected"]), last["rejected"]
+        figures[f"{name}_messages_in"] = sum(last["messages_in"].get(s, 0) for s in totals)
+    print("LINK-FAULT FIGURES " + json.dumps(figures))

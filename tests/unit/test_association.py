@@ -272,7 +272,7 @@ def test_everything_outside_the_gate(method):
 
 def test_unassigned_near_a_landmark_is_clutter_not_new():
     predicted = np.array([[5.0, 0.0]])
-    z = np.array([[5.0, 0.0], [5.0, 0.004 * math.pi]])  # the second is outside the 99 % gate but inside the new-feature gate
+    z = np.array([[5.0, 0.0], [5.0, 0.004 * math.pi]])  # landmark 0 goes to the first; the second is too close to it to start one
     reply = associate(AssociationRequest(measurements=z, noise=R, predicted=predicted, innovation_covs=np.array([R])), "exact")
     assert reply.assignment.tolist() == [0, CLUTTER]
 

@@ -59,7 +59,7 @@ def test_noiseless_data_give_the_exact_map_and_poses():
 
 
 def test_grid_map_is_consistent_and_sparse():
-    data = simulate("grid196", robots=1, seed=3, duration=45.0)
+    data = simulate("grid196", robots=1, seed=3, duration=30.0)
     estimator = run(DSlam(DslamFilterSettings()), data)
     view = estimator.landmark_map()
     n = view.means.shape[0]
@@ -71,7 +71,7 @@ def test_grid_map_is_consistent_and_sparse():
 
 
 def test_robots_feed_one_map_and_an_unknown_start_is_placed():
-    data = simulate("grid196", robots=2, seed=1, duration=30.0)
+    data = simulate("grid196", robots=2, seed=1, duration=20.0)
     infos = [data.robots["r1"].info, data.robots["r2"].info.model_copy(update={"start_pose": None, "start_pose_cov": None})]
     estimator = run(make_estimator(RunOptions(estimator="dslam"), infos), data)
     assert estimator.counts["robots_placed"] == 1
@@ -82,7 +82,7 @@ def test_robots_feed_one_map_and_an_unknown_start_is_placed():
 
 
 def test_clutter_stays_out_of_the_map_with_association():
-    data = simulate("arena", robots=1, seed=2, duration=30.0, clutter_rate=1.0)
+    data = simulate("arena", robots=1, seed=2, duration=25.0, clutter_rate=1.0)
     settings = DslamFilterSettings(association="auto", confirm_hits=3, tentative_misses=2)
     estimator = run(DSlam(settings), data)
     view = estimator.landmark_map()

@@ -39,10 +39,10 @@ def test_block_pcg_solves_several_right_hand_sides():
     a = rng.standard_normal((40, 40))
     a = a @ a.T + 40 * np.eye(40)
     b = rng.standard_normal((40, 3))
-    x, iterations = block_pcg(lambda v: a @ v, lambda r: r / np.diag(a)[:, None], b, np.zeros_like(b), 1e-12, 200)
+    x, iterations, converged = block_pcg(lambda v: a @ v, lambda r: r / np.diag(a)[:, None], b, np.zeros_like(b), 1e-12, 200)
     np.testing.assert_allclose(x, np.linalg.solve(a, b), atol=1e-9)
-    assert 0 < iterations <= 40
-    _, again = block_pcg(lambda v: a @ v, lambda r: r / np.diag(a)[:, None], b, x, 1e-9, 200)
+    assert converged and 0 < iterations <= 40
+    _, again, _ = block_pcg(lambda v: a @ v, lambda r: r / np.diag(a)[:, None], b, x, 1e-9, 200)
     assert again == 0
 
 

@@ -53,12 +53,12 @@ def test_recast_covariance_matches_monte_carlo():
     truth = np.array([[3.0, 0.5], [2.0, 2.5], [4.0, -1.5], [1.5, -2.0]])
     exact = RangeBearingSensor().observe(np.zeros(3), truth)
     z_true, r_map = recast(exact, R)
-    noisy = exact + rng.standard_normal((10000, 4, 2)) @ np.linalg.cholesky(R).T
+    noisy = exact + rng.standard_normal((5000, 4, 2)) @ np.linalg.cholesky(R).T
     errors = np.array([innovation(map_measurement(scan_points(z, R)[0])[0], z_true) for z in noisy])
     sample_cov = np.cov(errors.T)
     scale = np.sqrt(np.outer(np.diag(r_map), np.diag(r_map)))
-    np.testing.assert_allclose(sample_cov / scale, r_map / scale, atol=0.04)
-    np.testing.assert_allclose(np.diag(sample_cov), np.diag(r_map), rtol=0.08)
+    np.testing.assert_allclose(sample_cov / scale, r_map / scale, atol=0.05)
+    np.testing.assert_allclose(np.diag(sample_cov), np.diag(r_map), rtol=0.1)
 
 
 def test_angle_rows_are_the_odd_rows():

@@ -169,7 +169,8 @@ def test_poses_drawn_from_a_scan_include_the_true_pose():
     z = RangeBearingSensor().observe(truth, landmarks)
     z = z[(z[:, 0] < 6.0) & (np.abs(z[:, 1]) < math.pi / 2)]
     def close(poses):
-        return int(((np.hypot(*(poses[:, :2] - truth[:2]).T) < 0.2) & (np.abs(wrap_angle(poses[:, 2] - truth[2])) < 0.05)).sum())
+        near = np.hypot(*(poses[:, :2] - truth[:2]).T) < 0.2
+        return int((near & (np.abs(wrap_angle(poses[:, 2] - truth[2])) < 0.05)).sum())
 
     plain = poses_from_scan(z, lmap, model, 2000, 3.0, 0.05, 0.02, 2.0, rng, draws=1)
     poses = poses_from_scan(z, lmap, model, 2000, 3.0, 0.05, 0.02, 2.0, rng, draws=8)

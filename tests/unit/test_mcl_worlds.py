@@ -40,7 +40,8 @@ def test_kld_sampling_collapses_in_the_symmetric_world(symmetric_run):
 def test_recovery_from_kidnapping(variant):
     dataset = simulate("office", robots=2, seed=1, duration=20.0)
     events, truth = kidnapped(dataset, "r1", "r2", at=8.0)
-    mcl = MonteCarloLocalizer(dataset.landmarks, dataset.robots["r1"].info, MclFilterSettings(variant=variant, seed=2))
+    settings = MclFilterSettings(variant=variant, seed=2, particles=500)
+    mcl = MonteCarloLocalizer(dataset.landmarks, dataset.robots["r1"].info, settings)
     trace = trace_run(mcl, events, truth)
     assert trace.first_converged(0.5, 0.2) is not None and trace.first_converged(0.5, 0.2) < 2.0
     back = trace.first_converged(0.5, 0.2, after=8.0)
