@@ -19,9 +19,7 @@ import os
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import argparse
-import json
 import time
-from pathlib import Path
 
 import numpy as np
 import scipy.sparse.linalg
@@ -33,6 +31,7 @@ from schemas.config import DslamFilterSettings
 from services.dslam.estimator import DSlam
 from services.dslam.information_filter import BlockSparseMatrix, block_rows
 from services.dslam.recast import innovation, map_measurement
+from report import emit
 
 
 def normal_equations(measurements, means: np.ndarray) -> tuple[BlockSparseMatrix, np.ndarray, float]:
@@ -113,11 +112,7 @@ def main() -> None:
     result = {"benchmark": "dslam_batch", "setup": {"world": "grid196", "duration_s": args.duration, "seeds": args.seeds,
                                                     "association": "known"},
               "mean": {k: float(np.mean([r[k] for r in runs])) for k in keys}, "runs": runs}
-    text = json.dumps(result, indent=2)
-    print(text)
-    if args.out:
-        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.out).write_text(text)
+    emit(result, args.out)
 
 
 if __name__ == "__main__":

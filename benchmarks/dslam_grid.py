@@ -20,7 +20,6 @@ import os
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # small dense algebra: threads only add overhead
 
 import argparse
-import json
 import time
 from pathlib import Path
 
@@ -31,6 +30,7 @@ from robots.dataset import OdomEvent, ScanEvent
 from robots.simulator import simulate
 from services.dslam.estimator import DSlam
 from services.estimator import RunOptions, make_estimator
+from report import emit
 
 
 def run_filter(estimator, data):
@@ -180,11 +180,7 @@ def main() -> None:
         result["ekf"] = summarise(runs, "ekf")
         result["std_ratio_dslam_over_ekf_median"] = float(np.median([r["std_ratio_dslam_over_ekf_median"] for r in runs]))
         result["std_ratio_dslam_over_ekf_min"] = float(np.min([r["std_ratio_dslam_over_ekf_min"] for r in runs]))
-    text = json.dumps(result, indent=2)
-    print(text)
-    if args.out:
-        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.out).write_text(text)
+    emit(result, args.out)
 
 
 if __name__ == "__main__":

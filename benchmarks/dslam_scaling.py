@@ -44,6 +44,7 @@ from schemas.config import DslamFilterSettings
 from schemas.messages import RobotInfo, SensorSpec
 from services.dslam.estimator import DSlam
 from services.dslam.information_filter import InformationMap
+from report import emit
 
 SPACING, RANGE, FOV = 3.0, 5.0, math.pi
 NOISE = np.diag([0.05**2, math.radians(1.0) ** 2])
@@ -222,11 +223,7 @@ def main() -> None:
             "info_nnz": exponent(ns, [runs[n]["info_nnz"] for n in sizes]),
         },
     }
-    text = json.dumps(result, indent=2)
-    print(text)
-    if args.out:
-        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.out).write_text(text)
+    emit(result, args.out)
 
 
 if __name__ == "__main__":

@@ -248,10 +248,10 @@ class DslamFilterSettings(BaseSettings):
         "dead-reckoned pose while its position std is below this (m; 0: only at the start pose)",
     )
     map_gate_probability: float = Field(0.9999, gt=0, lt=1, description="z_map is refused when its χ² test fails at this probability")
-    recovery_tol: float = Field(1e-6, gt=0, description="mean recovery stops when every block-Jacobi step is below this (m)")
+    recovery_tol: float = Field(1e-5, gt=0, description="mean recovery stops when every block-Jacobi step is below this (m)")
     recovery_max_iter: int = Field(200, ge=1, description="most PCG iterations of one mean recovery")
-    column_tol: float = Field(1e-6, gt=0, description="covariance-column recovery tolerance, relative to the landmark's variance")
-    column_max_iter: int = Field(300, ge=1, description="most PCG iterations of one covariance-column recovery")
+    column_tol: float = Field(1e-9, gt=0, description="covariance-column recovery tolerance, relative to the landmark's variance")
+    column_max_iter: int = Field(1000, ge=1, description="PCG iterations of a covariance-column solve before a sparse LU solve finishes it")
     column_cache: int = Field(64, ge=1, description="covariance columns kept to warm-start the next solves (landmarks)")
     ci_criterion: Literal["trace", "det"] = Field("trace", description="covariance intersection minimises the trace or the determinant")
     marginals_limit: int = Field(3000, ge=0, description="maps up to this many landmarks report every marginal covariance exactly")

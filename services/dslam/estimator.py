@@ -143,13 +143,19 @@ class DSlam:
             cov = np.diag([1e-9, 1e-9, 1e-12]) if info.start_pose_cov is None else np.asarray(info.start_pose_cov, float)
         self.robots[info.robot_id] = RobotTrack(info, pose, cov)
 
-    def on_odometry(self, event: OdomEvent) -> None:
+    def _robot_of(self, event: OdomEvent | ScanEvent, stream: str) -> RobotTrack | None:
+        """The robot an event belongs to (None, counted, if unknown); notes a missed start."""
         robot = self.robots.get(event.robot_id)
         if robot is None:
             self.counts["unknown_robot"] += 1
-            return
-        if not robot.check_start("odom", event.seq):
+        elif not robot.check_start(stream, event.seq):
             self.counts["missed_start"] += 1
+        return robot
+
+    def on_odometry(self, event: OdomEvent) -> None:
+        robot = self._robot_of(event, "odom")
+        if robot is None:
+            return
         if np.any(np.asarray(event.control) != 0.0):
             robot.moved = True
         if robot.pose is None:
@@ -163,12 +169,9 @@ class DSlam:
     # ------------------------------------------------------------------ scans
     def on_scan(self, event: ScanEvent) -> None:
         started = time.perf_counter()
-        robot = self.robots.get(event.robot_id)
+        robot = self._robot_of(event, "scan")
         if robot is None:
-            self.counts["unknown_robot"] += 1
             return
-        if not robot.check_start("scan", event.seq):
-            self.counts["missed_start"] += 1
         spec = robot.info.sensor
         obs = event.observations
         keep = np.all(np.isfinite(obs), axis=1) & (obs[:, 0] > 1e-6) & (obs[:, 0] <= 2.0 * spec.max_range)

@@ -276,10 +276,15 @@ class ColumnCache:
         self.slot.move_to_end(landmark)
 
     def evict(self, keep=()) -> None:
-        """Drop least recently used columns beyond the capacity (never those in ``keep``)."""
+        """Drop least recently used columns beyond the capacity (never those in ``keep``).
+
+        The capacity is at least three times the landmarks of the current request,
+        so that a sensor that sees many landmarks does not solve their columns anew each scan.
+        """
         keep = {int(i) for i in keep}
+        limit = max(self.capacity, 3 * len(keep))
         for landmark in list(self.slot):
-            if len(self.slot) <= self.capacity:
+            if len(self.slot) <= limit:
                 break
             if landmark not in keep:
                 self._free.append(self.slot.pop(landmark))

@@ -67,7 +67,7 @@ class UpdateReport:
     particles_after: int
     added: int  # poses drawn from the scan (added by KLD-SRL, replaced by SRL, or a restart)
     quality: float  # P̃: mean match quality of the particles
-    best_quality: float  # mean quality of the best-explaining cluster
+    best_quality: float  # mean quality of the heaviest cluster
     hypotheses: int  # significant clusters
     kidnapped: bool  # the filter declared itself lost and restarted
     localized: bool
@@ -137,7 +137,8 @@ class MonteCarloLocalizer:
         self._recluster(np.ones(count))
 
     def initialize_global(self, observations: np.ndarray | None = None, count: int | None = None) -> None:
-        """Global localisation: particles from the scan and the map (or uniform), weighed by the scan."""
+        """Global localisation: ``count`` × ``reset_oversample`` poses from the scan and the map (or ``count``
+        uniform ones); the update then weighs them by the scan and resamples to ``count``."""
         s = self.settings
         count = count or s.particles
         self.size = count
@@ -251,12 +252,9 @@ class MonteCarloLocalizer:
         self.significant = self.clusters.significant(s.cluster_min_weight, s.cluster_min_quality, s.max_hypotheses)
 
     def _best_quality(self) -> float:
-        """Mean match quality of the best-explaining cluster of a reasonable size."""
+        """Mean match quality of the heaviest cluster: how well the filter's main hypothesis explains the scan."""
         c = self.clusters
-        if c is None or len(c) == 0:
-            return 0.0
-        sized = c.count >= max(5, int(0.01 * self.count))
-        return float(c.quality[sized].max()) if sized.any() else float(c.quality.max())
+        return float(c.quality[0]) if c is not None and len(c) else 0.0
 
     def _check_lost(self, best_quality: float, particle_best: float, z: np.ndarray) -> bool:
         """Lost: no cluster has explained the scans for ``kidnap_scans`` scans, and poses drawn from the scan do
@@ -294,6 +292,8 @@ class MonteCarloLocalizer:
         s = self.settings
         target = self.size
         if self.variant == "kld" and not fresh:
+            # Fox's rule over the draws in random order; the draws are binned before the next motion step spreads
+            # them (one step's motion noise rarely leaves a 0.5 m × 10° bin), so copies of one parent share a bin
             draws = systematic_resample(self.weights, s.max_particles, self.rng)
             draws = draws[self.rng.permutation(draws.size)]
             keys = bin_keys(self.particles[draws], s.kld_bin_xy, s.kld_bin_theta)

@@ -14,9 +14,9 @@ are mapped to local files and folders.
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import os
+import shutil
 import subprocess
 import sys
 import time
@@ -24,6 +24,7 @@ from pathlib import Path
 
 from services.cli import COMMANDS
 from services.healthcheck import check, endpoint_ports
+from services.launcher import module_exists as importable
 from tests.helpers import REPO, data_root, wait_until
 from tests.integration.netns import NetnsLab
 
@@ -47,7 +48,7 @@ def compose_command(binary: Path) -> tuple[list[str], dict[str, str]]:
     """``docker compose`` through the docker CLI when it is installed (the plugin is found through
     DOCKER_CONFIG), else the standalone binary; with the environment to run it in."""
     env = {k: v for k, v in os.environ.items() if not k.startswith(("FLEETSLAM_", "COMPOSE_"))}
-    docker = subprocess.run(["which", "docker"], capture_output=True, text=True).stdout.strip()
+    docker = shutil.which("docker")
     if docker:
         return [docker, "compose"], {**env, "DOCKER_CONFIG": str(binary.parent.parent)}
     return [str(binary)], env
@@ -69,10 +70,8 @@ def compose_config(binary: Path, *words: str, files: tuple[str, ...] = ("docker-
 
 
 def module_exists(command: str) -> bool:
-    try:
-        return importlib.util.find_spec(COMMANDS[command][0]) is not None
-    except ModuleNotFoundError:
-        return False
+    """Whether ``fleetslam COMMAND`` is installed (services land one by one)."""
+    return importable(COMMANDS[command][0])
 
 
 class ComposeFleet:
@@ -121,6 +120,20 @@ class ComposeFleet:
         process = self.lab.start(name, argv, self.env(name, overrides), self.workdir / f"{name}.log", REPO)
         self.processes[name] = process
         return process
+
+    def start_fleet(self, services: list[str], robots: list[str], robot_env: dict[str, str]) -> Path:
+        """The router first, until healthy (compose's ``depends_on: service_healthy``), then the test's
+        receiver (host "observer"), the services and the robots (with ``robot_env`` over their environment).
+        Returns the receiver's file."""
+        self.add_hosts(["router", *robots, *services, "observer"])
+        self.start("router")
+        self.wait_healthy("router", 20)
+        observed = self.start_observer("observer", like="monitor")
+        for name in services:
+            self.start(name)
+        for name in robots:
+            self.start(name, robot_env)
+        return observed
 
     def start_observer(self, host: str, like: str) -> Path:
         """The test's own receiver (tests/integration/observer.py) in ``host``, a client configured like

@@ -127,7 +127,7 @@ class NetnsLab:
     def restore(self, host: str) -> None:
         _ip("-n", self.switch, "link", "set", self.ports[host], "up")
 
-    def close(self, grace_s: float = 5.0) -> None:
+    def close(self, grace_s: float = 2.0) -> None:
         """Stop every process started here (SIGTERM, SIGKILL after ``grace_s``), delete every namespace
         and hosts file."""
         for process in self.processes:

@@ -57,7 +57,7 @@ def test_compose_v2_accepts_the_file(compose_bin, variant):
 
 def _setting_flags(command: str) -> set[str]:
     """FLEETSLAM_* variables that ``fleetslam COMMAND`` reads (one per settings flag)."""
-    parser = build_parser()
+    parser = build_parser(command)
     sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices[command]
     return {f"FLEETSLAM_{action.dest.upper()}" for action in sub._actions if action.dest not in ("help",)}
 
@@ -108,17 +108,9 @@ def test_compose_services_as_processes_in_their_own_namespaces_produce_estimates
     skipped = sorted(set(project["services"]) - set(names))
     robots = [n for n in names if fleet.command(n) == "robot"]
     services = [n for n in names if n != "router" and n not in robots]
-    fleet.add_hosts(["router", *robots, *services, "observer"])
     # robots run 60 s of simulated time at twice real time: long enough for the checks, which stop them
     fast = {"FLEETSLAM_DURATION": "60", "FLEETSLAM_SPEEDUP": "2", "FLEETSLAM_START_DELAY": "1"}
-
-    fleet.start("router")
-    fleet.wait_healthy("router", 20)
-    observed = fleet.start_observer("observer", like="monitor")
-    for name in services:
-        fleet.start(name)
-    for name in robots:
-        fleet.start(name, fast)
+    observed = fleet.start_fleet(services, robots, fast)
 
     prefix = project["services"]["r1"]["environment"]["FLEETSLAM_PREFIX"]
     wanted = {f"{prefix}/{key}" for name in services for key in PRODUCES.get(fleet.command(name), [])}

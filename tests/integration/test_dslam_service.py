@@ -74,8 +74,6 @@ def test_three_robots_association_service_one_map(router, processes, zsession, p
         assert [e.seq for e in estimates] == list(range(len(estimates)))
         end = estimates[-1]
         truth = data.robots[rid].truth_at(np.array([end.stamp]))[0]
-        errors = [np.hypot(*(e.pose[:2] - data.robots[rid].truth_at(np.array([e.stamp]))[0][:2])) for e in estimates]
-        print(rid, np.round(errors[::10], 2), last.extra)
         assert np.hypot(*(end.pose[:2] - truth[:2])) < 0.5
 
 

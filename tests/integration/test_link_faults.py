@@ -74,16 +74,9 @@ def test_no_observation_lost_across_a_15s_link_cut_and_a_router_restart(compose_
     robots = [n for n, s in project["services"].items() if s["command"] == ["robot"]]
     rids = {name: fleet.service(name)["environment"]["FLEETSLAM_ROBOT_ID"] for name in robots}
     receivers = ["central"] if module_exists("central") else []  # the fusing service, when it exists
-    fleet.add_hosts(["router", *robots, *receivers, "observer"])
     # real-time robots that outlive the faults; the test stops them
     running = {"FLEETSLAM_DURATION": "600", "FLEETSLAM_SPEEDUP": "1", "FLEETSLAM_START_DELAY": "0.5"}
-    fleet.start("router")
-    fleet.wait_healthy("router", 20)
-    observed = fleet.start_observer("observer", like="monitor")
-    for name in receivers:
-        fleet.start(name)
-    for name in robots:
-        fleet.start(name, running)
+    observed = fleet.start_fleet(receivers, robots, running)
     cut_name = robots[0]
     cut = rids[cut_name]
     figures: dict[str, float | int | str] = {"cut_s": CUT_S, "cut_robot": cut}
