@@ -36,7 +36,6 @@ from pathlib import Path
 
 import numpy as np
 import scipy.linalg
-import scipy.sparse.linalg
 
 from robots.dataset import OdomEvent, ScanEvent
 from robots.models import RangeBearingSensor, UnicycleModel, in_field_of_view
@@ -118,7 +117,7 @@ def build(world: GridWorld, rng: np.random.Generator):
         m.means[added] = world.landmarks[ids]  # the next updates linearise at the truth (an ideal recovery)
     build_s = time.perf_counter() - started
     final = time.perf_counter()
-    m.mean = scipy.sparse.linalg.splu(m.matrix.tocsr().tocsc()).solve(m.vector)  # one exact sparse solve after the bulk build
+    m.solve_exactly()  # one sparse LU solve after the bulk build
     return m, index_of, {"scans": int(path.shape[0]), "build_ms_per_scan": 1e3 * build_s / path.shape[0],
                          "final_sparse_solve_s": time.perf_counter() - final}
 
@@ -164,9 +163,6 @@ def one_size(n: int, seed: int, scans: int, cache: int) -> dict:
         keys[index] = key
     settings = DslamFilterSettings(association="known", column_cache=cache)
     dslam = DSlam(settings)
-    m.cache.capacity = cache
-    m.column_tol, m.column_max_iter = settings.column_tol, settings.column_max_iter
-    m.tol, m.max_iter = settings.recovery_tol, settings.recovery_max_iter
     dslam.adopt(m, keys)
     sensor = SensorSpec(max_range=RANGE, fov=FOV, noise_cov=NOISE)
     dslam.add_robot(RobotInfo(robot_id="r1", stamp=0.0, motion_model="unicycle", sensor=sensor, start_pose=None,

@@ -61,8 +61,8 @@ def main() -> None:
             "recovery_s_median": float(np.median(times)) if done.size else None,
             "recovery_s_p90": float(np.percentile(times, 90)) if np.all(np.isfinite(times)) else None,
             "recovery_s_max": float(done.max()) if done.size else None,
-            "detected_after_s_median": float(np.median([r["detected_after_s"] for r in rows
-                                                        if r["detected_after_s"] is not None] or [np.nan])),
+            "detected_after_s_median": (float(np.median(detected)) if (detected := [
+                r["detected_after_s"] for r in rows if r["detected_after_s"] is not None]) else None),
         }
     report = {"benchmark": "mcl_kidnap", "world": args.world, "kidnap_at_s": args.at, "trials": args.trials,
               "particles": args.particles, "target": "recovery within 2 s of robot time", "summary": summary,

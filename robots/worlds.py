@@ -1,4 +1,4 @@
-"""Named simulated worlds (part of the interface: `random`, `paper000`, `grid196`, `cross`, `arena`).
+"""Named simulated worlds (part of the interface: `random`, `paper000`, `grid196`, `cross`, `arena`, `office`).
 
 A :class:`World` is a landmark map plus what a robot needs to move in it: the
 sensor, the control noise, a trajectory kind with its parameters, the bounds,

@@ -61,7 +61,7 @@ class RobotSettings(FleetSettings):
         None, pattern=r"^[A-Za-z0-9_-]{1,64}$", description="robot id (default: r1, or the replayed robot's id)",
         json_schema_extra={"cli": "--id"},
     )
-    world: str = Field("arena", description="simulated world: random, paper000, grid196, cross, arena")
+    world: str = Field("arena", description="simulated world: random, paper000, grid196, cross, arena, office")
     trajectory: Literal["auto", "circle", "waypoints", "random_walk"] = Field(
         "auto", description="trajectory (auto: the world's own)"
     )
@@ -251,7 +251,8 @@ class DslamFilterSettings(BaseSettings):
     recovery_tol: float = Field(1e-5, gt=0, description="mean recovery stops when every block-Jacobi step is below this (m)")
     recovery_max_iter: int = Field(200, ge=1, description="most PCG iterations of one mean recovery")
     column_tol: float = Field(1e-9, gt=0, description="covariance-column recovery tolerance, relative to the landmark's variance")
-    column_max_iter: int = Field(1000, ge=1, description="PCG iterations of a covariance-column solve before a sparse LU solve finishes it")
+    column_max_iter: int = Field(100, ge=1, description="PCG iterations of a covariance-column solve before a fresh sparse LU solve finishes it")
+    refactor_iterations: int = Field(15, ge=1, description="a column solve slower than this many iterations makes the next one factorise I afresh")
     column_cache: int = Field(64, ge=1, description="covariance columns kept to warm-start the next solves (landmarks)")
     ci_criterion: Literal["trace", "det"] = Field("trace", description="covariance intersection minimises the trace or the determinant")
     marginals_limit: int = Field(3000, ge=0, description="maps up to this many landmarks report every marginal covariance exactly")

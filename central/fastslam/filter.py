@@ -35,6 +35,7 @@ of clutter die (unknown association only).
 
 from __future__ import annotations
 
+import math
 from collections import Counter
 from dataclasses import dataclass, field
 
@@ -69,6 +70,8 @@ class RobotSlot:
     last_cov: np.ndarray | None = None
     last_odom_stamp: float = -np.inf
     last_scan_stamp: float = -np.inf
+    checked_cov: object = None  # the control covariance last validated (by identity) and its scaled copy
+    scaled_cov: np.ndarray | None = None
 
     @property
     def robot_id(self) -> str:
@@ -102,7 +105,8 @@ class ScanState:
         self.terms = tuple(t[index] for t in self.terms)
 
     def terms_at(self, p: np.ndarray, k: np.ndarray) -> tuple:
-        return tuple(t[p, k] for t in self.terms)
+        flat = p * self.cand.shape[1] + k
+        return tuple(t.reshape((-1,) + t.shape[2:])[flat] for t in self.terms)
 
 
 def _sensor(info: RobotInfo) -> RangeBearingSensor:
@@ -197,14 +201,17 @@ class FastSlam:
         if robot is None:
             return False
         control = np.asarray(event.control, float)
-        cov = np.asarray(event.control_cov, float)
         stamp, dt = float(event.stamp), float(event.dt)
-        if control.shape != (2,) or not np.all(np.isfinite(control)) or not (np.isfinite(dt) and 0.0 < dt <= 10.0):
+        if (control.shape != (2,) or not (math.isfinite(control[0]) and math.isfinite(control[1]))
+                or not (math.isfinite(dt) and 0.0 < dt <= 10.0) or not math.isfinite(stamp)):
             self.rejected["bad_odometry"] += 1
             return False
-        if not valid_cov2(cov) or not np.isfinite(stamp):
-            self.rejected["bad_odometry"] += 1
-            return False
+        if event.control_cov is not robot.checked_cov:  # a log passes one covariance object for all its controls
+            cov = np.asarray(event.control_cov, float)
+            if not valid_cov2(cov):
+                self.rejected["bad_odometry"] += 1
+                return False
+            robot.checked_cov, robot.scaled_cov = event.control_cov, cov * self.config.motion_noise_scale
         if stamp < robot.last_odom_stamp:
             self.rejected["time_backwards"] += 1
             return False
@@ -215,7 +222,7 @@ class FastSlam:
         if start - robot.pose_time > self.config.max_extrapolation_s:
             self.counts["odometry_gaps"] += 1
         span = min(stamp - robot.pose_time, dt + self.config.max_extrapolation_s)
-        cov = cov * self.config.motion_noise_scale
+        cov = robot.scaled_cov
         if span > 0.0:
             self._buffer(robot, control, span, cov)
         robot.pose_time = max(robot.pose_time, stamp)
@@ -589,8 +596,10 @@ class FastSlam:
         Each has a visibility v ∈ [0, 1]: the probability that its detection would fall inside the sensor's
         range limits and field of view, given the sensor noise (soft edges, no hard margin). The particle is
         weighted by (1 − P_D·v) for each (``miss_weight``: the price of a landmark that should have been seen;
-        this is what makes duplicates and clutter-born landmarks lose), the landmark's existence score drops
-        by ``exist_miss``·v, and landmarks below ``exist_min`` are deleted.
+        this is what makes duplicates and clutter-born landmarks lose), the landmark's existence score moves
+        by ``exist_miss``·ln(1 − P_D·v), and landmarks below ``exist_min`` are deleted unless they have been
+        associated ``permanent_hits`` times (a map built over many scans is not erased because the pose is
+        briefly wrong at a loop closure). With a sensor that often misses landmarks (a low P_D), a miss costs little.
         """
         k = scan.k_view
         if k == 0:
@@ -604,13 +613,16 @@ class FastSlam:
         if spec.fov < 2.0 * np.pi:
             visible *= ndtr((0.5 * spec.fov - np.abs(zhat[..., 1])) / sigma_b)
         visible = np.where(scan.mask[:, :k] & ~scan.hit[:, :k], visible, 0.0)
+        p_detect = spec.detection_probability if self.config.detection_probability is None else self.config.detection_probability
+        log_miss = np.log1p(-min(p_detect, self.config.max_detection_probability) * visible)
         if self.config.miss_weight:
-            p_detect = min(spec.detection_probability, self.config.max_detection_probability)
-            self.logw += np.log1p(-p_detect * visible).sum(1)
+            self.logw += log_miss.sum(1)
         rows, cols = np.nonzero(visible > 0.01)
         slots = cand[rows, cols]
-        self.map.exist[rows, slots] -= self.config.exist_miss * visible[rows, cols]
+        self.map.exist[rows, slots] += self.config.exist_miss * log_miss[rows, cols]
         dead = self.map.exist[rows, slots] < self.config.exist_min
+        if self.config.permanent_hits is not None:
+            dead &= self.map.hits[rows, slots] < self.config.permanent_hits
         self.map.valid[rows[dead], slots[dead]] = False
         self.counts["landmarks_deleted"] += int(dead.sum())
 
@@ -825,7 +837,8 @@ class FastSlam:
 
     def landmark_map(self):
         """Known association: the weighted mixture per landmark; otherwise the best particle's confirmed landmarks
-        (associated at least ``confirm_hits`` times, existence score at least its initial value)."""
+        (associated at least ``confirm_hits`` times, and either permanent or with an existence score at least
+        its initial value)."""
         if self.config.association == "known":
             if not self.known_slots:
                 return MapView(np.zeros((0, 2)), np.zeros((0, 2, 2)), np.zeros(0, np.int64))
@@ -838,7 +851,11 @@ class FastSlam:
             cov = np.einsum("p,pkij->kij", w, sig) + np.einsum("p,pki,pkj->kij", w, resid, resid)
             return MapView(mean, cov, ids)
         p = self.best_particle()
-        keep = self.map.valid[p] & (self.map.hits[p] >= self.config.confirm_hits) & (self.map.exist[p] >= self.config.exist_init)
+        hits = self.map.hits[p]
+        settled = self.map.exist[p] >= self.config.exist_init
+        if self.config.permanent_hits is not None:
+            settled |= hits >= self.config.permanent_hits
+        keep = self.map.valid[p] & (hits >= self.config.confirm_hits) & settled
         return MapView(self.map.mean[p, keep].copy(), self.map.cov[p, keep].copy(), None)
 
     def stats(self) -> dict[str, float]:

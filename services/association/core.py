@@ -44,7 +44,8 @@ class AssociationError(ValueError):
 class Problem:
     """The gated assignment problem of one scan."""
 
-    innovations: np.ndarray  # (M, N, 2) z_m − ẑ_n, bearing wrapped
+    range_innovations: np.ndarray  # (M, N) r_m − r̂_n
+    bearing_innovations: np.ndarray  # (M, N) φ_m − φ̂_n, wrapped
     nis: np.ndarray  # (M, N) squared Mahalanobis distances
     cost: np.ndarray  # (M, N) pair costs c_nm, +inf outside the gate
     innovation_covs: np.ndarray  # (N, 2, 2) S_n
@@ -55,6 +56,11 @@ class Problem:
     @property
     def gated(self) -> np.ndarray:
         return np.isfinite(self.cost)
+
+    @cached_property
+    def innovations(self) -> np.ndarray:
+        """(M, N, 2) innovations z_m − ẑ_n (bearing wrapped)."""
+        return np.stack([self.range_innovations, self.bearing_innovations], -1)
 
     @cached_property
     def joint_blocks(self) -> np.ndarray:
@@ -128,16 +134,15 @@ def build_problem(request: AssociationRequest) -> Problem:
     predicted, covs, blocks = _predict(request)
     inverse, logdet = _inverse_and_logdet(covs) if covs.shape[0] else (np.zeros((0, 2, 2)), np.zeros(0))
     z = request.measurements
-    innovations = z[:, None, :] - predicted[None, :, :]
-    innovations[..., 1] = wrap_angle(innovations[..., 1])
-    v0, v1 = innovations[..., 0], innovations[..., 1]
+    v0 = z[:, 0, None] - predicted[None, :, 0]
+    v1 = wrap_angle(z[:, 1, None] - predicted[None, :, 1])
     nis = inverse[:, 0, 0] * v0 * v0 + 2.0 * inverse[:, 0, 1] * v0 * v1 + inverse[:, 1, 1] * v1 * v1
     gate = solvers.gate_value(request.gate_probability, 2)
     p_d = request.detection_probability
     log_ratio = math.log(request.clutter_density + request.new_feature_density) - math.log(p_d / (1.0 - p_d))
     cost = np.where(nis <= gate, 0.5 * nis + 0.5 * logdet[None, :] + log_ratio, np.inf)
     return Problem(
-        innovations=innovations, nis=nis, cost=cost, innovation_covs=covs, noise=request.noise,
+        range_innovations=v0, bearing_innovations=v1, nis=nis, cost=cost, innovation_covs=covs, noise=request.noise,
         blocks=blocks, new_feature_gate=solvers.gate_value(request.new_feature_gate_probability, 2),
     )
 

@@ -124,7 +124,8 @@ class DSlam:
                  record: bool = False):
         self.settings = settings or DslamFilterSettings()
         s = self.settings
-        self.map = InformationMap(s.recovery_tol, s.recovery_max_iter, s.column_tol, s.column_max_iter, s.column_cache)
+        self.map = InformationMap(s.recovery_tol, s.recovery_max_iter, s.column_tol, s.column_max_iter, s.column_cache,
+                                  refactor_iterations=s.refactor_iterations)
         self.associator = associator or in_process_associate
         self.ids: list[int] = []
         self.index_of: dict[int, int] = {}
@@ -435,8 +436,12 @@ class DSlam:
 
     # ------------------------------------------------------------------- maps
     def adopt(self, information_map: InformationMap, keys: list[int]) -> None:
-        """Continue from a map built elsewhere (``keys``: the feature key of each landmark index)."""
+        """Continue from a map built elsewhere (``keys``: the feature key of each landmark index), with these settings."""
+        s = self.settings
         information_map.track_columns = True
+        information_map.tol, information_map.max_iter = s.recovery_tol, s.recovery_max_iter
+        information_map.column_tol, information_map.column_max_iter = s.column_tol, s.column_max_iter
+        information_map.refactor_iterations, information_map.cache.capacity = s.refactor_iterations, s.column_cache
         self.map = information_map
         self.ids, self.index_of, self.tentative = [], {}, {}
         self._register(list(keys), np.arange(information_map.n))
@@ -471,6 +476,7 @@ class DSlam:
             "recovery_iterations": float(self.map.recovery_iterations),
             "column_iterations": float(self.map.column_iterations),
             "column_solves": float(self.map.column_solves),
+            "factorisations": float(self.map.factorisations),
             "step_ms": float(self.last_step_ms),
             "memory_mb": self.map.memory_bytes() / 2**20,
             **{k: float(v) for k, v in self.counts.items()},

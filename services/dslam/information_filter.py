@@ -14,8 +14,9 @@ blocks created since the last rebuild), and the information vector i beside it.
 - Recovery: the mean and the covariance columns of the landmarks near the
   robots follow each update by its rank-k correction (a warm start that is
   exact for the linearised update), and PCG warm-started there checks the
-  mean against I X̂ = i; columns not cached are solved by block PCG (finished by a
-  sparse LU solve if PCG has not converged in its budget). Never an inverse of I.
+  mean against I X̂ = i; columns not cached are solved by block PCG preconditioned
+  by a stored sparse LU factor of an earlier I (made again when it has grown
+  stale). Never an inverse of I.
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ from collections import OrderedDict
 from functools import lru_cache
 
 import numpy as np
+import scipy.linalg.blas
 import scipy.sparse as sp
 import scipy.sparse.linalg
 from scipy.stats import chi2
@@ -34,6 +36,17 @@ from services.dslam.recast import choose_reference, initialise, innovation, map_
 @lru_cache(maxsize=256)
 def chi2_quantile(probability: float, dof: int) -> float:
     return float(chi2.ppf(probability, dof))
+
+
+def rank_k_update(target: np.ndarray, left: np.ndarray, right: np.ndarray) -> None:
+    """target −= left @ right in place (one BLAS call on the C-ordered ``target``, no temporary)."""
+    if target.size == 0 or left.shape[1] == 0:
+        return
+    if not target.flags.c_contiguous:
+        target -= left @ right
+        return
+    # Cᵀ is Fortran-ordered: Cᵀ ← Cᵀ − rightᵀ leftᵀ updates C where it lies.
+    scipy.linalg.blas.dgemm(-1.0, right.T, left.T, beta=1.0, c=target.T, overwrite_c=True)
 
 
 def block_rows(index: np.ndarray) -> np.ndarray:
@@ -107,6 +120,7 @@ class BlockSparseMatrix:
         self._data = np.zeros((capacity, 2, 2))
         self._count = 0
         self._diag = np.zeros(capacity, np.int64)
+        self._diag_inverse = np.zeros((capacity, 2, 2))
         self._csr: sp.csr_matrix | None = None
         self._pos = np.zeros((0, 4), np.int64)
         self._built = 0
@@ -138,7 +152,9 @@ class BlockSparseMatrix:
     def grow(self, count: int) -> None:
         """Add ``count`` landmarks with zero blocks."""
         if self.n + count > self._diag.shape[0]:
-            self._diag = np.concatenate([self._diag, np.zeros(max(count, self._diag.shape[0]), np.int64)])
+            grow = max(count, self._diag.shape[0])
+            self._diag = np.concatenate([self._diag, np.zeros(grow, np.int64)])
+            self._diag_inverse = np.concatenate([self._diag_inverse, np.zeros((grow, 2, 2))])
         for i in range(self.n, self.n + count):
             self._diag[i] = self._new_slot(i, i)
         self.n += count
@@ -152,6 +168,8 @@ class BlockSparseMatrix:
         slots = np.array([lookup.get((i, j)) if (i, j) in lookup else self._new_slot(i, j) for i in idx for j in idx],
                          np.int64).reshape(m, m)
         self._data[slots] += blocks
+        touched = np.asarray(idx, np.int64)
+        self._diag_inverse[touched] = inverse_2x2(self._data[self._diag[touched]])
         built = slots < self._built
         if built.any():
             self._csr.data[self._pos[slots[built]]] += blocks[built].reshape(-1, 4)
@@ -161,6 +179,10 @@ class BlockSparseMatrix:
     def diagonal_blocks(self) -> np.ndarray:
         """The (n, 2, 2) diagonal blocks."""
         return self._data[self._diag[: self.n]]
+
+    def diagonal_inverse(self) -> np.ndarray:
+        """Inverses (n, 2, 2) of the diagonal blocks (the block-Jacobi preconditioner), kept up to date by :meth:`add`."""
+        return self._diag_inverse[: self.n]
 
     def block(self, i: int, j: int) -> np.ndarray:
         slot = self._slot.get((i, j))
@@ -216,7 +238,7 @@ class BlockSparseMatrix:
         return self._csr.copy()
 
     def memory_bytes(self) -> int:
-        arrays = [self._rows, self._cols, self._data, self._diag, self._pos]
+        arrays = [self._rows, self._cols, self._data, self._diag, self._diag_inverse, self._pos]
         total = sum(a.nbytes for a in arrays) + 100 * len(self._slot)  # dict entries, roughly
         for m in (self._csr, self._pending):
             if m is not None:
@@ -278,13 +300,13 @@ class ColumnCache:
     def evict(self, keep=()) -> None:
         """Drop least recently used columns beyond the capacity (never those in ``keep``).
 
-        The capacity is at least three times the landmarks of the current request,
-        so that a sensor that sees many landmarks does not solve their columns anew each scan.
+        The capacity grows to three times the largest request, so that a sensor
+        that sees many landmarks does not solve their columns anew each scan.
         """
         keep = {int(i) for i in keep}
-        limit = max(self.capacity, 3 * len(keep))
+        self.capacity = max(self.capacity, 3 * len(keep))
         for landmark in list(self.slot):
-            if len(self.slot) <= limit:
+            if len(self.slot) <= self.capacity:
                 break
             if landmark not in keep:
                 self._free.append(self.slot.pop(landmark))
@@ -296,17 +318,22 @@ class InformationMap:
     Recovery (§3.2-3.3). Each update needs the covariance columns of the old
     landmarks it involves; they are kept in a :class:`ColumnCache`, and a column
     not there is solved by block PCG from a warm start (the column of the
-    nearest cached landmark; a sparse LU solve if it has not converged within
-    its budget). With those columns, the rank-k correction of the
+    nearest cached landmark, preconditioned by a stored sparse LU factor of an
+    earlier I). With those columns, the rank-k correction of the
     update gives the new mean and the new cached columns exactly (for the
     linearised measurement); the mean is then checked against I X̂ = i by PCG
     warm-started there, which usually stops at once. Nothing inverts I.
     """
 
-    def __init__(self, tol: float = 1e-6, max_iter: int = 200, column_tol: float = 1e-6,
-                 column_max_iter: int = 300, cache_columns: int = 64, track_columns: bool = True):
+    def __init__(self, tol: float = 1e-5, max_iter: int = 200, column_tol: float = 1e-9,
+                 column_max_iter: int = 100, cache_columns: int = 64, track_columns: bool = True,
+                 refactor_iterations: int = 15):
         self.matrix = BlockSparseMatrix()
         self.track_columns = track_columns
+        self.refactor_iterations = refactor_iterations
+        self._factor = None
+        self._factor_size = 0
+        self.factorisations = 0
         self.vector = np.zeros(0)
         self.mean = np.zeros(0)
         self.tol = tol
@@ -408,7 +435,7 @@ class InformationMap:
         gain = solved[:, :-1].T  # P_O Aᵀ S⁻¹ (2n, k)
         delta = gain @ nu
         self.mean += delta
-        cols[:size] -= gain @ (a @ cols[rows_old])  # every slot, free ones too: one contiguous pass
+        rank_k_update(cols[:size], gain, a @ cols[rows_old])  # every slot, free ones too: one pass
         return delta
 
     def _add_new(self, old, a, jac_new, residual, noise, new_rows, new_positions, delta) -> np.ndarray:
@@ -508,7 +535,7 @@ class InformationMap:
 
     # --------------------------------------------------------------- recovery
     def _precondition(self):
-        inverse = inverse_2x2(self.matrix.diagonal_blocks())
+        inverse = self.matrix.diagonal_inverse()
 
         def apply(r: np.ndarray) -> np.ndarray:
             if r.ndim == 1:
@@ -529,8 +556,41 @@ class InformationMap:
         self.recovery_unconverged += not converged
         return iterations
 
+    def factorise(self) -> None:
+        """Sparse LU factorisation of the current I (symmetric ordering, diagonal pivots: a Cholesky in effect).
+
+        Kept as the preconditioner of the covariance-column solves while it serves
+        them in few iterations; the matrix keeps changing, the factor does not.
+        """
+        self._factor = scipy.sparse.linalg.splu(self.matrix.tocsr().tocsc(), permc_spec="MMD_AT_PLUS_A",
+                                                diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+        self._factor_size = 2 * self.n
+        self.factorisations += 1
+
+    def solve_exactly(self) -> None:
+        """Recover the mean by one sparse LU solve (after a map built in bulk); the factor is kept."""
+        self.factorise()
+        self.mean = self._factor.solve(self.vector)
+
+    def _factor_precondition(self):
+        """The stored LU factor on the landmarks it knows, block Jacobi on those added since."""
+        factor, size = self._factor, self._factor_size
+        jacobi = self._precondition()
+
+        def apply(r: np.ndarray) -> np.ndarray:
+            out = jacobi(r)
+            out[:size] = factor.solve(np.ascontiguousarray(r[:size]))
+            return out
+
+        return apply
+
     def _ensure_columns(self, landmarks: np.ndarray) -> None:
-        """Solve the covariance columns of ``landmarks`` not in the cache (block PCG, warm start from a neighbour)."""
+        """Solve the covariance columns of ``landmarks`` not in the cache.
+
+        Block PCG warm-started from the column of the nearest cached landmark,
+        preconditioned by a stored sparse LU factor of I (made afresh when it has
+        grown stale: more than ``refactor_iterations`` iterations, or no convergence).
+        """
         missing = [int(i) for i in landmarks if int(i) not in self.cache]
         self.cache.touch([int(i) for i in landmarks if int(i) in self.cache])
         if not missing:
@@ -542,18 +602,23 @@ class InformationMap:
         rhs[block_rows(missing_arr), np.arange(2 * k)] = 1.0
         start = np.zeros((size, 2 * k))
         cached = np.fromiter(self.cache.slot.keys(), np.int64, len(self.cache))
-        diag = self.matrix.diagonal_blocks()
+        diag_inverse = self.matrix.diagonal_inverse()
         for j, lm in enumerate(missing):
             if cached.size:
                 nearest = int(cached[np.argmin(np.sum((self.means[cached] - self.means[lm]) ** 2, axis=1))])
                 start[:, 2 * j: 2 * j + 2] = self.cache.data[:size, self.cache.columns([nearest])]
             else:
-                start[2 * lm: 2 * lm + 2, 2 * j: 2 * j + 2] = inverse_2x2(diag[lm: lm + 1])[0]
+                start[2 * lm: 2 * lm + 2, 2 * j: 2 * j + 2] = diag_inverse[lm]
         scale = np.abs(start[block_rows(missing_arr), np.arange(2 * k)])
-        columns, iterations, converged = block_pcg(self.matrix.matvec, self._precondition(), rhs, start,
+        if self._factor is None:
+            self.factorise()
+        columns, iterations, converged = block_pcg(self.matrix.matvec, self._factor_precondition(), rhs, start,
                                                    self.column_tol * np.maximum(scale, 1e-12), self.column_max_iter)
-        if not converged:  # the rank-k corrections need exact columns: finish with a sparse LU solve
-            columns = scipy.sparse.linalg.splu(self.matrix.tocsr().tocsc()).solve(rhs)
+        if not converged or iterations > self.refactor_iterations:
+            self._factor = None
+        if not converged:  # the rank-k corrections need exact columns: a fresh factor solves them
+            self.factorise()
+            columns = self._factor.solve(rhs)
             self.column_direct_solves += k
         self.column_iterations = iterations
         self.column_iterations_total += iterations
@@ -572,9 +637,11 @@ class InformationMap:
         return columns
 
     def joint_covariance(self, landmarks: np.ndarray) -> np.ndarray:
-        """The (2k, 2k) covariance submatrix of ``landmarks``."""
-        columns = self.covariance_columns(landmarks)
-        sub = columns[block_rows(landmarks)]
+        """The (2k, 2k) covariance submatrix of ``landmarks`` (their columns solved or cached, only k rows read)."""
+        landmarks = np.asarray(landmarks, np.int64)
+        self._ensure_columns(landmarks)
+        sub = self.cache.data[np.ix_(block_rows(landmarks), self.cache.columns(landmarks))]
+        self.cache.evict(keep=landmarks)
         return 0.5 * (sub + sub.T)
 
     def cached_marginals(self) -> tuple[np.ndarray, np.ndarray]:

@@ -35,7 +35,7 @@ def start_dslam(processes, *extra: str):
 def wait_all_scans(stats: Collector, expected: int, processes) -> ServiceStats:
     try:
         wait_until(lambda: (s := latest(stats, ServiceStats)) is not None and s.extra.get("scans", 0) >= expected,
-                   60, what=f"dslam to process {expected} scans")
+                   120, what=f"dslam to process {expected} scans")
         return latest(stats, ServiceStats)
     except AssertionError as exc:
         last = latest(stats, ServiceStats)

@@ -1,0 +1,94 @@
+"""Offline FastSLAM runs scored against the truth, for the benchmarks (``benchmarks/fastslam_*.py``).
+
+One run goes through the offline runner (:func:`services.offline.run_estimator`,
+the machinery of ``fleetslam run``) and is scored by
+:func:`services.evaluation.metrics.score_estimates`: per-robot ATE against the
+truth (raw and after SE(2) alignment, the error at GPS fixes where the truth
+has no heading), and the map against the true landmarks.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+
+import numpy as np
+
+from robots.dataset import Dataset
+from services.estimator import RunOptions
+from services.evaluation.metrics import Trajectory, map_error, score_estimates
+from services.offline import run_estimator
+
+
+def run_and_score(dataset: Dataset, options: RunOptions, robots: list[str] | None = None,
+                  duration: float | None = None, map_cutoff: float = 1.0) -> dict:
+    """Run ``options`` over ``dataset`` (the chosen ``robots``, ``duration`` s of data) and score it."""
+    chosen = robots or list(dataset.robots)
+    cpu = time.process_time()
+    result = run_estimator(dataset, options, chosen, duration)
+    cpu = time.process_time() - cpu
+    truth = {rid: Trajectory(dataset.robots[rid].truth_stamp, dataset.robots[rid].truth_pose)
+             for rid in chosen if dataset.robots[rid].truth_stamp.size}
+    metrics, _ = score_estimates({"run": result.trajectories}, truth, {"run": (result.map_means, result.map_covs)},
+                                 dataset.landmarks, tuple(dataset.meta.get("truth_offset", (0.0, 0.0))), map_cutoff)
+    summary = metrics["summary"]["run"]
+    out = {
+        "estimator": options.estimator, "association": options.association, "particles": options.particles,
+        "variant": options.variant, "options": dict(options.extra), "robots": chosen,
+        "wall_s": round(result.wall_s, 2), "cpu_s": round(cpu, 2), "data_s": round(result.data_s, 1),
+        "ate_rmse_m": _rounded(summary["ate_rmse_m"]), "ate_aligned_rmse_m": _rounded(summary["ate_aligned_rmse_m"]),
+        "landmarks_mapped": int(len(result.map_means)),
+        "scan_ms_p99": round(1e3 * result.timing["scan"].get("p99", 0.0), 2) if result.timing.get("scan") else None,
+    }
+    if "gps_rmse_m" in summary:
+        out["gps_rmse_m"] = _rounded(summary["gps_rmse_m"])
+    if dataset.landmarks is not None:
+        out["map_rmse_m"] = None if summary["map_rmse_m"] is None else round(summary["map_rmse_m"], 3)
+        out["landmarks"] = summary["landmarks"]
+    out["map_means"] = result.map_means
+    return out
+
+
+def aligned_map_error(means: np.ndarray, truth: np.ndarray, anchors: np.ndarray | None = None,
+                      cutoff: float = 1.0) -> tuple[dict, np.ndarray]:
+    """Map error after the rigid 2-D transform that best fits matched landmarks (``anchors``: the true
+    landmarks used for the fit, default all). SLAM fixes the map only up to such a transform when the start
+    pose drifts; returns (map_error dict, aligned means)."""
+    fit = truth if anchors is None else anchors
+    if len(means) == 0:
+        return map_error(means, truth, cutoff), means
+    matched = map_error(means, fit, cutoff)["pairs"]
+    if len(matched) < 2:
+        return map_error(means, truth, cutoff), means
+    a = means[[r for r, _ in matched]]
+    b = fit[[c for _, c in matched]]
+    ca, cb = a.mean(0), b.mean(0)
+    u, _, vt = np.linalg.svd((a - ca).T @ (b - cb))
+    if np.linalg.det(u @ vt) < 0:
+        vt[-1] *= -1
+    rotation = (u @ vt).T
+    aligned = (means - ca) @ rotation.T + cb
+    return map_error(aligned, truth, cutoff), aligned
+
+
+def emit(report: dict, out: str | None) -> None:
+    """Print a benchmark's JSON report (and write it to ``out``)."""
+    text = json.dumps(_clean(report), indent=2)
+    print(text)
+    if out:
+        with open(out, "w") as handle:
+            handle.write(text + "\n")
+
+
+def _rounded(values: dict) -> dict:
+    return {k: None if v is None else round(float(v), 3) for k, v in values.items()}
+
+
+def _clean(value):
+    if isinstance(value, dict):
+        return {k: _clean(v) for k, v in value.items() if not isinstance(v, np.ndarray)}
+    if isinstance(value, (list, tuple)):
+        return [_clean(v) for v in value]
+    if isinstance(value, (np.floating, np.integer)):
+        return value.item()
+    return value
