@@ -16,6 +16,9 @@ appears). Every robot's odometry and scans go into one filter
   robot is placed on the first ``{prefix}/mcl/{rid}/pose`` (MclPose) with
   ``localized`` true, at its best pose and covariance; its kept messages older
   than that pose are dropped (counted), the rest processed.
+- A robot whose first odometry message arrives with seq > 0 (the service
+  started after it) has lost its start pose: counted, and with ``late_join``
+  = ``wait`` it waits for MCL like a robot without a start pose.
 - Robot-to-robot detections in scans are ignored unless ``robot_detections``
   is on (they then weight particles; they never update the map).
 
@@ -180,6 +183,8 @@ class CentralService(ServiceShell):
             self.reject(verdict.value, f"{rid}/{stream} seq {message.seq}")
             return
         self.latest[rid] = max(self.latest.get(rid, -np.inf), message.stamp)
+        if stream == "odom" and self.tracker.received(rid, "odom") == 1 and message.seq > 0:
+            self._joined_late(rid, message.seq)
         event = odom_event(message) if stream == "odom" else ScanEvent.from_message(message)
         if rid not in self.slam.robots:
             queue = self.waiting[rid]
@@ -190,6 +195,19 @@ class CentralService(ServiceShell):
                 self._ask_info(rid)
             return
         heapq.heappush(self.buffer, (event.stamp, next(self.order), time.perf_counter(), event))
+
+    def _joined_late(self, robot_id: str, missed: int) -> None:
+        """The first odometry of a robot arrived with seq > 0: its start pose no longer says where it is.
+
+        With ``late_join`` = ``wait`` it is taken out (or kept out) of the filter until MCL places it;
+        with ``start_pose`` it keeps its announced start pose (counted; the map may suffer).
+        """
+        self.extra["robots_joined_late"] = self.extra.get("robots_joined_late", 0.0) + 1.0
+        log.warning("robot %s: its first %d odometry messages were missed", robot_id, missed)
+        if self.settings.late_join == "wait" and robot_id not in self.slam.parked:
+            info = self.slam.unplace(robot_id)
+            if info is not None:
+                log.info("robot %s waits for a pose from MCL", robot_id)
 
     def _requeue(self, robot_id: str, after: float | None) -> None:
         """Move a robot's waiting messages into the reorder buffer (those not after ``after`` are dropped)."""
@@ -219,8 +237,11 @@ class CentralService(ServiceShell):
                 self.last_stamp = max(self.last_stamp, event.stamp)
 
     # ------------------------------------------------------------ output
-    def estimate(self) -> Estimate | None:
-        """The current estimate as a message (None when a number is not finite: never published)."""
+    def estimate(self, publish: bool = True) -> Estimate | None:
+        """The current estimate as a message (None when a number is not finite: never published).
+
+        Published estimates are numbered 0, 1, 2...; a state query's reply repeats the next number.
+        """
         robots = []
         for rid, (pose, cov) in self.slam.poses().items():
             slot = self.slam.robots[rid]
@@ -235,12 +256,12 @@ class CentralService(ServiceShell):
                            landmark_covs=view.covs, landmark_ids=view.ids, particles=self.slam.pose.shape[0],
                            effective_particles=self.slam.effective_particles(),
                            method=f"fastslam-{self.slam.config.association}")
-        self.estimate_seq += 1
+        self.estimate_seq += int(publish)
         return message
 
     def _answer_state(self, query: zenoh.Query) -> None:
         try:
-            message = self.estimate()
+            message = self.estimate(publish=False)
             if message is None:
                 query.reply_err(b"estimate_not_finite")
             else:

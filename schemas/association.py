@@ -79,7 +79,7 @@ class AssociationRequest(Message):
     ihgr_tie_margin: float = Field(
         0.05, ge=0.0, le=1.0, description="IHGR: fractional values this close to the largest are a tie (enumerated)"
     )
-    jcbb_max_nodes: int = Field(200_000, ge=1, description="JCBB search budget (interpretation-tree nodes)")
+    jcbb_max_nodes: int = Field(20_000, ge=1, description="JCBB search budget (interpretation-tree nodes)")
     auto_jcbb_max_measurements: int = Field(
         12, ge=0, description="auto: JCBB when a joint covariance is given and at most this many measurements are gated"
     )

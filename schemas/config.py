@@ -254,6 +254,9 @@ class DslamFilterSettings(BaseSettings):
     column_max_iter: int = Field(100, ge=1, description="PCG iterations of a covariance-column solve before a fresh sparse LU solve finishes it")
     refactor_iterations: int = Field(15, ge=1, description="a column solve slower than this many iterations makes the next one factorise I afresh")
     column_cache: int = Field(64, ge=1, description="covariance columns kept to warm-start the next solves (landmarks)")
+    relocalise_after: int = Field(
+        10, ge=1, description="scans in a row whose observation estimate contradicts the prediction before the robot is relocalised"
+    )
     ci_criterion: Literal["trace", "det"] = Field("trace", description="covariance intersection minimises the trace or the determinant")
     marginals_limit: int = Field(3000, ge=0, description="maps up to this many landmarks report every marginal covariance exactly")
 
@@ -319,6 +322,7 @@ class AssocSettings(FleetSettings):
     complete: bool = Field(True, description="declare the queryables complete, so a BEST_MATCHING query reaches one instance")
     max_measurements: int = Field(2000, ge=1, description="larger requests are refused (measurements)")
     max_landmarks: int = Field(5000, ge=1, description="larger requests are refused (landmarks)")
+    max_jcbb_nodes: int = Field(20_000, ge=1, description="cap on a request's JCBB search budget (keeps one query short)")
     duration: float | None = Field(None, gt=0, description="stop after this many seconds (default: until SIGINT/SIGTERM)")
 
 
@@ -334,5 +338,8 @@ class CentralSettings(FleetSettings):
                                     "streams so that robots are processed in time order (0: as they come)")
     waiting_messages: int = Field(2000, ge=1, description="messages of a robot kept while its RobotInfo or its placement by MCL is awaited")
     robot_detections: bool = Field(False, description="weight particles by robot-to-robot detections")
+    late_join: Literal["start_pose", "wait"] = Field(
+        "start_pose", description="a robot whose first odometry was missed: keep its announced start pose, "
+        "or wait for MCL to place it")
     filter_options: str | None = Field(None, description="JSON object of extra FastSLAM settings (central/fastslam/config.py)")
     duration: float | None = Field(None, gt=0, description="stop after this many seconds (default: until SIGINT/SIGTERM)")

@@ -27,10 +27,17 @@ gains by calling a detection new rather than matching it.
 MHT shares that weight between its new-landmark and spurious children in the
 ratio of expected new landmarks to false detections per scan.
 
-Landmark existence: a score that rises with each association and falls each
-time the landmark is in view and not associated (scaled by its visibility, the
-chance its detection falls inside the sensor's limits); below ``exist_min`` it is deleted, so landmarks born
-of clutter die (unknown association only).
+Landmark existence (unknown association only): a score that rises with each
+association and falls, by ln(1 − P_D·v), each time the landmark is near and
+not associated (v: its visibility, the chance its detection falls inside the
+sensor's limits); below ``exist_min`` it is deleted, so landmarks born of
+clutter die. Landmarks associated ``permanent_hits`` times are kept. The same
+ln(1 − P_D·v) weights the particle (negative information), and a confirmed
+landmark statistically identical to one just associated is merged away.
+
+Robot-to-robot detections are ignored unless ``robot_detections``: they then
+weight each particle by the likelihood of the detection given the two robots'
+poses in that particle (no map update).
 """
 
 from __future__ import annotations
@@ -179,6 +186,20 @@ class FastSlam:
             return False
         self._take_in(self.parked.pop(robot_id), pose, cov)
         return True
+
+    def unplace(self, robot_id: str) -> RobotInfo | None:
+        """Park a robot that has not moved in the filter yet (no control or scan applied): it waits for
+        :meth:`place_robot`. Returns its RobotInfo, or None if it is unknown or already in use."""
+        robot = self.robots.get(robot_id)
+        if robot is None or robot.pose_time is not None:
+            return None
+        del self.robots[robot_id]
+        keep = [i for i in range(self.pose.shape[1]) if i != robot.index]
+        self.pose = self.pose[:, keep]
+        for other in self.robots.values():
+            other.index = keep.index(other.index)
+        self.parked[robot_id] = robot.info
+        return robot.info
 
     def _take_in(self, info: RobotInfo, pose: np.ndarray, cov: np.ndarray) -> None:
         n = self.pose.shape[0]
@@ -857,6 +878,10 @@ class FastSlam:
             settled |= hits >= self.config.permanent_hits
         keep = self.map.valid[p] & (hits >= self.config.confirm_hits) & settled
         return MapView(self.map.mean[p, keep].copy(), self.map.cov[p, keep].copy(), None)
+
+    def extra_metrics(self) -> dict:
+        """Figures ``fleetslam run`` adds to its JSON: the filter's counters and particle statistics."""
+        return {"fastslam": self.stats()}
 
     def stats(self) -> dict[str, float]:
         """Counters and particle statistics (for the service's stats and the benchmarks)."""

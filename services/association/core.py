@@ -75,7 +75,8 @@ def _inverse_and_logdet(covs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     bad = np.flatnonzero(~((a > 0) & (d > 0) & (det > 0)))
     if bad.size:
         raise AssociationError("bad_covariance", f"innovation covariance of landmark {int(bad[0])} is not positive definite")
-    inverse = np.stack([np.stack([d, -b], -1), np.stack([-c, a], -1)], -2) / det[:, None, None]
+    inverse = np.empty_like(covs)
+    inverse[:, 0, 0], inverse[:, 0, 1], inverse[:, 1, 0], inverse[:, 1, 1] = d / det, -b / det, -c / det, a / det
     return inverse, np.log((2 * math.pi) ** 2 * det)
 
 

@@ -43,7 +43,7 @@ class EkfOptions(BaseModel):
     """Settings of the EKF-SLAM baseline, read from ``RunOptions.extra`` (unknown keys are ignored)."""
 
     model_config = ConfigDict(extra="ignore")
-    gate_probability: float = Field(0.99, gt=0, lt=1, description="chi-square gate of the association")
+    gate_probability: float = Field(0.999, gt=0, lt=1, description="chi-square gate of the association")
     new_feature_gate_probability: float = Field(0.999999, gt=0, lt=1, description="start a landmark only outside this gate of all")
     new_feature_density: float = Field(1e-3, gt=0, description="new landmarks per m·rad of measurement space")
     detection_probability_max: float = Field(0.99, gt=0, lt=1, description="cap on the sensor's detection probability")
@@ -230,7 +230,10 @@ class EkfSlam:
 
     def _update(self, nu: np.ndarray, h: np.ndarray, noise: np.ndarray) -> None:
         """One batch EKF update with the stacked innovations ``nu`` and Jacobian rows ``h`` (Joseph form)."""
-        r = np.kron(np.eye(nu.shape[0] // 2), noise)
+        k = nu.shape[0] // 2
+        r = np.zeros((k, 2, k, 2))
+        r[np.arange(k), :, np.arange(k), :] = noise
+        r = r.reshape(2 * k, 2 * k)
         ph = self.P @ h.T
         gain = np.linalg.solve(h @ ph + r, ph.T).T
         self.x = self.x + gain @ nu

@@ -90,6 +90,8 @@ class AssocService(ServiceShell):
             self._refuse(query, "too_large", f"{m} measurements × {n} landmarks exceeds "
                          f"{self.settings.max_measurements} × {self.settings.max_landmarks}")
             return
+        if request.jcbb_max_nodes > self.settings.max_jcbb_nodes:
+            request = request.model_copy(update={"jcbb_max_nodes": self.settings.max_jcbb_nodes})
         started = time.perf_counter()
         try:
             reply = associate(request, method)

@@ -235,7 +235,7 @@ def solve_jcbb(
     joint_blocks: np.ndarray,
     noise: np.ndarray,
     probability: float,
-    max_nodes: int = 200_000,
+    max_nodes: int = 20_000,
 ) -> JcbbResult:
     """Joint compatibility branch and bound (Neira & Tardós 2001).
 

@@ -46,7 +46,7 @@ from services.dslam.recast import scan_points
 from services.estimator import MapView, RunOptions
 
 MAPPED, TENTATIVE, FRESH, CLUTTER = 0, 1, 2, 3
-RELOCALISE_GATE = float(chi2.ppf(1 - 1e-6, 3))  # prediction and observation estimate cannot both be right
+LOCALISATION_GATE = float(chi2.ppf(1 - 1e-6, 3))  # prediction and observation estimate cannot both be right
 
 Associator = Callable[[AssociationRequest, str], AssociationReply]
 
@@ -83,6 +83,7 @@ class RobotTrack:
     observed: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     streams: set = field(default_factory=set)
     localised: bool = False
+    disagreements: int = 0
 
     def __post_init__(self) -> None:
         self.model = motion_model(self.info.motion_model, self.info.wheelbase or 2.83, self.info.encoder_offset)
@@ -291,8 +292,10 @@ class DSlam:
     def _localise(self, robot: RobotTrack, obs: np.ndarray, noise: np.ndarray, index: np.ndarray) -> None:
         """CI of the process-model estimate with the estimate from the mapped landmarks seen (§2.3).
 
-        When the two disagree beyond any doubt (the robot was moved, or its
-        odometry failed), the observation estimate replaces the prediction.
+        When the two disagree beyond any doubt, the observations are set aside (a
+        misread feature, an ambiguous pair); after ``relocalise_after`` such scans in
+        a row the robot is taken to have been moved and the observation estimate
+        replaces the prediction.
         """
         if index.size == 0 or (robot.pose is None and index.size < 2):
             return
@@ -313,13 +316,18 @@ class DSlam:
             cov = np.linalg.inv(estimate.info)
             delta = estimate.pose - robot.pose
             delta[2] = wrap_angle(delta[2])
-            if delta @ np.linalg.solve(robot.cov + cov, delta) > RELOCALISE_GATE:
+            if delta @ np.linalg.solve(robot.cov + cov, delta) > LOCALISATION_GATE:
+                robot.disagreements += 1
+                if robot.disagreements < self.settings.relocalise_after:
+                    self.counts["localisation_rejected"] += 1
+                    return
                 robot.pose, robot.cov = estimate.pose, 0.5 * (cov + cov.T)
-                robot.localised = True
+                robot.disagreements = 0
                 self.counts["relocalised"] += 1
                 return
         robot.pose, robot.cov, robot.omega = localise(robot.pose, robot.cov, estimate, self.settings.ci_criterion)
         robot.localised = True
+        robot.disagreements = 0
 
     # ---------------------------------------------------------- feature lists
     def _bookkeep(self, robot: RobotTrack, obs: np.ndarray, noise: np.ndarray, kinds: np.ndarray, refs: np.ndarray,

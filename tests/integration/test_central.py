@@ -73,7 +73,9 @@ def test_three_robots_one_map(router, processes, zsession, prefix):
         assert np.hypot(*error) < 0.3, (robot.robot_id, error)
     published = estimates.decoded(Estimate)
     assert len(published) >= 3
-    assert [e.seq for e in published] == sorted(e.seq for e in published)
+    seqs = [e.seq for e in published]
+    assert seqs == list(range(seqs[0], seqs[0] + len(seqs)))
+    assert all(e.method == "fastslam-nn" and e.particles == 50 for e in published)
 
 
 def test_robot_with_unknown_start_waits_for_mcl(router, processes, zsession, prefix):

@@ -217,6 +217,17 @@ def test_robot_with_unknown_start_waits_until_placed():
     assert not slam.place_robot("r2", truth, np.eye(3))
 
 
+def test_a_robot_that_has_not_moved_can_be_parked_again():
+    data = simulate("arena", robots=2, seed=0, duration=2.0)
+    slam = FastSlam(FastSlamConfig(particles=10, association="known", seed=0), [log.info for log in data.robots.values()])
+    assert slam.unplace("r1") is not None and set(slam.parked) == {"r1"} and set(slam.robots) == {"r2"}
+    assert slam.robots["r2"].index == 0 and slam.pose.shape[1] == 1
+    feed(slam, data, robots=["r2"])
+    assert slam.unplace("r2") is None and slam.unplace("ghost") is None
+    pose, _ = slam.poses()["r2"]
+    assert np.hypot(*(pose[:2] - data.robots["r2"].truth_pose[-1, :2])) < 0.1
+
+
 def test_a_robot_joining_later_shares_the_map():
     data = simulate("arena", robots=2, seed=1, duration=20.0)
     slam = FastSlam(FastSlamConfig(particles=30, association="known", seed=0), [data.robots["r1"].info])
