@@ -114,7 +114,7 @@ def wait_port(port: int, timeout: float = 10.0) -> None:
             time.sleep(0.05)
 
 
-def through_router(sizes: list[int], methods: list[str], queries: int, instances: int, seed: int) -> dict:
+def through_router(sizes: list[int], methods: list[str], queries: int, method_queries: int, instances: int, seed: int) -> dict:
     port = free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
     prefix = f"bench{port}"
@@ -134,10 +134,10 @@ def through_router(sizes: list[int], methods: list[str], queries: int, instances
             time.sleep(0.05)
         out: dict = {"instances": instances, "sizes": {}, "methods_50": {}}
 
-        def time_queries(method: str, payload: bytes) -> dict:
+        def time_queries(method: str, payload: bytes, count: int) -> dict:
             query_associate(session, keys, method, payload, timeout=5.0)
             times = []
-            for _ in range(queries):
+            for _ in range(count):
                 t0 = time.perf_counter()
                 query_associate(session, keys, method, payload, timeout=5.0)
                 times.append((time.perf_counter() - t0) * 1e3)
@@ -145,11 +145,11 @@ def through_router(sizes: list[int], methods: list[str], queries: int, instances
 
         for size in sizes:
             payload = encode(dense_problem(size, np.random.default_rng([seed, size, 1])))
-            out["sizes"][str(size)] = {"method": "exact", "payload_bytes": len(payload), **time_queries("exact", payload)}
+            out["sizes"][str(size)] = {"method": "exact", "payload_bytes": len(payload), **time_queries("exact", payload, queries)}
             print(f"round trip M=N={size} exact: {out['sizes'][str(size)]['median_ms']} ms", file=sys.stderr)
         payload = encode(dense_problem(50, np.random.default_rng([seed, 50, 1])))
         for method in methods:
-            out["methods_50"][method] = time_queries(method, payload)
+            out["methods_50"][method] = time_queries(method, payload, method_queries)
         if instances > 1:  # round robin over the instances from this one client
             times = []
             for _ in range(queries):
@@ -176,6 +176,7 @@ def main() -> None:
     parser.add_argument("--methods", default="nn,greedy,ihgr,exact,jcbb,auto")
     parser.add_argument("--problems", type=int, default=30, help="random problems per size (in-process)")
     parser.add_argument("--queries", type=int, default=300, help="queries per round-trip measurement")
+    parser.add_argument("--method-queries", type=int, default=50, help="queries per method at M = N = 50")
     parser.add_argument("--jcbb-max", type=int, default=50, help="largest size JCBB is timed at")
     parser.add_argument("--instances", type=int, default=1, help="association service instances")
     parser.add_argument("--seed", type=int, default=0)
@@ -191,7 +192,7 @@ def main() -> None:
         "in_process": in_process(sizes, methods, args.problems, args.jcbb_max, args.seed),
     }
     if not args.no_router:
-        result["round_trip"] = through_router(sizes, methods, args.queries, args.instances, args.seed)
+        result["round_trip"] = through_router(sizes, methods, args.queries, args.method_queries, args.instances, args.seed)
     text = json.dumps(result, indent=2)
     print(text)
     if args.out:

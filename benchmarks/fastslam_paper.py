@@ -11,7 +11,7 @@
   paper) and both in one filter (800 particles): position error RMSE of each robot.
 
     .venv/bin/python benchmarks/fastslam_paper.py [--parts two-beacons,four-beacons,two-robots]
-        [--seeds 5] [--laps 3] [--out FILE]
+        [--seeds 5] [--laps 3] [--bearing-std-deg 1] [--out FILE]
 """
 
 from __future__ import annotations
@@ -31,8 +31,8 @@ METHODS = {"nn-paper": ("nn", {"exclusive": False}), "nn": ("nn", {}), "mht": ("
            "mht-paper": ("mht", {"exclusive": False})}
 
 
-def two_beacons_run(method: str, seed: int, laps: float, particles: int) -> dict:
-    world = two_beacons()
+def two_beacons_run(method: str, seed: int, laps: float, particles: int, bearing_std_deg: float) -> dict:
+    world = two_beacons(bearing_std_deg=bearing_std_deg)
     data = simulate(world, seed=seed, duration=laps * LAP_S)
     association, extra = METHODS[method]
     run = run_and_score(data, RunOptions("fastslam", association, particles, seed, None, extra))
@@ -87,13 +87,15 @@ def main() -> None:
     parser.add_argument("--laps", type=float, default=3.0)
     parser.add_argument("--particles", type=int, default=100, help="particles of the two-beacon runs")
     parser.add_argument("--methods", default=",".join(METHODS))
+    parser.add_argument("--bearing-std-deg", type=float, default=1.0, help="bearing noise of the two-beacon world")
     parser.add_argument("--association", default="nn", help="association of the two-robot runs")
     parser.add_argument("--out")
     args = parser.parse_args()
     parts = args.parts.split(",")
     report: dict = {"settings": vars(args)}
     if "two-beacons" in parts:
-        rows = [two_beacons_run(m, s, args.laps, args.particles) for m in args.methods.split(",") for s in range(args.seeds)]
+        rows = [two_beacons_run(m, s, args.laps, args.particles, args.bearing_std_deg)
+                for m in args.methods.split(",") for s in range(args.seeds)]
         report["two_beacons"] = {
             "summary": {m: {"separated": sum(r["separated"] for r in rows if r["method"] == m),
                             "runs": sum(r["method"] == m for r in rows)} for m in args.methods.split(",")},

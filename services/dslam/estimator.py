@@ -3,25 +3,28 @@
 Per scan of a robot:
 
 1. Association: known ids, or one call of the association entry point
-   (:func:`services.association.associate`, or the queryable in the service)
-   on the landmarks and tentative features near the robot.
+   (:func:`services.association.core.associate`, or the queryable in the
+   service) on the landmarks and tentative features near the robot.
+   Measurements that claim the same feature are set aside.
 2. Localisation (phase II): the process-model estimate and the estimate from
    the mapped landmarks seen, combined by covariance intersection
    (:mod:`services.dslam.localization`). A robot whose start pose is unknown
    is placed once it sees two mapped landmarks (ids needed then).
-3. Mapping.
-   Phase I (robot still at its known start pose; or, to start a map, moved but
-   not yet localised against it, with a small dead-reckoning error and fewer
-   than two mapped features in view): the raw observations give absolute
-   positions with the joint covariance of the pose and the noise. Phase II: with at least two mapped landmarks in the scan, the scan is
+3. Mapping. Phase I (robot still at its known start pose; or, to start a map,
+   moved but not yet localised against it, with a small dead-reckoning error
+   and fewer than two mapped features in view): the raw observations give
+   absolute positions with the joint covariance of the pose and the noise.
+   Phase II: with at least two mapped landmarks in the scan, the scan is
    recast into z_map (eq. 3) around the best-conditioned reference pair, new
-   features are initialised by eq. 9 and the map updated by eq. 10. z_map is
-   free of any robot frame, so every robot's scans update the one map.
-4. Recovery of the mean by warm-started PCG.
+   features are initialised by eq. 9 and the map updated by eq. 10, unless
+   z_map fails its χ² test. z_map is free of any robot frame, so every
+   robot's scans update the one map.
+4. Recovery of the mean and of the covariance columns near the robots
+   (:class:`services.dslam.information_filter.InformationMap`).
 
 Features are first *tentative* (counted sightings, dropped after misses in
-view) and enter the map once confirmed (§3.1); sightings from the known
-start pose are kept and applied on confirmation.
+view) and enter the map once confirmed (§3.1); sightings from a known pose
+are kept and applied on confirmation.
 """
 
 from __future__ import annotations
@@ -207,8 +210,8 @@ class DSlam:
     def _associate(self, robot: RobotTrack, obs: np.ndarray, noise: np.ndarray, ids: np.ndarray | None):
         """(kinds (n,), refs (n,)): map index, tentative key, new key or -1 per observation; None if impossible.
 
-        Measurements that claim the same feature (per-measurement NN can do that)
-        are all set aside: z_map needs distinct features.
+        Measurements that claim the same feature (per-measurement NN can do that,
+        a misread id too) are all set aside: z_map needs distinct features.
         """
         n = obs.shape[0]
         kinds = np.full(n, CLUTTER, np.int64)
@@ -223,33 +226,32 @@ class DSlam:
                     kinds[k], refs[k] = TENTATIVE, lm
                 else:
                     kinds[k], refs[k] = FRESH, lm
-            return kinds, refs
-        if self.settings.association == "known":
-            self.counts["scans_without_ids"] += 1
-        if robot.pose is None:
+        elif robot.pose is None:
             return None
-        method = "auto" if self.settings.association == "known" else self.settings.association
-        candidates, tentative_keys, request = self.association_request(robot, obs, noise)
-        if n == 0:
-            return kinds, refs
-        reply = self.associator(request, method)
-        assignment = np.asarray(reply.assignment, np.int64)
-        if assignment.shape != (n,):
-            self.counts["assoc_bad_reply"] += 1
-            return None
-        self.counts[f"assoc_{reply.method}"] += 1
-        n_map = candidates.shape[0]
-        for k, a in enumerate(assignment.tolist()):
-            if 0 <= a < n_map:
-                kinds[k], refs[k] = MAPPED, candidates[a]
-            elif n_map <= a < n_map + len(tentative_keys):
-                kinds[k], refs[k] = TENTATIVE, tentative_keys[a - n_map]
-            elif a == NEW:
-                kinds[k], refs[k] = FRESH, self._new_key()
-        claimed = (kinds == MAPPED) | (kinds == TENTATIVE)
-        keys, counts = np.unique(np.stack([kinds[claimed], refs[claimed]], -1), axis=0, return_counts=True)
+        elif n:
+            if self.settings.association == "known":
+                self.counts["scans_without_ids"] += 1
+            method = "auto" if self.settings.association == "known" else self.settings.association
+            candidates, tentative_keys, request = self.association_request(robot, obs, noise)
+            reply = self.associator(request, method)
+            assignment = np.asarray(reply.assignment, np.int64)
+            if assignment.shape != (n,):
+                self.counts["assoc_bad_reply"] += 1
+                return None
+            self.counts[f"assoc_{reply.method}"] += 1
+            n_map = candidates.shape[0]
+            for k, a in enumerate(assignment.tolist()):
+                if 0 <= a < n_map:
+                    kinds[k], refs[k] = MAPPED, candidates[a]
+                elif n_map <= a < n_map + len(tentative_keys):
+                    kinds[k], refs[k] = TENTATIVE, tentative_keys[a - n_map]
+                elif a == NEW:
+                    kinds[k], refs[k] = FRESH, self._new_key()
+        claimed = kinds != CLUTTER
+        keys, counts = np.unique(np.stack([np.minimum(kinds[claimed], TENTATIVE), refs[claimed]], -1), axis=0,
+                                 return_counts=True)
         for kind, ref in keys[counts > 1]:
-            shared = (kinds == kind) & (refs == ref)
+            shared = (np.minimum(kinds, TENTATIVE) == kind) & (refs == ref) & claimed
             kinds[shared], refs[shared] = CLUTTER, -1
             self.counts["assoc_shared_landmark"] += int(shared.sum())
         return kinds, refs

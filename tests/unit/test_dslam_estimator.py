@@ -115,3 +115,16 @@ def test_a_robot_whose_start_was_missed_has_no_pose():
     estimator.add_robot(data.robots["r1"].info)
     estimator.on_odometry(data.robots["r1"].odom(5))
     assert "r1" not in estimator.poses() and estimator.counts["missed_start"] == 1
+
+
+def test_two_measurements_of_one_feature_are_set_aside():
+    data = simulate("grid196", robots=1, duration=1.0)
+    estimator = DSlam()
+    estimator.add_robot(data.robots["r1"].info)
+    scan = data.robots["r1"].scan(0)
+    scan.ranges = np.concatenate([scan.ranges, scan.ranges[:1] + 0.5])
+    scan.bearings = np.concatenate([scan.bearings, scan.bearings[:1]])
+    scan.landmark_ids = np.concatenate([scan.landmark_ids, scan.landmark_ids[:1]])
+    estimator.on_scan(scan)
+    assert estimator.counts["assoc_shared_landmark"] == 2
+    assert estimator.map.n == len(set(scan.landmark_ids.tolist())) - 1
