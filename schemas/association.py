@@ -128,7 +128,7 @@ class AssociationReply(Message):
     missed: Array(None, kind="bool") = Field(description="(N,) landmark got no measurement")
     cost: float = Field(allow_inf_nan=False, description="Σ c_nm over the chosen pairs (all-dummy = 0)")
     solve_time_ms: float = Field(ge=0.0, allow_inf_nan=False)
-    components: int = Field(0, ge=0, description="connected components of the gate graph with two or more pairs")
+    components: int | None = Field(None, ge=0, description="IHGR: connected components of the gate graph with two or more pairs")
     gated_pairs: int = Field(0, ge=0)
     lp_objective: float | None = Field(None, description="IHGR: optimum of the first LP relaxation (lower bound)")
     gap: float | None = Field(None, description="IHGR: cost − lp_objective (≥ 0; 0 means provably optimal)")

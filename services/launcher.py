@@ -42,6 +42,7 @@ class ServiceSpec:
     name: str
     module: str
     args: list[str] = field(default_factory=list)
+    stats_name: str | None = None  # the service's name in {prefix}/{name}/stats, when it differs
 
 
 # Each service adds itself here; the demo starts those whose module exists.
@@ -50,7 +51,7 @@ SERVICES: list[ServiceSpec] = [
     ServiceSpec("central", "central.service"),
     ServiceSpec("dslam", "services.dslam.service"),
     ServiceSpec("mcl", "services.mcl.service"),
-    ServiceSpec("evaluate", "services.evaluation.service", ["--out", "{out}/report"]),
+    ServiceSpec("evaluate", "services.evaluation.service", ["--out", "{out}/report"], stats_name="eval"),
 ]
 
 
@@ -101,6 +102,32 @@ class Fleet:
                 time.sleep(0.05)
         raise RuntimeError(f"router did not listen on {self.endpoint} within {timeout} s")
 
+    def wait_for_services(self, names: list[str], shutdown: Shutdown, timeout: float = 60.0) -> float:
+        """Wait until every named service publishes its stats (it has subscribed), so robots start to a ready fleet."""
+        from schemas.config import FleetSettings
+        from schemas.transport import session_scope
+
+        seen: set[str] = set()
+        started = time.monotonic()
+        settings = FleetSettings(zenoh_connect=self.endpoint, prefix=self.settings.prefix)
+        with session_scope(settings) as session:
+            subscriber = session.declare_subscriber(
+                f"{self.settings.prefix}/*/stats", lambda sample: seen.add(str(sample.key_expr).split("/")[-2])
+            )
+            try:
+                while not set(names) <= seen and time.monotonic() - started < timeout:
+                    dead = [c.name for c in self.children if c.process.poll() is not None]
+                    if dead:
+                        raise RuntimeError(f"{', '.join(dead)} exited at start; see {self.out / 'logs'}")
+                    if shutdown.wait(0.1):
+                        break
+            finally:
+                subscriber.undeclare()
+        missing = sorted(set(names) - seen)
+        if missing:
+            log.warning("no stats from %s after %.0f s; starting the robots anyway", ", ".join(missing), timeout)
+        return time.monotonic() - started
+
     @staticmethod
     def memory_mb(child: Child) -> float | None:
         try:
@@ -140,6 +167,8 @@ def run_demo(settings: DemoSettings, shutdown: Shutdown, console: Console) -> di
         fleet.wait_for_router()
         monitor = fleet.start("monitor", "monitor", "--plain", "--json-out", str(out / "monitor.json"))
         service_children = [fleet.start(s.name, s.name, *(a.format(out=settings.out) for a in s.args)) for s in services]
+        ready_s = fleet.wait_for_services(["monitor", *(s.stats_name or s.name for s in services)], shutdown)
+        summary["services_ready_s"] = ready_s
         robot_duration = settings.duration * settings.speedup
         robots = [
             fleet.start(f"r{i + 1}", "robot", "--id", f"r{i + 1}", "--world", settings.world, "--seed", str(settings.seed),
@@ -205,8 +234,21 @@ def print_summary(summary: dict, console: Console, settings: DemoSettings) -> No
     memory = summary.get("memory_mb", {})
     console.print("memory (RSS MB): " + ", ".join(f"{k} {v:.0f}" for k, v in memory.items() if v is not None))
     console.print("exit after SIGTERM (s): " + ", ".join(f"{k} {v:.2f}" for k, v in summary.get("stop_s", {}).items()))
-    if "metrics" in summary:
-        console.print_json(data=summary["metrics"].get("summary", summary["metrics"]))
+    results = summary.get("metrics", {}).get("summary", {})
+    if results:
+        rtable = Table(title="results against truth (live evaluator)")
+        for column in ("estimator", "ATE per robot (m)", "ATE aligned (m)", "map RMSE (m)", "landmarks matched/est."):
+            rtable.add_column(column, justify="right")
+        for estimator, r in sorted(results.items()):
+            landmarks = r.get("landmarks") or {}
+            rtable.add_row(
+                estimator,
+                " ".join(f"{k} {v:.3f}" for k, v in (r.get("ate_rmse_m") or {}).items() if v is not None),
+                " ".join(f"{k} {v:.3f}" for k, v in (r.get("ate_aligned_rmse_m") or {}).items() if v is not None),
+                "-" if r.get("map_rmse_m") is None else f"{r['map_rmse_m']:.3f}",
+                f"{landmarks.get('matched', '-')}/{landmarks.get('estimated', '-')}" if landmarks else "-",
+            )
+        console.print(rtable)
     console.print(f"logs in {settings.out}/logs, results in {settings.out}/demo.json")
 
 

@@ -10,8 +10,8 @@ queryable calls it too. Steps (paper 000 §II-III, DESIGN §4):
    1-dof value).
 4. Cost (the paper's eq. 5 with its exponent's sign corrected, as a likelihood
    ratio against the dummy): c_nm = ½d² + ½ln|2πS_n| + ln λ − ln(P_D/(1−P_D)).
-5. Isolated gated pairs are decided at once (c < 0); the rest of the gate graph
-   is split into connected components (IHGR solves one LP per component).
+5. Isolated gated pairs are decided at once (c < 0); for IHGR the rest of the
+   gate graph is split into connected components, one LP each.
 6. Unassigned measurements become NEW when they lie outside every landmark's
    new-feature gate, CLUTTER otherwise.
 """
@@ -113,9 +113,10 @@ def _predict(request: AssociationRequest) -> tuple[np.ndarray, np.ndarray, Calla
         p_pl = np.zeros((n, 3, 2))
         p_ll = None
     p_ll_diag = p_ll[np.arange(n), np.arange(n)] if p_ll is not None else request.landmark_covs
-    cross = np.einsum("iab,ibc,idc->iad", h_pose, p_pl, h_lm)
-    covs = (np.einsum("iab,bc,idc->iad", h_pose, p_pp, h_pose) + cross + np.swapaxes(cross, -1, -2)
-            + h_lm @ p_ll_diag @ np.swapaxes(h_lm, -1, -2) + noise)
+    covs = h_pose @ p_pp @ np.swapaxes(h_pose, -1, -2) + h_lm @ p_ll_diag @ np.swapaxes(h_lm, -1, -2) + noise
+    if request.joint_cov is not None:
+        cross = h_pose @ p_pl @ np.swapaxes(h_lm, -1, -2)
+        covs += cross + np.swapaxes(cross, -1, -2)
 
     def joint() -> np.ndarray:
         blocks = np.einsum("iab,bc,jdc->ijad", h_pose, p_pp, h_pose)
@@ -156,10 +157,8 @@ def split_components(gated: np.ndarray) -> tuple[tuple[np.ndarray, np.ndarray], 
     graph is returned as its measurement and landmark indices (found by
     propagating the smallest measurement index along the edges).
     """
-    row_degree, col_degree = gated.sum(1), gated.sum(0)
-    isolated = gated & (row_degree[:, None] == 1) & (col_degree[None, :] == 1)
-    single_rows, single_cols = np.nonzero(isolated)
-    rows, cols = np.nonzero(gated & ~isolated)
+    single_rows, single_cols, rest = _isolated_pairs(gated)
+    rows, cols = np.nonzero(rest)
     if rows.size == 0:
         return (single_rows, single_cols), []
     row_label = np.arange(gated.shape[0])
@@ -179,31 +178,45 @@ def split_components(gated: np.ndarray) -> tuple[tuple[np.ndarray, np.ndarray], 
     return (single_rows, single_cols), list(zip(np.split(comp_rows, row_cuts), np.split(comp_cols, col_cuts)))
 
 
-def _by_components(problem: Problem, method: str, tie_margin: float) -> tuple[np.ndarray, np.ndarray, dict]:
-    """Solve ``exact`` or ``ihgr`` on the gate graph's components; isolated pairs are taken when c < 0.
+def _isolated_pairs(gated: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(rows, cols) of the isolated gated pairs, and the mask of every other gated pair."""
+    isolated = gated & (gated.sum(1)[:, None] == 1) & (gated.sum(0)[None, :] == 1)
+    rows, cols = np.nonzero(isolated)
+    return rows, cols, gated & ~isolated
 
-    IHGR solves one LP per component. The exact solver gives every component
-    to one ``linear_sum_assignment`` call on their union: the optimum is the
-    same (the problem is separable) and the C solver copes with the block
-    structure faster than a Python loop over components.
+
+def _solve_exact(problem: Problem) -> tuple[np.ndarray, np.ndarray, dict]:
+    """The optimum: isolated pairs taken when c < 0, everything else in one ``linear_sum_assignment``.
+
+    The problem is separable over the gate graph's components, so solving
+    their union at once gives the same optimum, and the C solver copes with the
+    block structure faster than a Python loop over components would.
     """
-    (single_rows, single_cols), components = split_components(problem.gated)
+    single_rows, single_cols, rest = _isolated_pairs(problem.gated)
     take = problem.cost[single_rows, single_cols] < 0.0
     rows, cols = [single_rows[take]], [single_cols[take]]
-    info = {"components": len(components), "lp_objective": float(np.minimum(problem.cost[single_rows, single_cols], 0).sum()), "lp_solves": 0}
-    if method == "exact" and components:
-        union_rows = np.concatenate([r for r, _ in components])
-        union_cols = np.concatenate([c for _, c in components])
+    if rest.any():
+        union_rows, union_cols = np.flatnonzero(rest.any(1)), np.flatnonzero(rest.any(0))
         r, c = solvers.solve_exact(problem.cost[np.ix_(union_rows, union_cols)])
         rows.append(union_rows[r])
         cols.append(union_cols[c])
-    elif method == "ihgr":
-        for comp_rows, comp_cols in components:
-            result = solvers.solve_ihgr(problem.cost[np.ix_(comp_rows, comp_cols)], tie_margin=tie_margin)
-            info["lp_objective"] += result.lp_objective
-            info["lp_solves"] += result.lp_solves
-            rows.append(comp_rows[result.rows])
-            cols.append(comp_cols[result.cols])
+    return np.concatenate(rows).astype(np.int64), np.concatenate(cols).astype(np.int64), {}
+
+
+def _solve_ihgr(problem: Problem, tie_margin: float) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Paper 000 §III: isolated pairs taken when c < 0, then IHGR on each connected component alone."""
+    (single_rows, single_cols), components = split_components(problem.gated)
+    take = problem.cost[single_rows, single_cols] < 0.0
+    rows, cols = [single_rows[take]], [single_cols[take]]
+    lp_objective = float(np.minimum(problem.cost[single_rows, single_cols], 0).sum())
+    lp_solves = 0
+    for comp_rows, comp_cols in components:
+        result = solvers.solve_ihgr(problem.cost[np.ix_(comp_rows, comp_cols)], tie_margin=tie_margin)
+        lp_objective += result.lp_objective
+        lp_solves += result.lp_solves
+        rows.append(comp_rows[result.rows])
+        cols.append(comp_cols[result.cols])
+    info = {"components": len(components), "lp_objective": lp_objective, "lp_solves": lp_solves}
     return np.concatenate(rows).astype(np.int64), np.concatenate(cols).astype(np.int64), info
 
 
@@ -215,8 +228,10 @@ def solve(problem: Problem, method: str, request: AssociationRequest) -> tuple[n
     if method == "greedy":
         rows, cols = solvers.solve_greedy(problem.nis, problem.cost)
         return rows, cols, {}
-    if method in ("exact", "ihgr"):
-        return _by_components(problem, method, request.ihgr_tie_margin)
+    if method == "exact":
+        return _solve_exact(problem)
+    if method == "ihgr":
+        return _solve_ihgr(problem, request.ihgr_tie_margin)
     if method == "jcbb":
         result = solvers.solve_jcbb(
             problem.innovations, problem.gated, problem.nis, problem.joint_blocks, problem.noise,
@@ -249,11 +264,9 @@ def associate(request: AssociationRequest, method: str = "auto") -> AssociationR
     missed = np.ones(n, bool)
     missed[cols] = False
     cost = float(problem.cost[rows, cols].sum())
-    if "lp_objective" in extra and concrete == "ihgr":
+    if concrete == "ihgr":
         extra["gap"] = max(0.0, cost - extra["lp_objective"])
-    else:
-        extra.pop("lp_objective", None)
-    return AssociationReply(
+    return AssociationReply.model_construct(  # built here from checked arrays: no validation pass
         request_id=request.request_id, method=concrete, assignment=assignment, missed=missed, cost=cost,
         solve_time_ms=(time.perf_counter() - started) * 1e3, gated_pairs=int(problem.gated.sum()), **extra,
     )

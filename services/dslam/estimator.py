@@ -43,7 +43,7 @@ from robots.models import RangeBearingSensor, in_field_of_view, motion_model, wr
 from schemas.association import NEW, AssociationReply, AssociationRequest
 from schemas.config import DslamFilterSettings
 from schemas.messages import RobotInfo
-from services.dslam.information_filter import InformationMap, block_rows, inverse_2x2
+from services.dslam.information_filter import InformationMap, inverse_2x2
 from services.dslam.localization import localise, observation_estimate, pose_from_points, predict
 from services.dslam.recast import scan_points
 from services.estimator import MapView, RunOptions
@@ -269,11 +269,7 @@ class DSlam:
         position = robot.sensor.sensor_position(robot.pose)[0]
         means = self.map.means
         near = np.flatnonzero(np.sum((means - position) ** 2, axis=1) <= reach * reach) if self.map.n else np.zeros(0, np.int64)
-        covs = np.zeros((0, 2, 2))
-        if near.size:
-            columns = self.map.covariance_columns(near)
-            sub = columns[block_rows(near)].reshape(near.size, 2, near.size, 2)
-            covs = sub[np.arange(near.size), :, np.arange(near.size), :]
+        covs = self.map.marginals(near)
         keys = [key for key, t in self.tentative.items()
                 if np.all(np.isfinite(t.position)) and np.sum((t.position - position) ** 2) <= reach * reach]
         landmarks = np.vstack([means[near], *[self.tentative[k].position[None] for k in keys]]) if near.size or keys else np.zeros((0, 2))

@@ -266,10 +266,6 @@ class ColumnCache:
         slots = np.array([self.slot[int(i)] for i in landmarks], np.int64)
         return (2 * slots[:, None] + np.arange(2)).ravel()
 
-    def used(self) -> np.ndarray:
-        """Array positions of every cached column, in the order of ``self.slot``."""
-        return self.columns(list(self.slot))
-
     def touch(self, landmarks) -> None:
         for i in landmarks:
             if int(i) in self.slot:
@@ -643,6 +639,15 @@ class InformationMap:
         sub = self.cache.data[np.ix_(block_rows(landmarks), self.cache.columns(landmarks))]
         self.cache.evict(keep=landmarks)
         return 0.5 * (sub + sub.T)
+
+    def marginals(self, landmarks: np.ndarray) -> np.ndarray:
+        """The (k, 2, 2) marginal covariances of ``landmarks`` (their columns solved or cached)."""
+        landmarks = np.asarray(landmarks, np.int64)
+        if landmarks.size == 0:
+            return np.zeros((0, 2, 2))
+        k = landmarks.shape[0]
+        sub = self.joint_covariance(landmarks).reshape(k, 2, k, 2)
+        return sub[np.arange(k), :, np.arange(k), :]
 
     def cached_marginals(self) -> tuple[np.ndarray, np.ndarray]:
         """(landmark indices, (k, 2, 2) marginal covariances) of the cached columns (the landmarks near the robots)."""

@@ -117,7 +117,6 @@ class DslamService(ServiceShell):
                 self._wait_for_info(rid, tag, message)
             else:
                 await self._process(rid, tag, message)
-        self.extra = self._extra()
 
     async def _take_info(self, rid: str, info: RobotInfo) -> None:
         if info.robot_id != rid:
@@ -153,6 +152,7 @@ class DslamService(ServiceShell):
         async with self._lock:
             await asyncio.to_thread(self.core.on_scan, ScanEvent.from_message(message))
         self._publish_pose(rid, message.stamp)
+        self.extra = self._extra()  # here, in the loop, while no worker thread touches the core
 
     async def _ask_info(self, rid: str) -> None:
         """Query a robot's RobotInfo (a robot answers late joiners) and queue what comes back."""
@@ -195,10 +195,10 @@ class DslamService(ServiceShell):
     async def tick(self) -> None:
         async with self._lock:
             message = self.map_message()
+            self.extra = self._extra()
         self._map_pub.put(message)
         self._map_seq += 1
         self.published += 1
-        self.extra = self._extra()
 
     def _extra(self) -> dict[str, float]:
         return {**self.core.stats(), **{k: float(v) for k, v in self.assoc_counts.items()},
