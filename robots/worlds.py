@@ -70,7 +70,7 @@ def _paper000(seed: int) -> World:
     centre = np.array([5.0, 5.0])
     return World(
         name="paper000", landmarks=landmarks, bounds=(0.0, 20.0, 0.0, 20.0),
-        sensor=_sensor(10.0, math.pi, 0.05, 1.0 * DEG), control_std=(0.05, 1.0 * DEG),
+        sensor=_sensor(10.0, math.pi, 0.02, 0.2 * DEG), control_std=(0.05, 1.0 * DEG),
         trajectory="circle", speed=radius * turn, turn_rate=turn,
         start_poses=lambda i: np.array([centre[0], centre[1] - radius, 0.0]),
         description="paper 000: 12 features, 5 clustered, circle of radius 5 m about (5, 5), 1°/step at 10 Hz",

@@ -173,10 +173,9 @@ def solve_ihgr(
         hit_rows, hit_cols = pair_rows[list(indices)], pair_cols[list(indices)]
         active[np.isin(pair_rows, hit_rows) | np.isin(pair_cols, hit_cols)] = False
 
-    x, lp_objective = lp(weights, pair_rows, pair_cols, n_rows, n_cols)
+    values, lp_objective = lp(weights, pair_rows, pair_cols, n_rows, n_cols)
+    values = values.copy()
     solves = 1
-    values = np.zeros(weights.shape[0])
-    values[:] = x
     while True:
         ones = np.flatnonzero(active & (values > 1.0 - tolerance))
         if ones.size:
