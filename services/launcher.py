@@ -49,7 +49,7 @@ class ServiceSpec:
 SERVICES: list[ServiceSpec] = [
     ServiceSpec("assoc", "services.association.service"),
     ServiceSpec("central", "central.service"),
-    ServiceSpec("dslam", "services.dslam.service"),
+    ServiceSpec("dslam", "services.dslam.service", ["--association", "auto"]),
     ServiceSpec("mcl", "services.mcl.service"),
     ServiceSpec("evaluate", "services.evaluation.service", ["--out", "{out}/report"], stats_name="eval"),
 ]

@@ -97,15 +97,16 @@ class DslamService(ServiceShell):
             return
         rid, _ = parsed
         if tag == "alive":
+            if self.alive.get(rid) is False:  # back after leaving: a new run of the robot, from seq 0
+                self.tracker.forget(rid)
+                self.core.robots.pop(rid, None)
+                self._waiting.pop(rid, None)
             self.alive[rid] = True
             if rid not in self.core.robots:
                 self._info_asked[rid] = time.monotonic()
                 asyncio.get_running_loop().create_task(self._ask_info(rid))
         elif tag == "gone":
-            self.alive[rid] = False
-            self.tracker.forget(rid)
-            self.core.robots.pop(rid, None)
-            self._waiting.pop(rid, None)
+            self.alive[rid] = False  # its last messages may still be on the way: they are used
             log.info("robot %s left (liveliness lost); its map contributions stay", rid)
         elif tag == "info":
             await self._take_info(rid, decode(payload, RobotInfo))
@@ -202,7 +203,7 @@ class DslamService(ServiceShell):
 
     def _extra(self) -> dict[str, float]:
         return {**self.core.stats(), **{k: float(v) for k, v in self.assoc_counts.items()},
-                "robots": float(len(self.core.robots)), "missing": float(self.tracker.missing()),
+                "robots_alive": float(sum(self.alive.values())), "missing": float(self.tracker.missing()),
                 "waiting_for_info": float(sum(len(w) for w in self._waiting.values()))}
 
     def on_stop(self) -> None:
