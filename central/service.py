@@ -170,7 +170,7 @@ class CentralService(ServiceShell):
             return
         if rid not in self.slam.parked or not message.localized:
             return
-        if self.slam.place_robot(rid, message.best_pose, message.best_cov):
+        if self.slam.place_robot(rid, message.best_pose, message.best_cov, stamp=message.stamp):
             log.info("robot %s placed by MCL at %s", rid, np.round(message.best_pose, 3).tolist())
             self._requeue(rid, after=message.stamp)
         else:

@@ -288,6 +288,10 @@ class RunSettings(BaseSettings):
     )
     duration: float | None = Field(None, gt=0, description="seconds of data from the start (default: all)")
     variant: str | None = Field(None, description="estimator variant")
+    estimator_settings: str | None = Field(
+        None, description="the estimator's own settings, comma-separated NAME=VALUE (e.g. max_obs_range=40 for "
+        "fastslam, confirm_hits=3 for dslam); unknown names are refused", json_schema_extra={"cli": "--set"},
+    )
     sim_robots: int = Field(3, ge=1, le=50, description="robots simulated for sim:WORLD when --robots is not given")
     sim_rate: float = Field(10.0, gt=0, description="scan rate of simulated robots (Hz)")
     sample_period_s: float = Field(0.2, gt=0, description="estimated poses are sampled this often in data time (s)")

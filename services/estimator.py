@@ -67,6 +67,14 @@ class Estimator(Protocol):
         """The current map (empty arrays for a localisation-only estimator)."""
 
 
+def refuse_unknown_settings(estimator: str, given: dict, known) -> None:
+    """ValueError naming the settings in ``given`` that estimator ``estimator`` does not have."""
+    unknown = sorted(set(given) - set(known))
+    if unknown:
+        choices = ", ".join(sorted(known)) or "none"
+        raise ValueError(f"unknown {estimator} settings: {', '.join(unknown)} (it has: {choices})")
+
+
 def make_estimator(options: RunOptions, infos: list[RobotInfo]) -> Estimator:
     """Build the estimator ``options.estimator`` for the robots ``infos``."""
     try:

@@ -136,12 +136,28 @@ def _meta_counts(meta: dict) -> dict:
     return {k: v for k, v in meta.items() if not isinstance(v, np.ndarray)}
 
 
+def parse_estimator_settings(text: str | None) -> dict:
+    """``--set`` "a=1,b=x,c=true" -> {"a": 1, "b": "x", "c": True} (values read as JSON where they parse)."""
+    values: dict = {}
+    for item in filter(None, (part.strip() for part in (text or "").split(","))):
+        name, sep, raw = item.partition("=")
+        if not sep or not name.strip():
+            raise ValueError(f"--set expects NAME=VALUE pairs, got {item!r}")
+        try:
+            values[name.strip()] = json.loads(raw)
+        except json.JSONDecodeError:
+            values[name.strip()] = raw.strip()
+    return values
+
+
 def estimator_extra(settings: RunSettings, dataset: Dataset) -> dict:
-    """What an estimator needs beyond the events: MCL localises against the data set's true map, and
-    measures its convergence time against the truth; it keeps its own sample size unless --particles is given."""
+    """What an estimator needs beyond the events: the ``--set`` overrides; MCL also localises against the data
+    set's true map, measures its convergence time against the truth, and keeps its own sample size unless
+    --particles is given."""
+    overrides = parse_estimator_settings(settings.estimator_settings)
     if settings.estimator != "mcl":
-        return {}
-    extra: dict = {"map": dataset.landmarks,
+        return overrides
+    extra: dict = {"map": dataset.landmarks, "mcl": overrides,
                    "truth": {rid: (log.truth_stamp, log.truth_pose) for rid, log in dataset.robots.items()}}
     if "particles" in settings.model_fields_set:
         extra["particles"] = settings.particles

@@ -5,7 +5,6 @@ Nothing here sleeps and hopes: every wait is on a condition with a deadline.
 
 from __future__ import annotations
 
-import os
 import signal
 import socket
 import subprocess
@@ -22,12 +21,6 @@ from schemas.config import FleetSettings
 from schemas.transport import open_session
 
 REPO = Path(__file__).resolve().parents[1]
-
-
-def data_root() -> Path | None:
-    """The real data sets (FLEETSLAM_DATA, default ../shared/data), or None when absent."""
-    root = Path(os.environ.get("FLEETSLAM_DATA", REPO.parent / "shared" / "data"))
-    return root if root.is_dir() else None
 
 
 def free_port() -> int:

@@ -3,7 +3,7 @@
 Each particle holds the pose of every robot that has joined and one shared
 landmark map with an EKF per landmark (paper 001, eq. 6-8). Robots' streams
 arrive in time order; a robot's controls are buffered and integrated once per
-scan (:mod:`central.fastslam.motion`), then the scan updates every particle:
+scan (:func:`robots.models.integrate_controls`), then the scan updates every particle:
 
 - ``known``: landmark ids given; every particle updates the same landmarks.
 - ``nn``: per particle, the maximum-likelihood landmark inside the χ² gate
@@ -53,9 +53,9 @@ from scipy.stats import chi2
 from central.fastslam.config import FastSlamConfig
 from central.fastslam.gaussian import LOG_2PI, inv2, quad2, sandwich, sandwich2, sqrt_psd, systematic_resample, valid_cov2
 from central.fastslam.landmarks import LandmarkMap
-from central.fastslam.motion import compose_jacobian, integrate_controls
 from robots.dataset import OdomEvent, ScanEvent
-from robots.models import MotionModel, RangeBearingSensor, motion_model, se2_compose, wrap_angle
+from robots.models import (MotionModel, RangeBearingSensor, compose_jacobian, integrate_controls, motion_model,
+                           se2_compose, wrap_angle)
 from schemas.messages import RobotInfo
 from services.estimator import MapView
 
@@ -175,16 +175,21 @@ class FastSlam:
         self._take_in(info, np.asarray(info.start_pose, float), cov)
         return True
 
-    def place_robot(self, robot_id: str, pose, cov) -> bool:
-        """Take a parked robot in at ``pose`` (3,), spreading the particles by ``cov`` (3, 3) (the localisation hook)."""
+    def place_robot(self, robot_id: str, pose, cov, stamp: float | None = None) -> bool:
+        """Take a parked robot in at ``pose`` (3,), spreading the particles by ``cov`` (3, 3) (the localisation hook).
+
+        ``stamp`` is the time the pose holds at: later controls move the robot from there, and its pose is
+        reported at that time until they do (without it, from its next control's start)."""
         pose, cov = np.asarray(pose, float), np.asarray(cov, float)
         if robot_id not in self.parked:
             self.rejected["place_unknown_robot"] += 1
             return False
-        if pose.shape != (3,) or not np.all(np.isfinite(pose)) or not _valid_cov3(cov):
+        if (pose.shape != (3,) or not np.all(np.isfinite(pose)) or not _valid_cov3(cov)
+                or (stamp is not None and not math.isfinite(stamp))):
             self.rejected["bad_placement"] += 1
             return False
         self._take_in(self.parked.pop(robot_id), pose, cov)
+        self.robots[robot_id].pose_time = None if stamp is None else float(stamp)
         return True
 
     def unplace(self, robot_id: str) -> RobotInfo | None:

@@ -27,7 +27,7 @@ from robots.models import RangeBearingSensor, motion_model, wrap_angle
 from schemas.association import CLUTTER, NEW, AssociationRequest
 from schemas.messages import RobotInfo
 from services.association.core import associate
-from services.estimator import MapView, RunOptions
+from services.estimator import MapView, RunOptions, refuse_unknown_settings
 from services.evaluation.metrics import association_accuracy
 
 log = logging.getLogger(__name__)
@@ -40,9 +40,9 @@ ASSOCIATIONS = ("known", "nn", "greedy", "ihgr", "exact", "jcbb", "auto")
 
 
 class EkfOptions(BaseModel):
-    """Settings of the EKF-SLAM baseline, read from ``RunOptions.extra`` (unknown keys are ignored)."""
+    """Settings of the EKF-SLAM baseline, read from ``RunOptions.extra`` (unknown keys are refused)."""
 
-    model_config = ConfigDict(extra="ignore")
+    model_config = ConfigDict(extra="forbid")
     gate_probability: float = Field(0.999, gt=0, lt=1, description="chi-square gate of the association")
     new_feature_gate_probability: float = Field(0.999999, gt=0, lt=1, description="start a landmark only outside this gate of all")
     new_feature_density: float = Field(1e-3, gt=0, description="new landmarks per m·rad of measurement space")
@@ -270,6 +270,7 @@ def make_estimator(options: RunOptions, infos: list[RobotInfo]) -> EkfSlam:
     if len(infos) > 1:
         log.warning("EKF-SLAM is single-robot: following %s, ignoring %s", infos[0].robot_id,
                     ", ".join(i.robot_id for i in infos[1:]))
+    refuse_unknown_settings("ekf", options.extra, EkfOptions.model_fields)
     estimator = EkfSlam(options, EkfOptions.model_validate(options.extra or {}))
     estimator.add_robot(infos[0])
     return estimator

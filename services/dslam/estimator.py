@@ -46,7 +46,7 @@ from schemas.messages import RobotInfo
 from services.dslam.information_filter import InformationMap, inverse_2x2
 from services.dslam.localization import localise, observation_estimate, pose_from_points, predict
 from services.dslam.recast import scan_points
-from services.estimator import MapView, RunOptions
+from services.estimator import MapView, RunOptions, refuse_unknown_settings
 
 MAPPED, TENTATIVE, FRESH, CLUTTER = 0, 1, 2, 3
 LOCALISATION_GATE = float(chi2.ppf(1 - 1e-6, 3))  # prediction and observation estimate cannot both be right
@@ -491,6 +491,7 @@ class DSlam:
 
 def make_estimator(options: RunOptions, infos: list[RobotInfo]) -> DSlam:
     """The "dslam" estimator of :data:`services.estimator.ESTIMATORS` (settings from ``options.extra``)."""
+    refuse_unknown_settings("dslam", options.extra, set(DslamFilterSettings.model_fields) - {"association"})
     settings = DslamFilterSettings(association=options.association, **options.extra)
     estimator = DSlam(settings)
     for info in infos:

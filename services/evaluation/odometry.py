@@ -5,7 +5,7 @@ model from its start pose (the origin when unknown); the covariance grows as
 the EKF prediction P ← F P Fᵀ + G Q Gᵀ step after step would make it. Controls
 are buffered and applied in one vectorised batch when a pose is needed (a scan,
 a query): x ← x ⊕ Δ̄, P ← J_x P J_xᵀ + J_Δ Σ_Δ J_Δᵀ with (Δ̄, Σ_Δ) from
-:func:`central.fastslam.motion.integrate_controls`, which is exactly the
+:func:`robots.models.integrate_controls`, which is exactly the
 step-by-step result. Scans never correct anything.
 When scans carry true landmark ids (and the association is ``known``), the
 landmarks are placed from the dead-reckoned poses, averaged per id: the map a
@@ -17,10 +17,9 @@ from __future__ import annotations
 import numpy as np
 
 from robots.dataset import OdomEvent, ScanEvent
-from central.fastslam.motion import compose_jacobian, integrate_controls
-from robots.models import RangeBearingSensor, motion_model, se2_compose
+from robots.models import RangeBearingSensor, compose_jacobian, integrate_controls, motion_model, se2_compose
 from schemas.messages import RobotInfo
-from services.estimator import MapView, RunOptions
+from services.estimator import MapView, RunOptions, refuse_unknown_settings
 
 
 class DeadReckoning:
@@ -101,6 +100,7 @@ class DeadReckoning:
 
 def make_estimator(options: RunOptions, infos: list[RobotInfo]) -> DeadReckoning:
     """The dead-reckoning baseline; it maps landmarks by their true ids when the association is ``known``."""
+    refuse_unknown_settings("odometry", options.extra, ())
     estimator = DeadReckoning(map_known_ids=options.association == "known")
     for info in infos:
         estimator.add_robot(info)

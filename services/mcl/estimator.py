@@ -20,7 +20,7 @@ from robots.dataset import OdomEvent, ScanEvent
 from robots.models import wrap_angle
 from schemas.config import MclFilterSettings
 from schemas.messages import RobotInfo
-from services.estimator import MapView, RunOptions
+from services.estimator import MapView, RunOptions, refuse_unknown_settings
 from services.mcl.core import MonteCarloLocalizer
 
 UNKNOWN_COV = np.diag([1e6, 1e6, 1e2])
@@ -50,6 +50,7 @@ class MclEstimator:
         overrides = {"seed": options.seed, **({"variant": options.variant} if options.variant else {})}
         if "particles" in extra:
             overrides["particles"] = int(extra["particles"])
+        refuse_unknown_settings("mcl", extra.get("mcl", {}), set(MclFilterSettings.model_fields) - {"seed", "variant"})
         overrides.update(extra.get("mcl", {}))
         self.settings = MclFilterSettings(**overrides)
         self.truth = {rid: (np.asarray(s, float), np.asarray(p, float)) for rid, (s, p) in extra.get("truth", {}).items()}

@@ -22,10 +22,11 @@ import sys
 import time
 from pathlib import Path
 
+from robots.loaders import data_root
 from services.cli import COMMANDS
 from services.healthcheck import check, endpoint_ports
 from services.launcher import module_exists as importable
-from tests.helpers import REPO, data_root, wait_until
+from tests.helpers import REPO, wait_until
 from tests.integration.netns import NetnsLab
 
 FETCH = REPO / "deploy" / "fetch_compose.py"

@@ -11,10 +11,9 @@ from scipy.stats import chi2
 
 from central.fastslam import FastSlam, FastSlamConfig, make_estimator
 from central.fastslam.landmarks import LandmarkMap
-from central.fastslam.motion import integrate_controls
 from central.paper001 import two_beacons
 from robots.dataset import OdomEvent, ScanEvent
-from robots.models import AckermannModel, UnicycleModel, se2_accumulate, se2_compose, wrap_angle
+from robots.models import AckermannModel, UnicycleModel, integrate_controls, se2_accumulate, se2_compose, wrap_angle
 from robots.simulator import simulate
 from robots.worlds import _sensor, make_world
 from services.estimator import RunOptions
@@ -210,11 +209,28 @@ def test_robot_with_unknown_start_waits_until_placed():
     assert slam.rejected["robot_not_placed"] > 0 and slam.map.counts().max() == 0
     truth = data.robots["r2"].truth_pose[-1]
     assert not slam.place_robot("r2", truth, np.full((3, 3), np.nan))
-    assert slam.place_robot("r2", truth, np.diag([0.04, 0.04, 0.01]))
+    assert not slam.place_robot("r2", truth, np.eye(3), stamp=float("nan"))
+    assert slam.place_robot("r2", truth, np.diag([0.04, 0.04, 0.01]), stamp=float(data.robots["r2"].truth_stamp[-1]))
+    assert slam.robots["r2"].pose_time == data.robots["r2"].truth_stamp[-1]
     pose, cov = slam.poses()["r2"]
     np.testing.assert_allclose(pose[:2], truth[:2], atol=0.05)
     np.testing.assert_allclose(np.diag(cov), [0.04, 0.04, 0.01], rtol=0.3)
     assert not slam.place_robot("r2", truth, np.eye(3))
+
+
+def test_a_robot_placed_mid_run_moves_on_from_the_placement_time():
+    """A pose fix at time t and the controls after it: the robot ends where the truth does."""
+    data = simulate("arena", robots=1, seed=2, duration=12.0, unknown_start=[True])
+    log = data.robots["r1"]
+    slam = FastSlam(FastSlamConfig(particles=50, association="known", seed=0), [log.info])
+    fix = int(np.searchsorted(log.truth_stamp, log.truth_stamp[0] + 4.0))
+    slam.place_robot("r1", log.truth_pose[fix], np.diag([1e-4, 1e-4, 1e-5]), stamp=float(log.truth_stamp[fix]))
+    for event in log.events(with_truth=False):
+        if event.stamp > log.truth_stamp[fix]:
+            (slam.on_odometry if isinstance(event, OdomEvent) else slam.on_scan)(event)
+    pose, _ = slam.poses()["r1"]
+    assert slam.robots["r1"].pose_time == pytest.approx(log.end_stamp)
+    assert np.hypot(*(pose[:2] - log.truth_pose[-1, :2])) < 0.15
 
 
 def test_a_robot_that_has_not_moved_can_be_parked_again():

@@ -152,3 +152,27 @@ def test_car_park_dead_reckoning_scores_against_gps_at_the_antenna(tmp_path):
     assert output["gps_rmse_m"] is not None and output["gps_rmse_m"] < 1.0
     assert output["landmarks"]["missed"] == 15 and output["heading_rmse_rad"] == {}
     assert math.isfinite(output["ate_rmse_m"]["r1"])
+
+
+def test_set_parses_estimator_settings_and_reaches_the_estimator(tmp_path):
+    from services.offline import parse_estimator_settings
+
+    assert parse_estimator_settings("max_obs_range=40, proposal=fastslam2,resample=true") == {
+        "max_obs_range": 40, "proposal": "fastslam2", "resample": True}
+    assert parse_estimator_settings(None) == {}
+    with pytest.raises(ValueError, match="NAME=VALUE"):
+        parse_estimator_settings("max_obs_range")
+    out = tmp_path / "out.json"
+    assert cli_main(["run", "--dataset", "sim:arena", "--estimator", "fastslam", "--robots", "r1", "--duration", "5",
+                     "--particles", "10", "--set", "max_obs_range=2.0", "--json", str(out), "--no-progress"]) == 0
+    near = json.loads(out.read_text())
+    assert near["settings"]["estimator_settings"] == "max_obs_range=2.0"
+    assert cli_main(["run", "--dataset", "sim:arena", "--estimator", "fastslam", "--robots", "r1", "--duration", "5",
+                     "--particles", "10", "--json", str(out), "--no-progress"]) == 0
+    assert near["landmarks"]["estimated"] < json.loads(out.read_text())["landmarks"]["estimated"]
+
+
+@pytest.mark.parametrize("estimator", ["odometry", "ekf", "fastslam", "dslam", "mcl"])
+def test_unknown_estimator_settings_are_refused(estimator, tmp_path):
+    assert cli_main(["run", "--dataset", "sim:arena", "--estimator", estimator, "--robots", "r1", "--duration", "1",
+                     "--set", "no_such_setting=1", "--no-progress"]) == 2
