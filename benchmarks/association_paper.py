@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import math
 import multiprocessing
 import sys
@@ -41,6 +40,7 @@ from robots.worlds import World, make_world  # noqa: E402
 from services.association.ekf_slam import SUCCESS_CRITERION  # noqa: E402
 from services.estimator import RunOptions  # noqa: E402
 from services.offline import run_estimator  # noqa: E402
+from report import emit
 
 PAPER = {"ihgr": {"successes": 195, "trials": 200}, "nn": {"successes": 162, "trials": 200}}
 
@@ -137,11 +137,7 @@ def main() -> None:
         "failed_trials": {m: [t["trial"] for t in trials if not t["methods"][m]["success"]] for m in methods},
         "wall_s": time.perf_counter() - started,
     }
-    text = json.dumps(result, indent=2)
-    print(text)
-    if args.out:
-        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.out).write_text(text + "\n")
+    emit(result, args.out)
 
 
 if __name__ == "__main__":

@@ -16,7 +16,6 @@ method and for M = N = 50 with every method.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import os
 import socket
@@ -38,6 +37,7 @@ from schemas.keys import Keys  # noqa: E402
 from schemas.transport import open_session  # noqa: E402
 from services.association.client import AssociationClient, query_associate  # noqa: E402
 from services.association.core import associate  # noqa: E402
+from report import emit
 
 R = np.diag([0.03**2, math.radians(0.5) ** 2])
 
@@ -194,11 +194,7 @@ def main() -> None:
     }
     if not args.no_router:
         result["round_trip"] = through_router(sizes, methods, args.queries, args.method_queries, args.instances, args.seed)
-    text = json.dumps(result, indent=2)
-    print(text)
-    if args.out:
-        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.out).write_text(text + "\n")
+    emit(result, args.out)
 
 
 if __name__ == "__main__":

@@ -26,7 +26,6 @@ from pathlib import Path
 
 import zenoh
 
-from central.experiments import emit
 from robots.dataset import OdomEvent, ScanEvent
 from robots.simulator import simulate
 from schemas.codec import decode, encode
@@ -34,6 +33,7 @@ from schemas.config import FleetSettings
 from schemas.keys import Keys
 from schemas.messages import ServiceStats
 from schemas.transport import StreamPublisher, open_session
+from report import emit
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -20,11 +20,12 @@ import argparse
 
 import numpy as np
 
-from central.experiments import aligned_map_error, emit, run_and_score
+from central.experiments import aligned_map_error, run_and_score
 from central.paper001 import ANCHORS, four_beacons, two_beacons, two_robots
 from robots.simulator import simulate
 from services.estimator import RunOptions
 from services.evaluation.metrics import map_error
+from report import emit
 
 LAP_S = 2 * np.pi / 0.1  # one lap of the 5 m circle at 0.1 rad/s
 METHODS = {"nn-paper": ("nn", {"exclusive": False}), "nn": ("nn", {}), "mht": ("mht", {}),

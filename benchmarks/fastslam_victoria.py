@@ -14,9 +14,10 @@ from __future__ import annotations
 import argparse
 import json
 
-from central.experiments import emit, run_and_score
+from central.experiments import run_and_score
 from robots.loaders import load_dataset
 from services.estimator import RunOptions
+from report import emit
 
 DEFAULT_CONFIGS = 'default={};range40={"max_obs_range": 40}'
 

@@ -10,7 +10,6 @@ messages per second through the router, messages lost, wall time.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import signal
 import socket
@@ -29,6 +28,7 @@ from schemas.codec import decode  # noqa: E402
 from schemas.config import FleetSettings  # noqa: E402
 from schemas.messages import GroundTruth, Odometry, Scan  # noqa: E402
 from schemas.transport import open_session  # noqa: E402
+from report import emit
 
 MODELS = {"odom": Odometry, "scan": Scan, "truth": GroundTruth}
 
@@ -110,10 +110,7 @@ def main() -> None:
         "expected": total_expected, "received": received, "lost": total_expected - received, "in_order": in_order,
         "messages_per_s": received / span if span > 0 else None, "span_s": span,
     }
-    text = json.dumps(result, indent=2)
-    print(text)
-    if args.out:
-        Path(args.out).write_text(text)
+    emit(result, args.out)
 
 
 if __name__ == "__main__":

@@ -19,7 +19,8 @@ from robots.simulator import simulate
 from robots.worlds import make_world
 from schemas.config import MclFilterSettings
 from services.mcl.core import MonteCarloLocalizer
-from services.mcl.scenarios import emit_json, kidnapped, random_starts, trace_run
+from services.mcl.scenarios import kidnapped, random_starts, trace_run
+from report import emit
 
 VARIANTS = ("kld", "kld_srl", "cluster_kld_srl")
 
@@ -81,7 +82,7 @@ def main() -> None:
         fig.tight_layout()
         fig.savefig(args.png, dpi=110)
         report["png"] = args.png
-    emit_json(report, args.out)
+    emit(report, args.out)
 
 
 if __name__ == "__main__":

@@ -22,7 +22,8 @@ from robots.simulator import simulate
 from robots.worlds import make_world
 from schemas.config import MclFilterSettings
 from services.mcl.core import MonteCarloLocalizer
-from services.mcl.scenarios import emit_json, random_starts, trace_run
+from services.mcl.scenarios import random_starts, trace_run
+from report import emit
 
 
 def trial(world_name: str, variant: str, seed: int, duration: float, particles: int) -> dict:
@@ -61,7 +62,7 @@ def main() -> None:
             }
     report = {"benchmark": "mcl_global", "duration_s": args.duration, "particles": args.particles,
               "target": "success >= 95 % over random starts in the office layout", "summary": summary, "runs": runs}
-    emit_json(report, args.out)
+    emit(report, args.out)
 
 
 if __name__ == "__main__":

@@ -19,7 +19,8 @@ from robots.simulator import simulate
 from robots.worlds import make_world
 from schemas.config import MclFilterSettings
 from services.mcl.core import MonteCarloLocalizer
-from services.mcl.scenarios import emit_json, kidnapped, random_starts, trace_run
+from services.mcl.scenarios import kidnapped, random_starts, trace_run
+from report import emit
 
 
 def trial(world: str, variant: str, seed: int, at: float, duration: float, particles: int) -> dict:
@@ -67,7 +68,7 @@ def main() -> None:
     report = {"benchmark": "mcl_kidnap", "world": args.world, "kidnap_at_s": args.at, "trials": args.trials,
               "particles": args.particles, "target": "recovery within 2 s of robot time", "summary": summary,
               "runs": runs}
-    emit_json(report, args.out)
+    emit(report, args.out)
 
 
 if __name__ == "__main__":

@@ -27,7 +27,8 @@ from robots.simulator import simulate
 from robots.worlds import make_world
 from schemas.config import MclFilterSettings
 from services.mcl.core import VARIANTS, MonteCarloLocalizer
-from services.mcl.scenarios import Trace, emit_json, trace_run
+from services.mcl.scenarios import Trace, trace_run
+from report import emit
 
 
 def consistent_twins(world, truth: np.ndarray) -> np.ndarray:
@@ -167,7 +168,7 @@ def main() -> None:
     if args.png:
         plot(args.png, world, first)
         report["png"] = args.png
-    emit_json(report, args.out)
+    emit(report, args.out)
 
 
 if __name__ == "__main__":

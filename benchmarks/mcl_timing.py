@@ -26,7 +26,7 @@ from robots.worlds import make_world
 from schemas.config import MclFilterSettings
 from services.mcl.core import MonteCarloLocalizer
 from services.mcl.likelihood import scan_log_likelihood
-from services.mcl.scenarios import emit_json
+from report import emit
 
 
 def landmark_world(count: int, seed: int):
@@ -91,7 +91,7 @@ def main() -> None:
     results.append(run(dataset, "cluster_kld_srl", 1000, False, args.seed))
     report = {"benchmark": "mcl_timing", "landmarks": args.landmarks, "world": world.name, "duration_s": args.duration,
               "target": "update < 5 ms for 1000 particles with 200 landmarks", "runs": results}
-    emit_json(report, args.out)
+    emit(report, args.out)
 
 
 if __name__ == "__main__":

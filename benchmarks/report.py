@@ -5,11 +5,25 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
+
+from services.evaluation.report import clean_json
+
+
+def summary(value):
+    """``value`` made JSON-safe for a report: numpy scalars to numbers, NaN and infinity to null, and arrays held
+    in a dict left out (they are a run's data, kept for its caller, not results)."""
+    if isinstance(value, dict):
+        return {str(k): summary(v) for k, v in value.items() if not isinstance(v, np.ndarray)}
+    if isinstance(value, (list, tuple)):
+        return [summary(v) for v in value]
+    return clean_json(value)
+
 
 def emit(result: dict, out: str | None) -> None:
     """Print ``result`` as indented JSON; also write it to ``out`` (folders made) when given."""
-    text = json.dumps(result, indent=2)
+    text = json.dumps(summary(result), indent=2)
     print(text)
     if out:
         Path(out).parent.mkdir(parents=True, exist_ok=True)
-        Path(out).write_text(text)
+        Path(out).write_text(text + "\n")

@@ -9,7 +9,6 @@ has no heading), and the map against the true landmarks.
 
 from __future__ import annotations
 
-import json
 import time
 
 import numpy as np
@@ -71,24 +70,6 @@ def aligned_map_error(means: np.ndarray, truth: np.ndarray, anchors: np.ndarray 
     return map_error(aligned, truth, cutoff), aligned
 
 
-def emit(report: dict, out: str | None) -> None:
-    """Print a benchmark's JSON report (and write it to ``out``)."""
-    text = json.dumps(_clean(report), indent=2)
-    print(text)
-    if out:
-        with open(out, "w") as handle:
-            handle.write(text + "\n")
-
-
 def _rounded(values: dict) -> dict:
     return {k: None if v is None else round(float(v), 3) for k, v in values.items()}
 
-
-def _clean(value):
-    if isinstance(value, dict):
-        return {k: _clean(v) for k, v in value.items() if not isinstance(v, np.ndarray)}
-    if isinstance(value, (list, tuple)):
-        return [_clean(v) for v in value]
-    if isinstance(value, (np.floating, np.integer)):
-        return value.item()
-    return value

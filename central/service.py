@@ -30,7 +30,6 @@ the queryable ``{prefix}/central/state`` answers with a fresh one.
 from __future__ import annotations
 
 import argparse
-import asyncio
 import heapq
 import itertools
 import json
@@ -47,7 +46,6 @@ from schemas.codec import decode, encode
 from schemas.config import CentralSettings, add_settings_arguments, settings_from_args
 from schemas.messages import Estimate, MclPose, Odometry, RobotEstimate, RobotInfo, Scan
 from schemas.streams import StreamTracker, Verdict
-from schemas.transport import ConnectError
 from services.runtime import ServiceShell
 
 log = logging.getLogger("fleetslam.central")
@@ -313,10 +311,5 @@ def main(args: argparse.Namespace) -> int:
     except (ValueError, json.JSONDecodeError) as exc:
         log.error("bad settings: %s", exc)
         return 2
-    try:
-        asyncio.run(service.run(settings.duration))
-    except ConnectError as exc:
-        log.error("%s", exc)
-        return 2
-    return 0
+    return service.serve()
 

@@ -9,7 +9,6 @@ and the other keys seen. A malformed payload is counted, never fatal.
 from __future__ import annotations
 
 import argparse
-import asyncio
 import json
 import logging
 import time
@@ -25,7 +24,6 @@ from schemas.codec import decode
 from schemas.config import MonitorSettings, add_settings_arguments, settings_from_args
 from schemas.messages import GroundTruth, Odometry, RobotInfo, Scan, ServiceStats
 from schemas.streams import StreamTracker, Verdict
-from schemas.transport import ConnectError
 from services.runtime import ServiceShell
 
 log = logging.getLogger("fleetslam.monitor")
@@ -173,10 +171,4 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    settings = settings_from_args(MonitorSettings, args)
-    try:
-        asyncio.run(Monitor(settings).run(duration=settings.duration))
-    except ConnectError as exc:
-        log.error("%s", exc)
-        return 2
-    return 0
+    return Monitor(settings_from_args(MonitorSettings, args)).serve()

@@ -31,7 +31,7 @@ from schemas.codec import DecodeError
 from schemas.config import FleetSettings
 from schemas.keys import Keys
 from schemas.messages import ServiceStats
-from schemas.transport import StreamPublisher, open_session
+from schemas.transport import ConnectError, StreamPublisher, open_session
 
 log = logging.getLogger(__name__)
 
@@ -185,6 +185,15 @@ class ServiceShell:
         for sig in (signal.SIGINT, signal.SIGTERM):
             previous[sig] = signal.signal(sig, lambda *_: self.stop())
         return previous
+
+    def serve(self) -> int:
+        """Run until a signal (or the settings' ``duration``): the exit code, 2 when the router cannot be reached."""
+        try:
+            asyncio.run(self.run(getattr(self.settings, "duration", None)))
+        except ConnectError as exc:
+            log.error("%s", exc)
+            return 2
+        return 0
 
     async def run(self, duration: float | None = None) -> None:
         """Open the session, set up, consume until a signal (or ``duration``), close."""

@@ -21,7 +21,6 @@ over the live instances round robin, which is how the load is shared.
 from __future__ import annotations
 
 import argparse
-import asyncio
 import logging
 import os
 import time
@@ -32,7 +31,6 @@ import zenoh
 from schemas.association import AssociationRequest
 from schemas.codec import DecodeError, decode, encode
 from schemas.config import AssocSettings, add_settings_arguments, settings_from_args
-from schemas.transport import ConnectError
 from services.association.client import instance_key, instances_key
 from services.association.core import AssociationError, associate
 from services.runtime import ServiceShell
@@ -110,10 +108,4 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    settings = settings_from_args(AssocSettings, args)
-    try:
-        asyncio.run(AssocService(settings).run(duration=settings.duration))
-    except ConnectError as exc:
-        log.error("%s", exc)
-        return 2
-    return 0
+    return AssocService(settings_from_args(AssocSettings, args)).serve()

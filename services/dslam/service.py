@@ -30,7 +30,7 @@ from schemas.codec import DecodeError, decode
 from schemas.config import DslamSettings, add_settings_arguments, settings_from_args
 from schemas.messages import MapEstimate, Odometry, PoseEstimate, RobotInfo, Scan
 from schemas.streams import StreamTracker, Verdict
-from schemas.transport import ConnectError, StreamPublisher
+from schemas.transport import StreamPublisher
 from services.association.client import AssociationClient, AssociationRefused
 from services.dslam.estimator import DSlam, in_process_associate
 from services.runtime import ServiceShell
@@ -219,10 +219,4 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    settings = settings_from_args(DslamSettings, args)
-    try:
-        asyncio.run(DslamService(settings).run())
-    except ConnectError as exc:
-        log.error("%s", exc)
-        return 2
-    return 0
+    return DslamService(settings_from_args(DslamSettings, args)).serve()

@@ -14,7 +14,6 @@ plotting modules (scipy, matplotlib) are imported on first use, so that every
 from __future__ import annotations
 
 import argparse
-import asyncio
 import logging
 from dataclasses import dataclass, field
 
@@ -25,7 +24,6 @@ from schemas.codec import decode
 from schemas.config import EvaluateSettings, add_settings_arguments, settings_from_args
 from schemas.messages import Estimate, GroundTruth, MapEstimate, MclPose, PoseEstimate, WorldTruth
 from schemas.streams import StreamTracker, Verdict
-from schemas.transport import ConnectError
 from services.runtime import ServiceShell
 
 log = logging.getLogger("fleetslam.evaluate")
@@ -200,10 +198,4 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    settings = settings_from_args(EvaluateSettings, args)
-    try:
-        asyncio.run(Evaluator(settings).run(duration=settings.duration))
-    except ConnectError as exc:
-        log.error("%s", exc)
-        return 2
-    return 0
+    return Evaluator(settings_from_args(EvaluateSettings, args)).serve()

@@ -5,14 +5,12 @@ over a robot's events and records, per scan, the particle count, the
 significant hypotheses, whether it is localised and the error of its best
 pose against the truth. :func:`kidnapped` splices two robots of one
 simulation: the events of the first until ``at``, then those of the second,
-as if the robot had been carried to where the second one is. :func:`emit_json`
-prints (and writes) a benchmark's report.
+as if the robot had been carried to where the second one is.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import json
 from dataclasses import dataclass, field
 from typing import Iterable, Iterator
 
@@ -82,15 +80,6 @@ def kidnapped(dataset: Dataset, first: str, second: str, at: float) -> tuple[Ite
         return (one if stamp < at else two).truth_at(np.array([stamp]))[0]
 
     return events(), truth
-
-
-def emit_json(report: dict, out: str | None) -> None:
-    """Print a benchmark's JSON report, and write it to ``out`` too when given."""
-    text = json.dumps(report, indent=2)
-    print(text)
-    if out:
-        with open(out, "w") as handle:
-            handle.write(text + "\n")
 
 
 def trace_run(mcl: MonteCarloLocalizer, events: Iterable, truth) -> Trace:

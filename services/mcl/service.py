@@ -24,7 +24,6 @@ message's robot id, a map of the wrong shape — is counted and dropped.
 from __future__ import annotations
 
 import argparse
-import asyncio
 import logging
 import time
 from dataclasses import dataclass
@@ -38,7 +37,7 @@ from schemas.config import MclSettings, add_settings_arguments, settings_from_ar
 from schemas.mcl import LocalizeReply, LocalizeRequest
 from schemas.messages import Estimate, MapEstimate, MclPose, Odometry, PoseHypothesis, RobotInfo, Scan, WorldTruth
 from schemas.streams import Verdict, StreamTracker
-from schemas.transport import ConnectError, StreamPublisher
+from schemas.transport import StreamPublisher
 from services.mcl.core import MonteCarloLocalizer
 from services.runtime import ServiceShell
 
@@ -295,9 +294,4 @@ def main(args: argparse.Namespace) -> int:
     except (OSError, ValueError) as exc:
         log.error("cannot load the map: %s", exc)
         return 2
-    try:
-        asyncio.run(service.run())
-    except ConnectError as exc:
-        log.error("%s", exc)
-        return 2
-    return 0
+    return service.serve()

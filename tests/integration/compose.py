@@ -156,9 +156,9 @@ class ComposeFleet:
         """Run the healthchecks of ``services`` (name -> environment overrides) at once; the failing ones and why."""
         checks = {name: self.healthcheck(name, overrides) for name, overrides in services.items()}
         failing = {}
-        for name, check in checks.items():
-            _, err = check.communicate(timeout=30)
-            if check.returncode != 0:
+        for name, process in checks.items():
+            _, err = process.communicate(timeout=30)
+            if process.returncode != 0:
                 failing[name] = err.strip()
         return failing
 

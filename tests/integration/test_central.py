@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import time
 
 import numpy as np
 import pytest
@@ -102,13 +101,14 @@ def test_robot_with_unknown_start_waits_for_mcl(router, processes, zsession, pre
     wait_until(lambda: (s := latest_stats(stats)) is not None and s.extra.get("robots", 0) == 2, 20,
                what="r2 to be placed")
     assert lost.wait(timeout=60) == 0
-    deadline = time.monotonic() + 30
-    while time.monotonic() < deadline:
+
+    def settled_state() -> Estimate | None:
         reply = next(iter(zsession.get(keys.central_state, timeout=10.0)))
         state = decode(reply.ok.payload.to_bytes(), Estimate)
-        if {r.robot_id for r in state.robots} == {"r1", "r2"} and latest_stats(stats).extra.get("buffered", 1) == 0:
-            break
-        time.sleep(0.2)
+        settled = {r.robot_id for r in state.robots} == {"r1", "r2"} and latest_stats(stats).extra.get("buffered", 1) == 0
+        return state if settled else None
+
+    state = wait_until(settled_state, 30, interval=0.2, what="both robots in the state and the buffer drained")
     r2 = next(r for r in state.robots if r.robot_id == "r2")
     assert np.hypot(*(r2.pose[:2] - truth.truth_pose[-1, :2])) < 0.3
     final = latest_stats(stats)
