@@ -37,7 +37,8 @@ def run_and_score(dataset: Dataset, options: RunOptions, robots: list[str] | Non
         "wall_s": round(result.wall_s, 2), "cpu_s": round(cpu, 2), "data_s": round(result.data_s, 1),
         "ate_rmse_m": _rounded(summary["ate_rmse_m"]), "ate_aligned_rmse_m": _rounded(summary["ate_aligned_rmse_m"]),
         "landmarks_mapped": int(len(result.map_means)),
-        "scan_ms_p99": round(1e3 * result.timing["scan"].get("p99", 0.0), 2) if result.timing.get("scan") else None,
+        "scan_ms_median": _ms(result.timing.get("scan", {}).get("median_ms")),
+        "scan_ms_p99": _ms(result.timing.get("scan", {}).get("p99_ms")),
     }
     if "gps_rmse_m" in summary:
         out["gps_rmse_m"] = _rounded(summary["gps_rmse_m"])
@@ -68,6 +69,10 @@ def aligned_map_error(means: np.ndarray, truth: np.ndarray, anchors: np.ndarray 
     rotation = (u @ vt).T
     aligned = (means - ca) @ rotation.T + cb
     return map_error(aligned, truth, cutoff), aligned
+
+
+def _ms(value: float | None) -> float | None:
+    return None if value is None else round(value, 2)
 
 
 def _rounded(values: dict) -> dict:
