@@ -77,6 +77,7 @@ class CentralService(ServiceShell):
         self.slam = FastSlam(filter_config(settings))
         self.tracker = StreamTracker()
         self.alive: set[str] = set()
+        self.left: set[str] = set()  # robots whose liveliness token went away
         self.asked: set[str] = set()
         self.latest: dict[str, float] = {}  # robot -> newest stamp received
         self.waiting: dict[str, deque] = defaultdict(lambda: deque(maxlen=settings.waiting_messages))
@@ -146,6 +147,7 @@ class CentralService(ServiceShell):
                 self._ask_info(robot_id)
         else:
             self.alive.discard(robot_id)
+            self.left.add(robot_id)
             self.extra["robots_lost"] = self.extra.get("robots_lost", 0.0) + 1.0
             self._release(flush=False)
 
@@ -176,6 +178,8 @@ class CentralService(ServiceShell):
 
     def _on_stream(self, stream: str, message) -> None:
         rid = message.robot_id
+        if rid in self.left and message.seq == 0 and self.tracker.received(rid, stream) > 0:
+            self._restart(rid)
         verdict = self.tracker.check(rid, stream, message.seq, message.stamp)
         if verdict is not Verdict.ACCEPT:
             self.reject(verdict.value, f"{rid}/{stream} seq {message.seq}")
@@ -193,6 +197,21 @@ class CentralService(ServiceShell):
                 self._ask_info(rid)
             return
         heapq.heappush(self.buffer, (event.stamp, next(self.order), time.perf_counter(), event))
+
+    def _restart(self, robot_id: str) -> None:
+        """A robot that left is back with a new run (its streams start again at seq 0): it leaves the filter
+        (its landmarks stay) and rejoins from its RobotInfo. A robot back after a link cut goes on with its
+        seq numbers and keeps its place."""
+        log.info("robot %s started a new run; it rejoins from its RobotInfo", robot_id)
+        self.left.discard(robot_id)
+        self.tracker.forget(robot_id)
+        self.slam.remove_robot(robot_id)
+        self.waiting.pop(robot_id, None)
+        self.asked.discard(robot_id)
+        self.latest.pop(robot_id, None)
+        self.buffer = [entry for entry in self.buffer if entry[3].robot_id != robot_id]
+        heapq.heapify(self.buffer)
+        self.extra["robot_restarts"] = self.extra.get("robot_restarts", 0.0) + 1.0
 
     def _joined_late(self, robot_id: str, missed: int) -> None:
         """The first odometry of a robot arrived with seq > 0: its start pose no longer says where it is.

@@ -198,12 +198,20 @@ class FastSlam:
         robot = self.robots.get(robot_id)
         if robot is None or robot.pose_time is not None:
             return None
-        del self.robots[robot_id]
+        self.parked[robot_id] = self.remove_robot(robot_id)
+        return robot.info
+
+    def remove_robot(self, robot_id: str) -> RobotInfo | None:
+        """Take a robot out of the filter, placed or parked (the landmarks it mapped stay); its RobotInfo."""
+        if robot_id in self.parked:
+            return self.parked.pop(robot_id)
+        robot = self.robots.pop(robot_id, None)
+        if robot is None:
+            return None
         keep = [i for i in range(self.pose.shape[1]) if i != robot.index]
         self.pose = self.pose[:, keep]
         for other in self.robots.values():
             other.index = keep.index(other.index)
-        self.parked[robot_id] = robot.info
         return robot.info
 
     def _take_in(self, info: RobotInfo, pose: np.ndarray, cov: np.ndarray) -> None:

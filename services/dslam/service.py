@@ -58,6 +58,8 @@ class DslamService(ServiceShell):
         self._map_seq = 0
         self._info_asked: dict[str, float] = {}
         self._waiting: dict[str, deque] = {}
+        self._left: set[str] = set()  # robots whose liveliness token went away
+        self.extra_counts: Counter = Counter()
         self._lock = asyncio.Lock()
 
     def setup(self, session: zenoh.Session) -> None:
@@ -97,16 +99,13 @@ class DslamService(ServiceShell):
             return
         rid, _ = parsed
         if tag == "alive":
-            if self.alive.get(rid) is False:  # back after leaving: a new run of the robot, from seq 0
-                self.tracker.forget(rid)
-                self.core.robots.pop(rid, None)
-                self._waiting.pop(rid, None)
             self.alive[rid] = True
             if rid not in self.core.robots:
                 self._info_asked[rid] = time.monotonic()
                 asyncio.get_running_loop().create_task(self._ask_info(rid))
         elif tag == "gone":
             self.alive[rid] = False  # its last messages may still be on the way: they are used
+            self._left.add(rid)
             log.info("robot %s left (liveliness lost); its map contributions stay", rid)
         elif tag == "info":
             await self._take_info(rid, decode(payload, RobotInfo))
@@ -114,10 +113,25 @@ class DslamService(ServiceShell):
             message = decode(payload, Odometry if tag == "odom" else Scan)
             if message.robot_id != rid:
                 self.reject("robot_id_mismatch", f"{message.robot_id} on {rid}'s key")
+            elif rid in self._left and message.seq == 0 and self.tracker.received(rid, tag) > 0:
+                self._restart(rid)
+                self._wait_for_info(rid, tag, message)
             elif rid not in self.core.robots:
                 self._wait_for_info(rid, tag, message)
             else:
                 await self._process(rid, tag, message)
+
+    def _restart(self, rid: str) -> None:
+        """A robot that left is back with a new run (its streams start again at seq 0): its old pose and order
+        state no longer apply, its RobotInfo says where it starts. (A robot back after a link cut goes on with
+        its seq numbers and keeps its state.)"""
+        log.info("robot %s started a new run; it rejoins from its RobotInfo", rid)
+        self._left.discard(rid)
+        self.tracker.forget(rid)
+        self.core.robots.pop(rid, None)
+        self._waiting.pop(rid, None)
+        self._info_asked.pop(rid, None)
+        self.extra_counts["robot_restarts"] += 1
 
     async def _take_info(self, rid: str, info: RobotInfo) -> None:
         if info.robot_id != rid:
@@ -202,7 +216,7 @@ class DslamService(ServiceShell):
         self.published += 1
 
     def _extra(self) -> dict[str, float]:
-        return {**self.core.stats(), **{k: float(v) for k, v in self.assoc_counts.items()},
+        return {**self.core.stats(), **{k: float(v) for k, v in (self.assoc_counts + self.extra_counts).items()},
                 "robots_alive": float(sum(self.alive.values())), "missing": float(self.tracker.missing()),
                 "waiting_for_info": float(sum(len(w) for w in self._waiting.values()))}
 

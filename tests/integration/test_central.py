@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-
 import numpy as np
 import pytest
 import zenoh
@@ -114,3 +113,28 @@ def test_robot_with_unknown_start_waits_for_mcl(router, processes, zsession, pre
     final = latest_stats(stats)
     assert final.rejected.get("before_placement", 0) > 0
     publisher.undeclare()
+
+
+def test_a_robot_that_leaves_and_runs_again_rejoins_from_its_start(router, processes, zsession, prefix):
+    """The same robot id twice in a row: the second run's seq 0 after the token went away is a new run, not
+    duplicates; the robot rejoins at its start pose and every message of both runs is used."""
+    keys = Keys(prefix)
+    estimates = Collector(zsession, keys.central_estimate)
+    stats = Collector(zsession, keys.stats("central"))
+    processes.start("central", "central", "--association", "known", "--particles", "30", "--estimate-rate-hz", "4")
+    wait_until(lambda: stats.count() > 0, 20, what="the central service's first stats")
+    log = simulate("arena", seed=0, duration=4.0, robot_ids=["r1"]).robots["r1"]
+    per_run = len(log.odom_stamp) + len(log.scan_stamp)
+    for turn in (1, 2):
+        run = processes.start(f"r1-run{turn}", "robot", "--id", "r1", "--world", "arena", "--seed", "0", "--rate", "10",
+                              "--duration", "4", "--speedup", "4", "--start-delay", "0.5")
+        assert run.wait(timeout=60) == 0
+        wait_until(lambda n=turn: (s := latest_stats(stats)) is not None and s.extra.get("processed", 0) >= n * per_run
+                   and s.extra.get("buffered", 1) == 0, 30, what=f"run {turn} processed")
+    final = latest_stats(stats)
+    assert final.extra["processed"] == 2 * per_run and final.extra.get("robot_restarts") == 1.0, final.extra
+    assert not final.rejected, final.rejected
+    wait_until(lambda: any(r.stamp >= log.scan_stamp[-1] for e in estimates.decoded(Estimate)[-1:] for r in e.robots),
+               10, what="an estimate at the end of the second run")
+    r1 = estimates.decoded(Estimate)[-1].robots[0]
+    assert np.hypot(*(r1.pose[:2] - log.truth_at(np.array([r1.stamp]))[0, :2])) < 0.3

@@ -90,3 +90,26 @@ def test_unreachable_association_service_falls_back_and_bad_input_is_counted(rou
     assert last.extra.get("assoc_in_process", 0) > 10, last.extra
     assert last.extra.get("landmarks", 0) >= 8, last.extra
     assert last.rejected.get("malformed", 0) >= 1, last.rejected
+
+
+def test_a_robot_that_leaves_and_runs_again_rejoins_from_its_start(router, processes, zsession, prefix):
+    """The same robot id twice in a row: the second run's seq 0 after the token went away is a new run, not
+    duplicates; its pose starts again from its RobotInfo and every scan of both runs is used."""
+    keys = Keys(prefix)
+    stats = Collector(zsession, keys.stats("dslam"))
+    poses = Collector(zsession, keys.dslam_pose("r1"))
+    start_dslam(processes, "--association", "known")
+    wait_until(lambda: stats.count() > 0, 20, what="the dslam service")
+    run = ("robot", "--id", "r1", "--world", "arena", "--seed", "0", "--rate", "10", "--duration", "4",
+           "--speedup", "4", "--start-delay", "0.5")
+    scans = len(simulate("arena", robots=1, seed=0, duration=4.0, rate=10.0).robots["r1"].scan_stamp)
+    for turn in (1, 2):
+        assert processes.start(f"r1-run{turn}", *run).wait(timeout=60) == 0
+        wait_all_scans(stats, turn * scans, processes)
+    last = latest(stats, ServiceStats)
+    assert last.extra.get("robot_restarts") == 1.0, last.extra
+    assert last.extra.get("scans") == 2 * scans and not last.rejected, (last.extra, last.rejected)
+    truth = simulate("arena", robots=1, seed=0, duration=4.0, rate=10.0).robots["r1"]
+    wait_until(lambda: len(poses.decoded(PoseEstimate)) >= 2 * scans - 2, 10, what="every pose estimate")
+    end = poses.decoded(PoseEstimate)[-1]
+    assert np.hypot(*(end.pose[:2] - truth.truth_at(np.array([end.stamp]))[0, :2])) < 0.3
