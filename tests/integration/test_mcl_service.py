@@ -110,3 +110,27 @@ def test_unknown_robot_is_localised_in_the_central_map_and_merged(processes, zse
     r7 = next(r for r in found[-1].robots if r.robot_id == "r7")
     wait_until(lambda: max(t.stamp for t in truth.decoded(GroundTruth)) >= r7.stamp, 10, what="truth up to the estimate")
     assert np.hypot(*(r7.pose[:2] - nearest_truth(truth.decoded(GroundTruth), r7.stamp)[:2])) < 1.0
+
+
+def test_a_robot_that_leaves_and_runs_again_is_localised_again(processes, zsession, prefix):
+    """The same robot id twice in a row: the second run (seq 0 after its token went away) starts a new global
+    localisation instead of being rejected as duplicates."""
+    keys = Keys(prefix)
+    poses = Collector(zsession, keys.mcl_pose("r4"))
+    truth = Collector(zsession, keys.truth("r4"))
+    stats = Collector(zsession, keys.stats("mcl"))
+    processes.start("mcl", "mcl", "--source", "truth", "--stats-period-s", "0.3")
+    wait_until(lambda: stats.count() > 0, 20, what="the mcl service's stats")
+    run = ("robot", "--id", "r4", "--world", "office", "--unknown-start", "--seed", "3", "--speedup", "4",
+           "--duration", "8", "--start-delay", "0.5")
+    assert processes.start("r4-run1", *run).wait(timeout=60) == 0
+    wait_until(lambda: any(p.localized for p in poses.decoded(MclPose)), 10, what="r4 localised in its first run")
+    first_run = poses.count()
+    assert processes.start("r4-run2", *run).wait(timeout=60) == 0
+    restarted = wait_until(lambda: [s for s in stats.decoded(ServiceStats) if s.extra.get("robot_restarts") == 1.0],
+                           10, what="the restart counted")
+    assert not {k for k in restarted[-1].rejected if k in ("duplicate", "out_of_order", "time_backwards")}, restarted[-1].rejected
+    second = wait_until(lambda: [p for p in poses.decoded(MclPose)[first_run:] if p.localized], 10,
+                        what="r4 localised in its second run")
+    actual = nearest_truth(truth.decoded(GroundTruth), second[-1].stamp)
+    assert np.hypot(*(second[-1].best_pose[:2] - actual[:2])) < 0.5
