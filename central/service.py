@@ -77,7 +77,6 @@ class CentralService(ServiceShell):
         self.slam = FastSlam(filter_config(settings))
         self.tracker = StreamTracker()
         self.alive: set[str] = set()
-        self.left: set[str] = set()  # robots whose liveliness token went away
         self.asked: set[str] = set()
         self.latest: dict[str, float] = {}  # robot -> newest stamp received
         self.waiting: dict[str, deque] = defaultdict(lambda: deque(maxlen=settings.waiting_messages))
@@ -147,7 +146,7 @@ class CentralService(ServiceShell):
                 self._ask_info(robot_id)
         else:
             self.alive.discard(robot_id)
-            self.left.add(robot_id)
+            self.tracker.leave(robot_id)
             self.extra["robots_lost"] = self.extra.get("robots_lost", 0.0) + 1.0
             self._release(flush=False)
 
@@ -178,7 +177,7 @@ class CentralService(ServiceShell):
 
     def _on_stream(self, stream: str, message) -> None:
         rid = message.robot_id
-        if rid in self.left and message.seq == 0 and self.tracker.received(rid, stream) > 0:
+        if self.tracker.new_run(rid, stream, message.seq):
             self._restart(rid)
         verdict = self.tracker.check(rid, stream, message.seq, message.stamp)
         if verdict is not Verdict.ACCEPT:
@@ -203,8 +202,6 @@ class CentralService(ServiceShell):
         (its landmarks stay) and rejoins from its RobotInfo. A robot back after a link cut goes on with its
         seq numbers and keeps its place."""
         log.info("robot %s started a new run; it rejoins from its RobotInfo", robot_id)
-        self.left.discard(robot_id)
-        self.tracker.forget(robot_id)
         self.slam.remove_robot(robot_id)
         self.waiting.pop(robot_id, None)
         self.asked.discard(robot_id)

@@ -38,6 +38,7 @@ class StreamTracker:
 
     streams: dict[tuple[str, str], _StreamState] = field(default_factory=dict)
     rejected: Counter = field(default_factory=Counter)
+    left: set[str] = field(default_factory=set)  # robots whose liveliness token went away
 
     def check(self, robot_id: str, stream: str, seq: int, stamp: float) -> Verdict:
         state = self.streams.setdefault((robot_id, stream), _StreamState())
@@ -66,6 +67,20 @@ class StreamTracker:
     def last_seq(self, robot_id: str, stream: str) -> int:
         state = self.streams.get((robot_id, stream))
         return state.last_seq if state else -1
+
+    def leave(self, robot_id: str) -> None:
+        """The robot's liveliness token went away: its streams stay (it may be back after a link cut)."""
+        self.left.add(robot_id)
+
+    def new_run(self, robot_id: str, stream: str, seq: int) -> bool:
+        """True when a robot that left starts again at seq 0: a new run of it, not duplicates of the old one.
+        Its streams are forgotten then; the caller resets what it holds of the robot. A robot back after a
+        link cut goes on with its seq numbers and is not a new run."""
+        if robot_id not in self.left or seq != 0 or self.received(robot_id, stream) == 0:
+            return False
+        self.left.discard(robot_id)
+        self.forget(robot_id)
+        return True
 
     def forget(self, robot_id: str) -> None:
         """Drop a robot's streams (it left; a restarted robot starts again at seq 0)."""

@@ -58,7 +58,6 @@ class DslamService(ServiceShell):
         self._map_seq = 0
         self._info_asked: dict[str, float] = {}
         self._waiting: dict[str, deque] = {}
-        self._left: set[str] = set()  # robots whose liveliness token went away
         self.extra_counts: Counter = Counter()
         self._lock = asyncio.Lock()
 
@@ -105,7 +104,7 @@ class DslamService(ServiceShell):
                 asyncio.get_running_loop().create_task(self._ask_info(rid))
         elif tag == "gone":
             self.alive[rid] = False  # its last messages may still be on the way: they are used
-            self._left.add(rid)
+            self.tracker.leave(rid)
             log.info("robot %s left (liveliness lost); its map contributions stay", rid)
         elif tag == "info":
             await self._take_info(rid, decode(payload, RobotInfo))
@@ -113,7 +112,7 @@ class DslamService(ServiceShell):
             message = decode(payload, Odometry if tag == "odom" else Scan)
             if message.robot_id != rid:
                 self.reject("robot_id_mismatch", f"{message.robot_id} on {rid}'s key")
-            elif rid in self._left and message.seq == 0 and self.tracker.received(rid, tag) > 0:
+            elif self.tracker.new_run(rid, tag, message.seq):
                 self._restart(rid)
                 self._wait_for_info(rid, tag, message)
             elif rid not in self.core.robots:
@@ -126,8 +125,6 @@ class DslamService(ServiceShell):
         state no longer apply, its RobotInfo says where it starts. (A robot back after a link cut goes on with
         its seq numbers and keeps its state.)"""
         log.info("robot %s started a new run; it rejoins from its RobotInfo", rid)
-        self._left.discard(rid)
-        self.tracker.forget(rid)
         self.core.robots.pop(rid, None)
         self._waiting.pop(rid, None)
         self._info_asked.pop(rid, None)

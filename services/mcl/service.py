@@ -96,7 +96,6 @@ class MclService(ServiceShell):
         self.map_applied = float("-inf")
         self.robots: dict[str, Tracked] = {}
         self.tracker = StreamTracker()
-        self.left: set[str] = set()  # robots whose liveliness token went away
         self.pose_pubs: dict[str, StreamPublisher] = {}
         self.pose_seq: dict[str, int] = {}  # kept when a robot leaves: its MclPose stream goes on where it stopped
         if self.source == "file":
@@ -145,7 +144,7 @@ class MclService(ServiceShell):
             parsed = self.keys.parse_robot_key(key)
             if parsed and parsed[0] in self.robots:
                 log.info("robot %s left (its filter stays, for a return after a link cut)", parsed[0])
-                self.left.add(parsed[0])
+                self.tracker.leave(parsed[0])
         elif tag in ("info", "odom", "scan"):
             parsed = self.keys.parse_robot_key(key)
             if parsed is None:
@@ -195,7 +194,7 @@ class MclService(ServiceShell):
         tracked = self.robots.get(rid)
         if tracked is None:
             return None
-        if rid in self.left and message.seq == 0 and self.tracker.received(rid, stream) > 0:
+        if self.tracker.new_run(rid, stream, message.seq):
             tracked = self._restart(rid)
         verdict = self.tracker.check(rid, stream, message.seq, message.stamp)
         if verdict is not Verdict.ACCEPT:
@@ -209,8 +208,6 @@ class MclService(ServiceShell):
     def _restart(self, rid: str) -> Tracked:
         """A robot that left is back with a new run (seq 0 again): localise it from scratch."""
         log.info("robot %s started a new run; localising it again", rid)
-        self.left.discard(rid)
-        self.tracker.forget(rid)
         info = self.robots[rid].info
         self.robots[rid] = Tracked(info=info, mcl=self._make_filter(info))
         self.extra["robot_restarts"] = self.extra.get("robot_restarts", 0.0) + 1.0

@@ -26,3 +26,17 @@ def test_streams_are_independent_and_a_robot_can_be_forgotten():
     assert t.missing("r1") == 3
     t.forget("r1")
     assert t.check("r1", "scan", 0, 0.0) is Verdict.ACCEPT
+
+
+def test_a_robot_that_left_and_starts_again_at_seq_0_is_a_new_run():
+    t = StreamTracker()
+    for s in range(3):
+        t.check("r1", "odom", s, s * 0.1)
+    assert not t.new_run("r1", "odom", 0)  # still here: seq 0 again is a duplicate, not a new run
+    t.leave("r1")
+    assert not t.new_run("r1", "odom", 3)  # back after a link cut: it goes on with its seq numbers
+    assert t.check("r1", "odom", 3, 0.3) is Verdict.ACCEPT
+    assert not t.new_run("r2", "odom", 0)  # never seen: a first message, nothing to reset
+    assert t.new_run("r1", "odom", 0)
+    assert t.received("r1", "odom") == 0 and t.check("r1", "odom", 0, 0.0) is Verdict.ACCEPT
+    assert not t.new_run("r1", "odom", 0)  # once per return
