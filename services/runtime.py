@@ -27,7 +27,7 @@ import numpy as np
 import zenoh
 import zenoh.ext
 
-from schemas.codec import DecodeError
+from schemas.codec import DecodeError, decode
 from schemas.config import FleetSettings
 from schemas.keys import Keys
 from schemas.messages import ServiceStats
@@ -125,6 +125,22 @@ class ServiceShell:
 
     def reject_decode(self, error: DecodeError) -> None:
         self.reject(error.reason, error.detail)
+
+    def refuse(self, query: zenoh.Query, reason: str, detail: str) -> None:
+        """Count a refused query by reason and answer it with ``reply_err("reason: detail")``."""
+        self.reject(reason, detail)
+        query.reply_err(f"{reason}: {detail}".encode())
+
+    def decode_request(self, query: zenoh.Query, model):
+        """The query's payload decoded as ``model``, or None after refusing the query with the reason."""
+        if query.payload is None:
+            self.refuse(query, "empty", f"the query carries no {model.__name__} payload")
+            return None
+        try:
+            return decode(query.payload.to_bytes(), model)
+        except DecodeError as error:
+            self.refuse(query, error.reason, error.detail)
+            return None
 
     def stats(self) -> ServiceStats:
         lat = np.asarray(self._latencies_ms) if self._latencies_ms else np.zeros(1)

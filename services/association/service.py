@@ -29,7 +29,7 @@ import uuid
 import zenoh
 
 from schemas.association import AssociationRequest
-from schemas.codec import DecodeError, decode, encode
+from schemas.codec import encode
 from schemas.config import AssocSettings, add_settings_arguments, settings_from_args
 from services.association.client import instance_key, instances_key
 from services.association.core import AssociationError, associate
@@ -61,31 +61,22 @@ class AssocService(ServiceShell):
 
         return callback
 
-    def _refuse(self, query: zenoh.Query, reason: str, detail: str) -> None:
-        self.reject(reason, detail)
-        query.reply_err(f"{reason}: {detail}".encode())
-
     async def handle(self, tag: str, key: str, query: zenoh.Query) -> None:
         try:
             self._answer(tag, key, query)
         except Exception as exc:  # noqa: BLE001 - the client must hear back, and the service must go on
             log.exception("assoc: %s failed", tag)
-            self._refuse(query, "internal_error", f"{type(exc).__name__}: {exc}")
+            self.refuse(query, "internal_error", f"{type(exc).__name__}: {exc}")
         finally:
             query.drop()
 
     def _answer(self, method: str, key: str, query: zenoh.Query) -> None:
-        if query.payload is None:
-            self._refuse(query, "empty", "the query carries no AssociationRequest payload")
-            return
-        try:
-            request = decode(query.payload.to_bytes(), AssociationRequest)
-        except DecodeError as error:
-            self._refuse(query, error.reason, error.detail)
+        request = self.decode_request(query, AssociationRequest)
+        if request is None:
             return
         m, n = request.size
         if m > self.settings.max_measurements or n > self.settings.max_landmarks:
-            self._refuse(query, "too_large", f"{m} measurements × {n} landmarks exceeds "
+            self.refuse(query, "too_large", f"{m} measurements × {n} landmarks exceeds "
                          f"{self.settings.max_measurements} × {self.settings.max_landmarks}")
             return
         if request.jcbb_max_nodes > self.settings.max_jcbb_nodes:
@@ -94,7 +85,7 @@ class AssocService(ServiceShell):
         try:
             reply = associate(request, method)
         except AssociationError as error:
-            self._refuse(query, error.reason, error.detail)
+            self.refuse(query, error.reason, error.detail)
             return
         self._solve_ms_total += (time.perf_counter() - started) * 1e3
         query.reply(key, encode(reply))

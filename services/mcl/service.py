@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 import zenoh
 
-from schemas.codec import DecodeError, decode, encode
+from schemas.codec import decode, encode
 from schemas.config import MclSettings, add_settings_arguments, settings_from_args
 from schemas.mcl import LocalizeReply, LocalizeRequest
 from schemas.messages import Estimate, MapEstimate, MclPose, Odometry, PoseHypothesis, RobotInfo, Scan, WorldTruth
@@ -248,13 +248,8 @@ class MclService(ServiceShell):
     def _answer(self, query: zenoh.Query) -> None:
         """One-shot localisation (or a tracked robot's belief) for a LocalizeRequest."""
         key = self.keys.mcl_localize
-        if query.payload is None:
-            self._refuse(query, "empty", "the query carries no LocalizeRequest payload")
-            return
-        try:
-            request = decode(query.payload.to_bytes(), LocalizeRequest)
-        except DecodeError as error:
-            self._refuse(query, error.reason, error.detail)
+        request = self.decode_request(query, LocalizeRequest)
+        if request is None:
             return
         tracked = self.robots.get(request.robot_id) if request.robot_id else None
         if request.ranges.size == 0 and tracked is not None and tracked.mcl is not None and tracked.mcl.initialized:
@@ -262,10 +257,10 @@ class MclService(ServiceShell):
         else:
             sensor = request.sensor or (tracked.info.sensor if tracked else None)
             if sensor is None:
-                self._refuse(query, "no_sensor", "a scan needs its sensor (or the id of a robot the service tracks)")
+                self.refuse(query, "no_sensor", "a scan needs its sensor (or the id of a robot the service tracks)")
                 return
             if self.landmarks is None:
-                self._refuse(query, "no_map", f"no map from source {self.settings.source!r} yet")
+                self.refuse(query, "no_map", f"no map from source {self.settings.source!r} yet")
                 return
             info = RobotInfo(robot_id=request.robot_id or "query", stamp=0.0, motion_model="unicycle", sensor=sensor,
                              odom_rate_hz=1.0, scan_rate_hz=1.0)
@@ -281,10 +276,6 @@ class MclService(ServiceShell):
                               hypotheses=hypotheses, particles=mcl.count, map_landmarks=mcl.map.count, variant=mcl.variant)
         query.reply(key, encode(reply))
         self.extra["localize_replies"] = self.extra.get("localize_replies", 0.0) + 1.0
-
-    def _refuse(self, query: zenoh.Query, reason: str, detail: str) -> None:
-        self.reject(reason, detail)
-        query.reply_err(f"{reason}: {detail}".encode())
 
     def _refresh_extra(self) -> None:
         self.extra["robots"] = float(len(self.robots))
