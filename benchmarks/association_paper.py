@@ -1,4 +1,5 @@
-"""Paper 000's simulation study: EKF-SLAM with NN, IHGR, exact and JCBB association over 200 random maps.
+"""The simulation study of Zhang, Xie, Adams, "An Efficient Data Association Approach to Simultaneous
+Localization and Map Building" (paper 000): EKF-SLAM with NN, IHGR, exact and JCBB association over 200 random maps.
 
 Paper 000 §IV-A: 12 features in a 20 m × 20 m area, 5 of them at the fixed,
 closely spaced coordinates (2.9, 2.3), (2.6, 1.9), (2.4, 1.9), (2.5, 2.6),
@@ -10,7 +11,7 @@ field of view, noise), nor the odometry noise, nor the run length, nor what
 "successful" means; this benchmark takes the world ``paper000`` of
 :mod:`robots.worlds` and overrides those unstated parameters with the flags
 below (every value used is printed in the JSON). Success is
-:data:`services.association.ekf_slam.SUCCESS_CRITERION`.
+:data:`services.baselines.ekf_slam.SUCCESS_CRITERION`.
 
 Trial k simulates ``paper000`` with seed k; every method runs on the same data.
 One trial with one method is also ``fleetslam run --estimator ekf
@@ -37,8 +38,8 @@ sys.path.insert(0, str(REPO))
 
 from robots.simulator import simulate  # noqa: E402
 from robots.worlds import World, make_world  # noqa: E402
-from services.association.ekf_slam import SUCCESS_CRITERION  # noqa: E402
-from services.estimator import RunOptions  # noqa: E402
+from schemas.contract import RunOptions  # noqa: E402
+from services.baselines.ekf_slam import SUCCESS_CRITERION  # noqa: E402
 from services.offline import run_estimator  # noqa: E402
 from report import emit
 
@@ -70,7 +71,7 @@ def run_trial(job: tuple[int, list[str], argparse.Namespace]) -> dict:
     out = {"trial": trial, "methods": {}}
     for method in methods:
         options = RunOptions(estimator="ekf", association=method, seed=trial,
-                             extra={"gate_probability": args.gate_probability})
+                             settings={"gate_probability": args.gate_probability})
         run = run_estimator(dataset, options, ["r1"], sample_period_s=args.duration)
         extra = run.extra
         out["methods"][method] = {

@@ -25,10 +25,10 @@ import numpy as np
 import scipy.sparse.linalg
 from scipy.stats import chi2
 
-from robots.dataset import OdomEvent, ScanEvent
+from schemas.contract import OdomEvent, ScanEvent
 from robots.simulator import simulate
-from schemas.config import DslamFilterSettings
-from services.dslam.estimator import DSlam
+from services.dslam.config import DslamConfig
+from services.dslam.core import DSlam
 from services.dslam.information_filter import BlockSparseMatrix, block_rows
 from services.dslam.recast import innovation, map_measurement
 from report import emit
@@ -70,7 +70,7 @@ def batch_optimum(measurements, start: np.ndarray, iterations: int = 30, tol: fl
 
 def one_seed(seed: int, duration: float) -> dict:
     data = simulate("grid196", robots=1, seed=seed, duration=duration)
-    dslam = DSlam(DslamFilterSettings(association="known"), record=True)
+    dslam = DSlam(DslamConfig(association="known"), record=True)
     dslam.add_robot(data.robots["r1"].info)
     for event in data.events():
         if isinstance(event, OdomEvent):

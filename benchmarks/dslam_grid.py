@@ -1,4 +1,5 @@
-"""Paper 003's grid simulation: D-SLAM against the EKF-SLAM baseline ("traditional SLAM").
+"""The grid simulation of Wang, Huang, Dissanayake, "Implementation Issues and Experimental Evaluation of
+D-SLAM" (paper 003): D-SLAM against the EKF-SLAM baseline ("traditional SLAM").
 
 World ``grid196`` (196 features at 3 m spacing in a 40 m square; 0.2 m/s,
 0.1 rad/s, 180° field of view, 5 m range), one robot on a bounded random walk,
@@ -26,10 +27,11 @@ from pathlib import Path
 import numpy as np
 from scipy.stats import chi2
 
-from robots.dataset import OdomEvent, ScanEvent
+from schemas.contract import OdomEvent, ScanEvent
 from robots.simulator import simulate
-from services.dslam.estimator import DSlam
-from services.estimator import RunOptions, make_estimator
+from services.dslam.core import DSlam
+from schemas.contract import RunOptions
+from services.estimators import make_estimator
 from report import emit
 
 

@@ -1,14 +1,14 @@
 """D-SLAM cost against map size: time per scan and memory for worlds of 10³, 10⁴, 10⁵ landmarks.
 
-For each size N: a square grid of N features at 3 m spacing (paper 003's
-geometry, grown), a 180° / 5 m range-bearing sensor. The map is first *built*
+For each size N: a square grid of N features at 3 m spacing (the D-SLAM
+paper's geometry, grown), a 180° / 5 m range-bearing sensor. The map is first *built*
 from a lawnmower sweep over the whole world (lanes 6 m apart, a scan every
 metre, known ids), with the information filter alone (eq. 10 linearised at the
 true positions, as a perfect recovery would; the mean solved once at the end by
 a sparse LU solve) — the D-SLAM mapping needs no robot pose.
 Then the full D-SLAM step is *timed*: a robot with an unknown start pose drives
 a circle of radius 4 m in the middle of the map (a scan every 0.2 m, with
-odometry), and every scan runs association (known ids), localisation
+odometry), and every scan runs association (known ids), localization
 (covariance columns of the features seen, CI), the z_map update with the
 recovery of the mean and of the cached columns, exactly as the service does.
 The first revolution fills the column cache (a column not cached is solved by
@@ -37,11 +37,11 @@ from pathlib import Path
 import numpy as np
 import scipy.linalg
 
-from robots.dataset import OdomEvent, ScanEvent
+from schemas.contract import OdomEvent, ScanEvent
 from robots.models import RangeBearingSensor, UnicycleModel, in_field_of_view
-from schemas.config import DslamFilterSettings
 from schemas.messages import RobotInfo, SensorSpec
-from services.dslam.estimator import DSlam
+from services.dslam.config import DslamConfig
+from services.dslam.core import DSlam
 from services.dslam.information_filter import InformationMap
 from report import emit
 
@@ -161,8 +161,7 @@ def one_size(n: int, seed: int, scans: int, cache: int) -> dict:
     keys = [0] * m.n
     for key, index in index_of.items():
         keys[index] = key
-    settings = DslamFilterSettings(association="known", column_cache=cache)
-    dslam = DSlam(settings)
+    dslam = DSlam(DslamConfig(association="known", column_cache=cache))
     dslam.adopt(m, keys)
     sensor = SensorSpec(max_range=RANGE, fov=FOV, noise_cov=NOISE)
     dslam.add_robot(RobotInfo(robot_id="r1", stamp=0.0, motion_model="unicycle", sensor=sensor, start_pose=None,

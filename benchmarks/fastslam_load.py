@@ -26,7 +26,7 @@ from pathlib import Path
 
 import zenoh
 
-from robots.dataset import OdomEvent, ScanEvent
+from schemas.contract import OdomEvent, ScanEvent
 from robots.simulator import simulate
 from schemas.codec import decode, encode
 from schemas.config import FleetSettings

@@ -14,10 +14,10 @@ from __future__ import annotations
 
 import argparse
 
-from central.experiments import run_and_score
-from robots.loaders import load_dataset
-from services.estimator import RunOptions
 from report import emit
+from robots.loaders import load_dataset
+from schemas.contract import RunOptions
+from support.fastslam_experiments import run_and_score
 
 
 def main() -> None:
@@ -26,7 +26,7 @@ def main() -> None:
     parser.add_argument("--associations", default="known,nn,mht")
     parser.add_argument("--particles", type=int, default=100)
     parser.add_argument("--duration", type=float, default=None, help="seconds of data (default: all)")
-    parser.add_argument("--variant", default=None, help="fastslam1 or fastslam2")
+    parser.add_argument("--proposal", default=None, help="fastslam1 or fastslam2 (default: the core's)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--robot-detections", action="store_true")
     parser.add_argument("--no-alone", action="store_true", help="skip the single-robot runs")
@@ -34,13 +34,15 @@ def main() -> None:
     args = parser.parse_args()
     dataset = load_dataset(args.data)
     robots = list(dataset.robots)
-    extra = {"robot_detections": True} if args.robot_detections else {}
+    settings = {"robot_detections": True} if args.robot_detections else {}
+    if args.proposal:
+        settings["proposal"] = args.proposal
     keys = ("ate_rmse_m", "map_rmse_m", "landmarks", "wall_s", "cpu_s")
     report: dict = {"settings": vars(args), "data": dataset.name}
     baseline = run_and_score(dataset, RunOptions("odometry"), duration=args.duration)
     report["dead_reckoning"] = {k: baseline[k] for k in ("ate_rmse_m", "map_rmse_m")}
     for association in args.associations.split(","):
-        options = RunOptions("fastslam", association, args.particles, args.seed, args.variant, extra)
+        options = RunOptions("fastslam", association, args.particles, args.seed, settings)
         central = run_and_score(dataset, options, duration=args.duration)
         entry = {"central": {k: central[k] for k in keys}}
         if not args.no_alone:

@@ -1,9 +1,11 @@
-"""Paper 001's simulations with the central FastSLAM core: close beacons, four beacons, two robots.
+"""Howard's multi-robot FastSLAM simulations with the central core: close beacons, four beacons, two robots.
+
+The paper: Howard, "Multi-robot simultaneous localization and mapping using particle filters" (paper 001).
 
 - ``two-beacons`` (Fig. 2-3): two beacons 18 cm apart at (4, 6.8), 15 cm range noise, three laps. A run
   *separates* them when the published map has exactly two landmarks within 0.4 m of the pair, each within
   half the separation (9 cm) of its own beacon after aligning the map on the six anchor beacons. Compared:
-  ``nn-paper`` (per-detection nearest neighbour, no one-detection-per-landmark rule: paper 001's NNF),
+  ``nn-paper`` (per-detection nearest neighbour, no one-detection-per-landmark rule: the paper's NNF),
   ``nn`` (with that rule), ``mht`` and ``mht-paper`` (the split, with and without the rule).
 - ``four-beacons`` (Fig. 13): four beacons 1-1.5 m apart, ``mht`` with 200 particles: final error of the
   four beacons (raw, and after aligning on the anchors).
@@ -20,12 +22,12 @@ import argparse
 
 import numpy as np
 
-from central.experiments import aligned_map_error, run_and_score
-from central.paper001 import ANCHORS, four_beacons, two_beacons, two_robots
-from robots.simulator import simulate
-from services.estimator import RunOptions
-from services.evaluation.metrics import map_error
 from report import emit
+from robots.simulator import simulate
+from schemas.contract import RunOptions
+from services.evaluation.metrics import map_error
+from support.fastslam_experiments import aligned_map_error, run_and_score
+from support.paper001 import ANCHORS, four_beacons, two_beacons, two_robots
 
 LAP_S = 2 * np.pi / 0.1  # one lap of the 5 m circle at 0.1 rad/s
 METHODS = {"nn-paper": ("nn", {"exclusive": False}), "nn": ("nn", {}), "mht": ("mht", {}),
@@ -35,8 +37,8 @@ METHODS = {"nn-paper": ("nn", {"exclusive": False}), "nn": ("nn", {}), "mht": ("
 def two_beacons_run(method: str, seed: int, laps: float, particles: int, bearing_std_deg: float) -> dict:
     world = two_beacons(bearing_std_deg=bearing_std_deg)
     data = simulate(world, seed=seed, duration=laps * LAP_S)
-    association, extra = METHODS[method]
-    run = run_and_score(data, RunOptions("fastslam", association, particles, seed, None, extra))
+    association, settings = METHODS[method]
+    run = run_and_score(data, RunOptions("fastslam", association, particles, seed, settings))
     pair = world.landmarks[:2]
     _, aligned = aligned_map_error(run["map_means"], world.landmarks, ANCHORS)
     near = aligned[np.linalg.norm(aligned - pair.mean(0), axis=1) < 0.4]

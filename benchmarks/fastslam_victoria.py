@@ -14,10 +14,10 @@ from __future__ import annotations
 import argparse
 import json
 
-from central.experiments import run_and_score
-from robots.loaders import load_dataset
-from services.estimator import RunOptions
 from report import emit
+from robots.loaders import load_dataset
+from schemas.contract import RunOptions
+from support.fastslam_experiments import run_and_score
 
 DEFAULT_CONFIGS = 'default={};range40={"max_obs_range": 40}'
 
@@ -28,7 +28,7 @@ def main() -> None:
     parser.add_argument("--duration", type=float, default=None, help="seconds of data (default: all)")
     parser.add_argument("--particles", type=int, default=100)
     parser.add_argument("--association", default="nn")
-    parser.add_argument("--variant", default=None, help="fastslam1 or fastslam2")
+    parser.add_argument("--proposal", default=None, help="fastslam1 or fastslam2 (default: the core's)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--configs", default=DEFAULT_CONFIGS)
     parser.add_argument("--no-baseline", action="store_true")
@@ -41,9 +41,10 @@ def main() -> None:
         report["dead_reckoning"] = {k: run[k] for k in ("gps_rmse_m", "wall_s", "data_s")}
     for entry in args.configs.split(";"):
         name, _, text = entry.partition("=")
-        run = run_and_score(dataset, RunOptions("fastslam", args.association, args.particles, args.seed, args.variant,
-                                                json.loads(text or "{}")), duration=args.duration)
-        report[name] = {k: run[k] for k in ("options", "gps_rmse_m", "landmarks_mapped", "wall_s", "cpu_s", "data_s",
+        settings = ({"proposal": args.proposal} if args.proposal else {}) | json.loads(text or "{}")
+        options = RunOptions("fastslam", args.association, args.particles, args.seed, settings)
+        run = run_and_score(dataset, options, duration=args.duration)
+        report[name] = {k: run[k] for k in ("settings", "gps_rmse_m", "landmarks_mapped", "wall_s", "cpu_s", "data_s",
                                             "scan_ms_median", "scan_ms_p99")}
         report[name]["realtime_factor"] = round(run["data_s"] / run["wall_s"], 1)
     emit(report, args.out)

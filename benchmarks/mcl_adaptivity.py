@@ -1,6 +1,8 @@
-"""KLD adaptivity: sample size over time for the adaptive variants (Fox 2003; paper 004 tables 2 and 4).
+"""KLD adaptivity: sample size over time for the adaptive variants (Fox 2003; Sehestedt and Schneider tables 2, 4).
 
-Global localisation from no pose, a kidnap half-way, and tracking: in the
+Sehestedt and Schneider, "Monte Carlo Localization in Highly Symmetric Environments".
+
+Global localization from no pose, a kidnap half-way, and tracking: in the
 ``office`` world (two robots from random poses spliced at ``--at``) and in the
 symmetric ``cross`` world (one robot). Reports per variant the sample size at
 the start, while tracking (median), right after the kidnap (max within 2 s)
@@ -17,9 +19,9 @@ import numpy as np
 
 from robots.simulator import simulate
 from robots.worlds import make_world
-from schemas.config import MclFilterSettings
+from services.mcl.config import MclConfig
 from services.mcl.core import MonteCarloLocalizer
-from services.mcl.scenarios import kidnapped, random_starts, trace_run
+from support.mcl_scenarios import kidnapped, random_starts, trace_run
 from report import emit
 
 VARIANTS = ("kld", "kld_srl", "cluster_kld_srl")
@@ -46,8 +48,8 @@ def main() -> None:
     results, curves = [], {}
     for name, dataset, events, truth, at in scenarios(args.seed, args.at, args.duration):
         for variant in VARIANTS:
-            settings = MclFilterSettings(variant=variant, seed=args.seed)
-            mcl = MonteCarloLocalizer(dataset.landmarks, dataset.robots["r1"].info, settings)
+            config = MclConfig(variant=variant, seed=args.seed)
+            mcl = MonteCarloLocalizer(dataset.landmarks, dataset.robots["r1"].info, config)
             trace = trace_run(mcl, events, truth)
             stamps, counts = np.asarray(trace.stamp), np.asarray(trace.particles)
             tracking = trace.converged(0.5, 0.2)

@@ -1,9 +1,11 @@
-"""Global localisation success rate over random starts (paper 004 §6: "successfully done in all cases").
+"""Global localization success rate over random starts (Sehestedt and Schneider §6: "successfully done in all cases").
+
+Sehestedt and Schneider, "Monte Carlo Localization in Highly Symmetric Environments".
 
 Each trial puts one robot at a random pose (uniform over the world's bounds,
 any heading), simulates ``--duration`` seconds of its own trajectory, and
 runs MCL from no pose at all against the world's map. A trial succeeds when
-the filter is localised (one hypothesis holds) within 0.5 m / 0.2 rad of the
+the filter is localized (one hypothesis holds) within 0.5 m / 0.2 rad of the
 truth at the end of the run; ``converge_s`` is the robot time of the first
 such scan. The ``grid196`` world (a regular 3 m grid) is highly symmetric:
 only its borders tell places apart; ``office`` mixes repeated structure with
@@ -20,9 +22,9 @@ import numpy as np
 
 from robots.simulator import simulate
 from robots.worlds import make_world
-from schemas.config import MclFilterSettings
+from services.mcl.config import MclConfig
 from services.mcl.core import MonteCarloLocalizer
-from services.mcl.scenarios import random_starts, trace_run
+from support.mcl_scenarios import random_starts, trace_run
 from report import emit
 
 
@@ -31,8 +33,8 @@ def trial(world_name: str, variant: str, seed: int, duration: float, particles: 
     start = world.start_poses(0)
     dataset = simulate(world, seed=seed, duration=duration, unknown_start=True)
     log = dataset.robots["r1"]
-    settings = MclFilterSettings(variant=variant, seed=seed, particles=particles)
-    mcl = MonteCarloLocalizer(dataset.landmarks, log.info, settings)
+    config = MclConfig(variant=variant, seed=seed, particles=particles)
+    mcl = MonteCarloLocalizer(dataset.landmarks, log.info, config)
     trace = trace_run(mcl, dataset.events(), lambda t: log.truth_at(np.array([t]))[0])
     return {"seed": seed, "start": np.round(start, 2).tolist(), "success": bool(trace.converged(0.5, 0.2)[-1]),
             "converge_s": trace.first_converged(0.5, 0.2), "hypotheses_max": int(max(trace.hypotheses)),

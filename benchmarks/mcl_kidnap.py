@@ -1,10 +1,12 @@
-"""Recovery from kidnapping (paper 004 §6: about 2 s): robot time from the kidnap until MCL is back on the truth.
+"""Recovery from kidnapping (Sehestedt and Schneider §6: about 2 s): robot time until MCL is back on the truth.
+
+Sehestedt and Schneider, "Monte Carlo Localization in Highly Symmetric Environments".
 
 Each trial simulates two robots from random poses in one world and splices them: the filter
-localises robot 1 from no pose and follows it until ``--at`` seconds, then receives robot 2's odometry and
+localizes robot 1 from no pose and follows it until ``--at`` seconds, then receives robot 2's odometry and
 scans, as if the robot had been carried to robot 2's place. Recovery time is
 the robot time from the kidnap to the first scan at which the filter is again
-localised (one hypothesis holds) within 0.5 m / 0.2 rad of the truth.
+localized (one hypothesis holds) within 0.5 m / 0.2 rad of the truth.
 
     .venv/bin/python benchmarks/mcl_kidnap.py [--trials 10] [--world office] [--out FILE]
 """
@@ -17,9 +19,9 @@ import numpy as np
 
 from robots.simulator import simulate
 from robots.worlds import make_world
-from schemas.config import MclFilterSettings
+from services.mcl.config import MclConfig
 from services.mcl.core import MonteCarloLocalizer
-from services.mcl.scenarios import kidnapped, random_starts, trace_run
+from support.mcl_scenarios import kidnapped, random_starts, trace_run
 from report import emit
 
 
@@ -27,8 +29,8 @@ def trial(world: str, variant: str, seed: int, at: float, duration: float, parti
     dataset = simulate(random_starts(make_world(world, seed), 2, seed), robots=2, seed=seed, duration=duration,
                        unknown_start=True)
     events, truth = kidnapped(dataset, "r1", "r2", at)
-    settings = MclFilterSettings(variant=variant, seed=seed, particles=particles)
-    mcl = MonteCarloLocalizer(dataset.landmarks, dataset.robots["r1"].info, settings)
+    config = MclConfig(variant=variant, seed=seed, particles=particles)
+    mcl = MonteCarloLocalizer(dataset.landmarks, dataset.robots["r1"].info, config)
     trace = trace_run(mcl, events, truth)
     before = trace.first_converged(0.5, 0.2)
     back = trace.first_converged(0.5, 0.2, after=at)

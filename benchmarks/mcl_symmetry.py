@@ -1,4 +1,6 @@
-"""MCL in the symmetric cross (paper 004 §6, figures 1-2): which variants keep every plausible pose.
+"""MCL in the symmetric cross (Sehestedt and Schneider §6, figures 1-2): which variants keep every plausible pose.
+
+Sehestedt and Schneider, "Monte Carlo Localization in Highly Symmetric Environments".
 
 The ``cross`` world is four-fold symmetric except for a room off the east arm.
 A robot starts near the centre with no pose and tours the north, west and
@@ -25,9 +27,9 @@ import numpy as np
 from robots.models import RangeBearingSensor, rotation
 from robots.simulator import simulate
 from robots.worlds import make_world
-from schemas.config import MclFilterSettings
+from services.mcl.config import MclConfig
 from services.mcl.core import VARIANTS, MonteCarloLocalizer
-from services.mcl.scenarios import Trace, trace_run
+from support.mcl_scenarios import Trace, trace_run
 from report import emit
 
 
@@ -63,8 +65,8 @@ def truth_held(trace: Trace, truth_at, xy: float = 0.5, theta: float = 0.2) -> n
 
 def run_variant(dataset, world, variant: str, particles: int, seed: int) -> tuple[dict, Trace, np.ndarray]:
     log = dataset.robots["r1"]
-    settings = MclFilterSettings(variant=variant, particles=particles, seed=seed)
-    mcl = MonteCarloLocalizer(dataset.landmarks, log.info, settings)
+    config = MclConfig(variant=variant, particles=particles, seed=seed)
+    mcl = MonteCarloLocalizer(dataset.landmarks, log.info, config)
     truth_at = lambda t: log.truth_at(np.array([t]))[0]  # noqa: E731
     trace = trace_run(mcl, dataset.events(), truth_at)
     twins = consistent_twins(world, log.truth_at(np.asarray(trace.stamp)))

@@ -1,9 +1,11 @@
-"""MCL update time against particle count (paper 004 reports about 0.03 s per update).
+"""MCL update time against particle count (Sehestedt and Schneider report about 0.03 s per update).
+
+Sehestedt and Schneider, "Monte Carlo Localization in Highly Symmetric Environments".
 
 A map of 200 landmarks uniform in a 40 m square and the ``random`` world's
 sensor (8 m range, 120° field of view, about 8 landmarks per scan); one robot
 tracked from its known start pose (``mcl``, fixed sample size), and the same
-robot in global localisation (``cluster_kld_srl``, adaptive). Reports, per
+robot in global localization (``cluster_kld_srl``, adaptive). Reports, per
 particle count, the time of one scan update (weigh, cluster, resample) as
 wall time and as this process's CPU time (less disturbed by other work on a
 shared machine), of the likelihood alone (CPU) and of one prediction (wall):
@@ -20,10 +22,10 @@ import time
 
 import numpy as np
 
-from robots.dataset import OdomEvent, ScanEvent
 from robots.simulator import simulate
 from robots.worlds import make_world
-from schemas.config import MclFilterSettings
+from schemas.contract import OdomEvent, ScanEvent
+from services.mcl.config import MclConfig
 from services.mcl.core import MonteCarloLocalizer
 from services.mcl.likelihood import scan_log_likelihood
 from report import emit
@@ -54,9 +56,9 @@ def timed(work) -> tuple[float, float]:
 def run(dataset, variant: str, particles: int, known_start: bool, seed: int) -> dict:
     log = dataset.robots["r1"]
     info = log.info if known_start else log.info.model_copy(update={"start_pose": None, "start_pose_cov": None})
-    settings = MclFilterSettings(variant=variant, particles=particles, seed=seed,
-                                 max_particles=max(particles, 5000), min_particles=min(100, particles))
-    mcl = MonteCarloLocalizer(dataset.landmarks, info, settings)
+    config = MclConfig(variant=variant, particles=particles, seed=seed,
+                       max_particles=max(particles, 5000), min_particles=min(100, particles))
+    mcl = MonteCarloLocalizer(dataset.landmarks, info, config)
     times: dict[str, list] = {"update": [], "update_cpu": [], "likelihood": [], "predict": []}
     counts, observations = [], []
     for event in dataset.events():

@@ -1,4 +1,5 @@
-"""``fleetslam central``: the central multi-robot FastSLAM service (paper 001, centralised scheme).
+"""``fleetslam central``: the central multi-robot FastSLAM service (the centralised scheme of Howard,
+"Multi-robot simultaneous localization and mapping using particle filters").
 
 Robots are found by their liveliness tokens (``{prefix}/robots/*/alive``) and
 their RobotInfo (published periodically, and asked for by a query when a token
@@ -32,7 +33,6 @@ from __future__ import annotations
 import argparse
 import heapq
 import itertools
-import json
 import logging
 import time
 from collections import defaultdict, deque
@@ -41,7 +41,7 @@ import numpy as np
 import zenoh
 
 from central.fastslam import FastSlam, FastSlamConfig
-from robots.dataset import OdomEvent, ScanEvent
+from schemas.contract import OdomEvent, ScanEvent
 from schemas.codec import decode, encode
 from schemas.config import CentralSettings, add_settings_arguments, settings_from_args
 from schemas.messages import Estimate, MclPose, Odometry, RobotEstimate, RobotInfo, Scan
@@ -49,20 +49,6 @@ from schemas.streams import StreamTracker, Verdict
 from services.runtime import ServiceShell
 
 log = logging.getLogger("fleetslam.central")
-
-
-def filter_config(settings: CentralSettings) -> FastSlamConfig:
-    """The FastSLAM settings a service's settings ask for (``filter_options`` is a JSON object of extra fields)."""
-    config = FastSlamConfig(particles=settings.particles, association=settings.association, seed=settings.seed,
-                            proposal=settings.proposal, robot_detections=settings.robot_detections)
-    extra = json.loads(settings.filter_options) if settings.filter_options else {}
-    if not isinstance(extra, dict):
-        raise ValueError("filter_options must be a JSON object")
-    return config.with_overrides(extra)
-
-
-def odom_event(message: Odometry) -> OdomEvent:
-    return OdomEvent(message.robot_id, message.seq, message.stamp, message.dt, message.control, message.control_cov)
 
 
 class CentralService(ServiceShell):
@@ -74,7 +60,7 @@ class CentralService(ServiceShell):
         super().__init__(settings, instance)
         self.settings: CentralSettings = settings
         self.tick_period_s = 1.0 / settings.estimate_rate_hz
-        self.slam = FastSlam(filter_config(settings))
+        self.slam = FastSlam(settings.core(FastSlamConfig))
         self.tracker = StreamTracker()
         self.alive: set[str] = set()
         self.asked: set[str] = set()
@@ -142,7 +128,7 @@ class CentralService(ServiceShell):
         robot_id = parsed[0]
         if tag == "alive":
             self.alive.add(robot_id)
-            if robot_id not in self.slam.robots and robot_id not in self.slam.parked and robot_id not in self.asked:
+            if not self.slam.has_robot(robot_id) and not self.slam.is_waiting(robot_id) and robot_id not in self.asked:
                 self._ask_info(robot_id)
         else:
             self.alive.discard(robot_id)
@@ -155,11 +141,11 @@ class CentralService(ServiceShell):
             self.reject("robot_id_mismatch", f"{info.robot_id} on info of {parsed[0]}")
             return
         rid = info.robot_id
-        if rid in self.slam.robots or rid in self.slam.parked:
+        if self.slam.has_robot(rid) or self.slam.is_waiting(rid):
             return
-        self.slam.add_robot(info)
-        log.info("robot %s joined (%s)", rid, "placed" if rid in self.slam.robots else "waiting for a pose from MCL")
-        if rid in self.slam.robots:
+        placed = self.slam.add_robot(info)
+        log.info("robot %s joined (%s)", rid, "placed" if placed else "waiting for a pose from MCL")
+        if placed:
             self._requeue(rid, after=None)
 
     def _on_mcl(self, message: MclPose, key: str) -> None:
@@ -167,7 +153,7 @@ class CentralService(ServiceShell):
         if key != self.keys.mcl_pose(rid):
             self.reject("robot_id_mismatch", f"{rid} on {key}")
             return
-        if rid not in self.slam.parked or not message.localized:
+        if not self.slam.is_waiting(rid) or not message.localized:
             return
         if self.slam.place_robot(rid, message.best_pose, message.best_cov, stamp=message.stamp):
             log.info("robot %s placed by MCL at %s", rid, np.round(message.best_pose, 3).tolist())
@@ -186,13 +172,13 @@ class CentralService(ServiceShell):
         self.latest[rid] = max(self.latest.get(rid, -np.inf), message.stamp)
         if stream == "odom" and self.tracker.received(rid, "odom") == 1 and message.seq > 0:
             self._joined_late(rid, message.seq)
-        event = odom_event(message) if stream == "odom" else ScanEvent.from_message(message)
-        if rid not in self.slam.robots:
+        event = OdomEvent.from_message(message) if stream == "odom" else ScanEvent.from_message(message)
+        if not self.slam.has_robot(rid):
             queue = self.waiting[rid]
             if len(queue) == queue.maxlen:
                 self.reject("waiting_overflow", f"{rid} has no RobotInfo or no pose yet")
             queue.append(event)
-            if rid not in self.slam.parked and rid not in self.asked and self.session is not None:
+            if not self.slam.is_waiting(rid) and rid not in self.asked and self.session is not None:
                 self._ask_info(rid)
             return
         heapq.heappush(self.buffer, (event.stamp, next(self.order), time.perf_counter(), event))
@@ -218,7 +204,7 @@ class CentralService(ServiceShell):
         """
         self.extra["robots_joined_late"] = self.extra.get("robots_joined_late", 0.0) + 1.0
         log.warning("robot %s: its first %d odometry messages were missed", robot_id, missed)
-        if self.settings.late_join == "wait" and robot_id not in self.slam.parked:
+        if self.settings.late_join == "wait" and not self.slam.is_waiting(robot_id):
             info = self.slam.unplace(robot_id)
             if info is not None:
                 log.info("robot %s waits for a pose from MCL", robot_id)
@@ -234,7 +220,7 @@ class CentralService(ServiceShell):
     def _release(self, flush: bool) -> None:
         """Process buffered messages in stamp order: those every live robot's stream has passed, and any that
         waited longer than the reorder window (all of them when ``flush``)."""
-        live = [self.latest[rid] for rid in self.alive if rid in self.latest and rid in self.slam.robots]
+        live = [self.latest[rid] for rid in self.alive if rid in self.latest and self.slam.has_robot(rid)]
         watermark = min(live) if live else np.inf
         deadline = time.perf_counter() - self.settings.reorder_window_s
         while self.buffer:
@@ -258,8 +244,8 @@ class CentralService(ServiceShell):
         """
         robots = []
         for rid, (pose, cov) in self.slam.poses().items():
-            slot = self.slam.robots[rid]
-            stamp = slot.pose_time if slot.pose_time is not None else self.last_stamp
+            stamp = self.slam.pose_stamp(rid)
+            stamp = stamp if stamp is not None else self.last_stamp
             robots.append(RobotEstimate(robot_id=rid, stamp=stamp, pose=pose, cov=0.5 * (cov + cov.T)))
         view = self.slam.landmark_map()
         values = [view.means, view.covs] + [r.pose for r in robots] + [r.cov for r in robots]
@@ -267,7 +253,7 @@ class CentralService(ServiceShell):
             self.reject("estimate_not_finite")
             return None
         message = Estimate(seq=self.estimate_seq, stamp=self.last_stamp, robots=robots, landmarks=view.means,
-                           landmark_covs=view.covs, landmark_ids=view.ids, particles=self.slam.pose.shape[0],
+                           landmark_covs=view.covs, landmark_ids=view.ids, particles=self.slam.particle_count,
                            effective_particles=self.slam.effective_particles(),
                            method=f"fastslam-{self.slam.config.association}")
         self.estimate_seq += int(publish)
@@ -298,7 +284,7 @@ class CentralService(ServiceShell):
     async def tick(self) -> None:
         self._release(flush=False)
         self._update_stats()
-        if not self.slam.robots:
+        if not self.slam.poses():
             return
         message = self.estimate()
         if message is not None:
@@ -308,7 +294,7 @@ class CentralService(ServiceShell):
     def on_stop(self) -> None:
         self._release(flush=True)
         self._update_stats()
-        if self.slam.robots:
+        if self.slam.poses():
             message = self.estimate()
             if message is not None:
                 self._estimate_pub.put(message)
@@ -324,7 +310,7 @@ def main(args: argparse.Namespace) -> int:
     settings = settings_from_args(CentralSettings, args)
     try:
         service = CentralService(settings)
-    except (ValueError, json.JSONDecodeError) as exc:
+    except ValueError as exc:  # a SettingsError too
         log.error("bad settings: %s", exc)
         return 2
     return service.serve()

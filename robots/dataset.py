@@ -16,66 +16,10 @@ from typing import Iterator
 
 import numpy as np
 
-from schemas.messages import GroundTruth, Odometry, RobotInfo, Scan
+from schemas.contract import Event, OdomEvent, ScanEvent, TruthEvent
+from schemas.messages import RobotInfo
 
 
-@dataclass(slots=True)
-class OdomEvent:
-    robot_id: str
-    seq: int
-    stamp: float
-    dt: float
-    control: np.ndarray
-    control_cov: np.ndarray
-
-    def to_message(self) -> Odometry:
-        return Odometry(robot_id=self.robot_id, seq=self.seq, stamp=self.stamp, dt=self.dt,
-                        control=self.control, control_cov=self.control_cov)
-
-
-@dataclass(slots=True)
-class ScanEvent:
-    robot_id: str
-    seq: int
-    stamp: float
-    ranges: np.ndarray
-    bearings: np.ndarray
-    landmark_ids: np.ndarray | None
-    noise_cov: np.ndarray
-    robot_ids: list[str] = field(default_factory=list)
-    robot_ranges: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    robot_bearings: np.ndarray = field(default_factory=lambda: np.zeros(0))
-
-    @property
-    def observations(self) -> np.ndarray:
-        """(n, 2) array of (range, bearing)."""
-        return np.stack([self.ranges, self.bearings], -1)
-
-    def to_message(self, with_ids: bool = True) -> Scan:
-        return Scan(robot_id=self.robot_id, seq=self.seq, stamp=self.stamp, ranges=self.ranges, bearings=self.bearings,
-                    landmark_ids=self.landmark_ids if with_ids else None, noise_cov=self.noise_cov,
-                    robot_ids=self.robot_ids, robot_ranges=self.robot_ranges, robot_bearings=self.robot_bearings)
-
-    @classmethod
-    def from_message(cls, scan: Scan) -> "ScanEvent":
-        return cls(scan.robot_id, scan.seq, scan.stamp, scan.ranges, scan.bearings, scan.landmark_ids, scan.noise_cov,
-                   list(scan.robot_ids), scan.robot_ranges, scan.robot_bearings)
-
-
-@dataclass(slots=True)
-class TruthEvent:
-    robot_id: str
-    seq: int
-    stamp: float
-    pose: np.ndarray
-
-    def to_message(self) -> GroundTruth:
-        known = bool(np.isfinite(self.pose[2]))
-        pose = self.pose if known else np.array([self.pose[0], self.pose[1], 0.0])
-        return GroundTruth(robot_id=self.robot_id, seq=self.seq, stamp=self.stamp, pose=pose, heading_known=known)
-
-
-Event = OdomEvent | ScanEvent | TruthEvent
 
 
 def _tagged(stamps: np.ndarray, rank: int, make) -> Iterator[tuple]:

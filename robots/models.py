@@ -181,13 +181,26 @@ class AckermannModel:
 MotionModel = UnicycleModel | AckermannModel
 
 
-def motion_model(name: str, wheelbase: float = 2.83, encoder_offset: float = 0.76) -> MotionModel:
-    """The motion model named in a RobotInfo."""
+def motion_model(name: str, wheelbase: float | None = None, encoder_offset: float = 0.0) -> MotionModel:
+    """The motion model named in a RobotInfo (an Ackermann model needs its wheelbase: no silent default)."""
     if name == "unicycle":
         return UnicycleModel()
     if name == "ackermann":
+        if wheelbase is None or not wheelbase > 0:
+            raise ValueError(f"an ackermann motion model needs a wheelbase > 0 (got {wheelbase})")
         return AckermannModel(wheelbase=wheelbase, encoder_offset=encoder_offset)
     raise ValueError(f"unknown motion model {name!r}")
+
+
+def robot_models(info) -> tuple[MotionModel, "RangeBearingSensor"]:
+    """(motion model, sensor) of a robot as its RobotInfo announces it: the one place every filter builds them.
+
+    A RobotInfo is validated when decoded (an Ackermann robot without a wheelbase is refused there), so this
+    only raises ValueError for an info built by hand that bypassed validation.
+    """
+    model = motion_model(info.motion_model, info.wheelbase, info.encoder_offset)
+    sensor = RangeBearingSensor((float(info.sensor.offset[0]), float(info.sensor.offset[1])))
+    return model, sensor
 
 
 def integrate_controls(model: MotionModel, controls: np.ndarray, dts: np.ndarray, covs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

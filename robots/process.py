@@ -16,7 +16,8 @@ import time
 
 import zenoh
 
-from robots.dataset import Dataset, OdomEvent, RobotLog, ScanEvent, TruthEvent
+from robots.dataset import Dataset, RobotLog
+from schemas.contract import OdomEvent, ScanEvent, TruthEvent
 from robots.simulator import simulate
 from schemas.codec import encode
 from schemas.config import RobotSettings, add_settings_arguments, settings_from_args

@@ -107,6 +107,12 @@ class RobotInfo(Message):
     odom_rate_hz: float = Field(gt=0.0, allow_inf_nan=False)
     scan_rate_hz: float = Field(gt=0.0, allow_inf_nan=False)
 
+    @model_validator(mode="after")
+    def _ackermann_has_wheelbase(self) -> "RobotInfo":
+        if self.motion_model == "ackermann" and not self.wheelbase > 0:
+            raise ValueError("an ackermann robot must announce its wheelbase (> 0 m)")
+        return self
+
 
 class Odometry(StreamMessage):
     """Control applied over ``dt``: (v, ω) for unicycle, (encoder speed, steering) for ackermann."""

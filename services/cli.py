@@ -2,41 +2,92 @@
 
 Every command module exposes ``add_arguments(parser)`` and ``main(args) -> int``
 and keeps its pipeline apart from parsing (the CLI only parses and calls).
-A command whose module is not installed is simply not listed.
+Each command is loaded by a plain import inside its loader function, so only
+the chosen command's module is imported (a robot does not pay for the filters)
+and a reader can follow every command to its code. Ordinary mistakes (a bad
+flag value, a bad ``FLEETSLAM_*`` variable, an unknown ``--set`` name) end
+with one line and exit code 2, never a traceback.
 """
 
 from __future__ import annotations
 
 import argparse
-import importlib
-import importlib.util
 import logging
 import sys
+from importlib.metadata import PackageNotFoundError, version
+from types import ModuleType
+from typing import Callable
 
-COMMANDS: dict[str, tuple[str, str]] = {
-    "router": ("services.router", "run the Zenoh router (router mode; access control and TLS optional)"),
-    "robot": ("robots.process", "run one robot: simulated in a named world, or replaying a data set"),
-    "monitor": ("services.monitor", "live console of robots, message rates, gaps, rejections and service stats"),
-    "demo": ("services.launcher", "start a router, robots, the monitor and every service; print what was measured"),
-    "run": ("services.offline", "offline: feed a data set straight into an estimator, no Zenoh; JSON results"),
-    "evaluate": ("services.evaluation.service", "live evaluator: compare estimates with truth, write a report folder"),
-    "assoc": ("services.association.service", "data-association queryable on {prefix}/assoc/{method}"),
-    "central": ("central.service", "central multi-robot FastSLAM service"),
-    "dslam": ("services.dslam.service", "D-SLAM map service (sparse information-filter map) and localisation"),
-    "mcl": ("services.mcl.service", "Monte Carlo localisation service (global localisation, kidnapping)"),
+
+def _router() -> ModuleType:
+    from services import router
+    return router
+
+
+def _robot() -> ModuleType:
+    from robots import process
+    return process
+
+
+def _monitor() -> ModuleType:
+    from services import monitor
+    return monitor
+
+
+def _demo() -> ModuleType:
+    from services import launcher
+    return launcher
+
+
+def _run() -> ModuleType:
+    from services import offline
+    return offline
+
+
+def _evaluate() -> ModuleType:
+    from services.evaluation import service
+    return service
+
+
+def _assoc() -> ModuleType:
+    from services.association import service
+    return service
+
+
+def _central() -> ModuleType:
+    from central import service
+    return service
+
+
+def _dslam() -> ModuleType:
+    from services.dslam import service
+    return service
+
+
+def _mcl() -> ModuleType:
+    from services.mcl import service
+    return service
+
+
+COMMANDS: dict[str, tuple[Callable[[], ModuleType], str]] = {
+    "router": (_router, "run the Zenoh router (router mode; access control and TLS optional)"),
+    "robot": (_robot, "run one robot: simulated in a named world, or replaying a data set"),
+    "monitor": (_monitor, "live console of robots, message rates, gaps, rejections and service stats"),
+    "demo": (_demo, "start a router, robots, the monitor and every service; print what was measured"),
+    "run": (_run, "offline: feed a data set straight into an estimator, no Zenoh; JSON results"),
+    "evaluate": (_evaluate, "live evaluator: compare estimates with truth, write a report folder"),
+    "assoc": (_assoc, "data-association queryable on {prefix}/assoc/{method}"),
+    "central": (_central, "central multi-robot FastSLAM service"),
+    "dslam": (_dslam, "D-SLAM map service (sparse information-filter map) and localization"),
+    "mcl": (_mcl, "Monte Carlo localization service (global localization, kidnapping)"),
 }
 
 
-def available_commands() -> dict[str, tuple[str, str]]:
-    """The commands whose modules exist in this installation."""
-    found = {}
-    for name, (module, text) in COMMANDS.items():
-        try:
-            if importlib.util.find_spec(module) is not None:
-                found[name] = (module, text)
-        except ModuleNotFoundError:
-            continue
-    return found
+def package_version() -> str:
+    try:
+        return version("fleetslam")
+    except PackageNotFoundError:
+        return "unknown (not installed)"
 
 
 def build_parser(command: str | None = None) -> argparse.ArgumentParser:
@@ -46,12 +97,14 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
         description="Distributed multi-robot landmark SLAM over Eclipse Zenoh. "
         "Every setting can also come from a FLEETSLAM_* environment variable.",
     )
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
-    for name, (module_name, text) in available_commands().items():
+    parser.add_argument("--version", action="version", version=f"fleetslam {package_version()}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True,
+                                help=f"one of: {', '.join(COMMANDS)}")
+    for name, (load, text) in COMMANDS.items():
         if name != command:
             sub.add_parser(name, help=text, add_help=False)
             continue
-        module = importlib.import_module(module_name)
+        module = load()
         parsed = sub.add_parser(name, help=text, description=(module.__doc__ or text).strip().splitlines()[0])
         module.add_arguments(parsed)
         parsed.set_defaults(_module=module)
@@ -69,12 +122,18 @@ def configure_logging(level: str = "INFO") -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from schemas.contract import SettingsError
+
     argv = sys.argv[1:] if argv is None else argv
     command = next((word for word in argv if not word.startswith("-")), None)
-    args = build_parser(command).parse_args(argv)
-    configure_logging(getattr(args, "log_level", None) or "INFO")
+    args = build_parser(command if command in COMMANDS else None).parse_args(argv)
+    level = getattr(args, "log_level", None)
+    configure_logging(level if level in ("DEBUG", "INFO", "WARNING", "ERROR") else "INFO")
     try:
         return int(args._module.main(args) or 0)
+    except SettingsError as error:
+        print(f"fleetslam {args.command}: error: {error}", file=sys.stderr)
+        return 2
     except KeyboardInterrupt:
         return 130
 

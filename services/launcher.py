@@ -11,7 +11,6 @@ statistics, the memory of each process, and where the logs and results are.
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import json
 import logging
 import os
@@ -34,32 +33,23 @@ log = logging.getLogger("fleetslam.demo")
 
 @dataclass
 class ServiceSpec:
-    """A service the demo starts when its module is installed: ``fleetslam NAME ARGS...``
+    """A service the demo starts: ``fleetslam NAME ARGS...``
 
     ``{out}`` in an argument becomes the demo's output folder.
     """
 
     name: str
-    module: str
     args: list[str] = field(default_factory=list)
     stats_name: str | None = None  # the service's name in {prefix}/{name}/stats, when it differs
 
 
-# Each service adds itself here; the demo starts those whose module exists.
 SERVICES: list[ServiceSpec] = [
-    ServiceSpec("assoc", "services.association.service"),
-    ServiceSpec("central", "central.service"),
-    ServiceSpec("dslam", "services.dslam.service", ["--association", "auto"]),
-    ServiceSpec("mcl", "services.mcl.service"),
-    ServiceSpec("evaluate", "services.evaluation.service", ["--out", "{out}/report"], stats_name="eval"),
+    ServiceSpec("assoc"),
+    ServiceSpec("central"),
+    ServiceSpec("dslam", ["--association", "auto"]),
+    ServiceSpec("mcl"),
+    ServiceSpec("evaluate", ["--out", "{out}/report"], stats_name="eval"),
 ]
-
-
-def module_exists(module: str) -> bool:
-    try:
-        return importlib.util.find_spec(module) is not None
-    except ModuleNotFoundError:
-        return False
 
 
 @dataclass
@@ -76,6 +66,8 @@ class Fleet:
         self.settings = settings
         self.out = out
         self.children: list[Child] = []
+        self.exit_codes: dict[str, int] = {}  # exit code of every stopped process (0: a clean stop on SIGTERM)
+        self.killed: list[str] = []  # processes that had to be killed after the stop timeout
         self.endpoint = f"tcp/127.0.0.1:{settings.port}"
         self.env = {**os.environ, "FLEETSLAM_ZENOH_CONNECT": self.endpoint, "FLEETSLAM_PREFIX": settings.prefix,
                     "PYTHONUNBUFFERED": "1"}
@@ -152,7 +144,9 @@ class Fleet:
                 log.warning("%s did not stop in %.0f s; killing it", child.name, timeout)
                 os.killpg(child.process.pid, signal.SIGKILL)
                 child.process.wait()
+                self.killed.append(child.name)
             took[child.name] = time.monotonic() - started
+            self.exit_codes[child.name] = child.process.returncode
         return took
 
 
@@ -160,7 +154,7 @@ def run_demo(settings: DemoSettings, shutdown: Shutdown, console: Console) -> di
     out = Path(settings.out)
     out.mkdir(parents=True, exist_ok=True)
     fleet = Fleet(settings, out)
-    services = [s for s in SERVICES if module_exists(s.module)]
+    services = list(SERVICES)
     summary: dict = {"settings": settings.model_dump(mode="json"), "services": [s.name for s in services]}
     router = fleet.start("router", "router", "--listen", fleet.endpoint)
     try:
@@ -201,6 +195,7 @@ def run_demo(settings: DemoSettings, shutdown: Shutdown, console: Console) -> di
         if remaining:
             fleet.stop(remaining)
         summary.setdefault("stop_s", {}).update(fleet.stop([router]))
+        summary["exit_codes"], summary["killed"] = fleet.exit_codes, fleet.killed
     monitor_path = out / "monitor.json"
     summary["monitor"] = json.loads(monitor_path.read_text()) if monitor_path.exists() else {}
     metrics_path = out / "report" / "metrics.json"

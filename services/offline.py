@@ -2,7 +2,7 @@
 
 The data set's events (every robot's odometry and scans, merged in time order)
 go to the estimator named by ``--estimator`` through the common protocol of
-:mod:`services.estimator`. Every ``--sample-period-s`` of data time the
+:mod:`schemas.contract` (built by :mod:`services.estimators`). Every ``--sample-period-s`` of data time the
 estimator's poses are recorded (each stamped with its robot's last odometry
 time), which gives the estimated trajectories; at the end its map is taken.
 Both are scored against the truth (:mod:`services.evaluation.metrics`) and
@@ -26,9 +26,9 @@ from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from robots.dataset import Dataset, OdomEvent, ScanEvent
+from robots.dataset import Dataset
 from schemas.config import RunSettings, add_settings_arguments, settings_from_args
-from services.estimator import RunOptions, make_estimator
+from schemas.contract import OdomEvent, RunOptions, ScanEvent, SettingsError
 
 log = logging.getLogger("fleetslam.run")
 
@@ -63,6 +63,7 @@ def load(settings: RunSettings) -> Dataset:
 def run_estimator(dataset: Dataset, options: RunOptions, robots: list[str] | None = None,
                   duration: float | None = None, sample_period_s: float = 0.1, progress: bool = False) -> OfflineRun:
     """Drive the estimator ``options.estimator`` over the data set's events; sample its poses."""
+    from services.estimators import make_estimator
     from services.evaluation.metrics import Trajectory, timing_stats
 
     chosen = robots or list(dataset.robots)
@@ -137,12 +138,13 @@ def _meta_counts(meta: dict) -> dict:
 
 
 def parse_estimator_settings(text: str | None) -> dict:
-    """``--set`` "a=1,b=x,c=true" -> {"a": 1, "b": "x", "c": True} (values read as JSON where they parse)."""
+    """``--set`` "a=1,b=x,c=true" -> {"a": 1, "b": "x", "c": True} (values read as JSON where they parse; the
+    estimator's core configuration then checks names and types)."""
     values: dict = {}
     for item in filter(None, (part.strip() for part in (text or "").split(","))):
         name, sep, raw = item.partition("=")
         if not sep or not name.strip():
-            raise ValueError(f"--set expects NAME=VALUE pairs, got {item!r}")
+            raise SettingsError(f"--set expects NAME=VALUE pairs separated by commas, got {item!r}")
         try:
             values[name.strip()] = json.loads(raw)
         except json.JSONDecodeError:
@@ -150,18 +152,15 @@ def parse_estimator_settings(text: str | None) -> dict:
     return values
 
 
-def estimator_extra(settings: RunSettings, dataset: Dataset) -> dict:
-    """What an estimator needs beyond the events: the ``--set`` overrides; MCL also localises against the data
-    set's true map, measures its convergence time against the truth, and keeps its own sample size unless
-    --particles is given."""
-    overrides = parse_estimator_settings(settings.estimator_settings)
-    if settings.estimator != "mcl":
-        return overrides
-    extra: dict = {"map": dataset.landmarks, "mcl": overrides,
-                   "truth": {rid: (log.truth_stamp, log.truth_pose) for rid, log in dataset.robots.items()}}
-    if "particles" in settings.model_fields_set:
-        extra["particles"] = settings.particles
-    return extra
+def run_options(settings: RunSettings, dataset: Dataset) -> RunOptions:
+    """The estimator's options: the shared settings, its own ``--set`` ones, and what a localizer needs beyond
+    the events (the data set's true map to localize against, and the truth to measure convergence)."""
+    options = RunOptions(estimator=settings.estimator, association=settings.association, particles=settings.particles,
+                         seed=settings.seed, settings=parse_estimator_settings(settings.estimator_settings))
+    if settings.estimator == "mcl":
+        options.landmarks = dataset.landmarks
+        options.truth = {rid: (log.truth_stamp, log.truth_pose) for rid, log in dataset.robots.items()}
+    return options
 
 
 def run(settings: RunSettings, console: Console | None = None) -> dict:
@@ -171,8 +170,7 @@ def run(settings: RunSettings, console: Console | None = None) -> dict:
 
     dataset = load(settings)
     robots = settings.robot_ids.split(",") if settings.robot_ids else None
-    options = RunOptions(estimator=settings.estimator, association=settings.association, particles=settings.particles,
-                         seed=settings.seed, variant=settings.variant, extra=estimator_extra(settings, dataset))
+    options = run_options(settings, dataset)
     result = run_estimator(dataset, options, robots, settings.duration, settings.sample_period_s,
                            progress=settings.progress)
     chosen = robots or list(dataset.robots)
@@ -243,6 +241,8 @@ def main(args: argparse.Namespace) -> int:
     console = Console()
     try:
         output = run(settings)
+    except SettingsError:
+        raise  # the CLI prints it as one line
     except (ValueError, FileNotFoundError) as exc:
         log.error("cannot run: %s", exc)
         return 2

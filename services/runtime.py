@@ -9,7 +9,13 @@ the session.
 
 A service subclasses :class:`ServiceShell`, declares its subscriptions and
 queryables in :meth:`setup`, handles items in :meth:`handle`, and may run
-periodic work in :meth:`tick`.
+periodic work in :meth:`tick`. A service fed by robots calls
+:meth:`follow_robots` in its setup: the shell then subscribes every robot's
+RobotInfo, odometry and scans and their liveliness, keeps the membership in
+one :class:`~services.roster.Roster` (asking a robot for its RobotInfo when
+it appears, recognising a new run), and calls the service's hooks
+:meth:`robot_announced`, :meth:`robot_event`, :meth:`robot_new_run`,
+:meth:`robot_joined_late` and :meth:`robot_left`.
 """
 
 from __future__ import annotations
@@ -30,8 +36,11 @@ import zenoh.ext
 from schemas.codec import DecodeError, decode
 from schemas.config import FleetSettings
 from schemas.keys import Keys
-from schemas.messages import ServiceStats
+from schemas.messages import Odometry, RobotInfo, Scan, ServiceStats
 from schemas.transport import ConnectError, StreamPublisher, open_session
+from services.roster import Roster, StreamEvent
+
+ROBOT_TAGS = frozenset({"alive", "gone", "info", "odom", "scan"})
 
 log = logging.getLogger(__name__)
 
@@ -57,6 +66,7 @@ class ServiceShell:
         self._queue: asyncio.Queue | None = None
         self.session: zenoh.Session | None = None
         self._declared: list[Any] = []
+        self.roster: Roster | None = None
 
     def setup(self, session: zenoh.Session) -> None:
         """Declare subscriptions (:meth:`subscribe`), queryables and publishers."""
@@ -69,6 +79,97 @@ class ServiceShell:
 
     def on_stop(self) -> None:
         """Last work before the session closes (final publication, report)."""
+
+    # ------------------------------------------------------------ robots
+    def follow_robots(self) -> None:
+        """Subscribe every robot's info, odometry and scans and their liveliness; membership in :attr:`roster`."""
+        assert self.session is not None
+        self.roster = Roster(self.settings.waiting_messages, self.settings.info_timeout_s)
+        self.subscribe(self.keys.all_robot_stream("info"), "info", recover=False)
+        self.subscribe(self.keys.all_robot_stream("odom"), "odom")
+        self.subscribe(self.keys.all_robot_stream("scan"), "scan")
+
+        def on_token(sample: zenoh.Sample) -> None:
+            self.enqueue("alive" if sample.kind == zenoh.SampleKind.PUT else "gone", str(sample.key_expr), b"")
+
+        self._declared.append(self.session.liveliness().declare_subscriber(self.keys.alive_any, on_token, history=True))
+
+    def ask_info(self, robot_id: str) -> None:
+        """Query a robot's RobotInfo (a robot answers late joiners); replies come back through the queue."""
+        assert self.session is not None
+
+        def on_reply(reply: zenoh.Reply) -> None:
+            if reply.ok is not None:
+                self.enqueue("info", str(reply.ok.key_expr), reply.ok.payload.to_bytes())
+
+        try:
+            self.session.get(self.keys.info(robot_id), on_reply, timeout=self.settings.info_timeout_s)
+        except zenoh.ZError as exc:
+            log.debug("%s: info query for %s failed: %s", self.name, robot_id, exc)
+
+    async def admit(self, robot_id: str, after: float | None = None) -> None:
+        """Take a robot in: the events it held go to :meth:`robot_event` in order (with ``after``, only those
+        after that stamp; the others are counted)."""
+        for event in self.roster.admit(robot_id, after):
+            await self.robot_event(event)
+
+    async def robot_announced(self, info: RobotInfo) -> None:
+        """A robot announced itself (first RobotInfo of its run): take it in (:meth:`admit`) now or later."""
+        await self.admit(info.robot_id)
+
+    async def robot_event(self, event: StreamEvent) -> None:
+        """One in-order odometry or scan event of an admitted robot."""
+
+    def robot_new_run(self, robot_id: str) -> None:
+        """A robot that left started a new run (seq 0 again): forget what the core holds of it."""
+
+    def robot_joined_late(self, robot_id: str) -> None:
+        """A robot's first odometry arrived with seq > 0: its announced start pose no longer holds."""
+
+    def robot_left(self, robot_id: str) -> None:
+        """A robot's liveliness token went away (it may be back after a link cut)."""
+
+    async def _robot_item(self, tag: str, key: str, payload: bytes) -> None:
+        parsed = self.keys.parse_robot_key(key)
+        if parsed is None:
+            self.reject("bad_key", key)
+            return
+        rid, roster = parsed[0], self.roster
+        if tag == "alive":
+            if roster.on_alive(rid):
+                self.ask_info(rid)
+        elif tag == "gone":
+            roster.on_gone(rid)
+            log.info("%s: robot %s left (its state stays, for a return after a link cut)", self.name, rid)
+            self.robot_left(rid)
+        elif tag == "info":
+            info = decode(payload, RobotInfo)
+            announced, refused = roster.on_info(rid, info)
+            if refused:
+                self.reject(*refused)
+            elif announced:
+                log.info("%s: robot %s announced (%s, start pose %s)", self.name, rid, info.source,
+                         "known" if info.start_pose is not None else "unknown")
+                await self.robot_announced(info)
+        else:
+            arrival = roster.on_stream(rid, tag, decode(payload, Odometry if tag == "odom" else Scan))
+            if arrival.new_run:
+                log.info("%s: robot %s started a new run; it rejoins from its RobotInfo", self.name, rid)
+                self.robot_new_run(rid)
+            if arrival.refused:
+                self.reject(*arrival.refused)
+            if arrival.late:
+                log.warning("%s: robot %s: its first odometry messages were missed", self.name, rid)
+                self.robot_joined_late(rid)
+            if arrival.ask_info:
+                self.ask_info(rid)
+            if arrival.event is not None:
+                if roster.is_admitted(rid):
+                    await self.robot_event(arrival.event)
+                else:
+                    refused = roster.keep(arrival.event)
+                    if refused:
+                        self.reject(*refused)
 
     def subscribe(self, key: str, tag: str, recover: bool = True) -> None:
         """Subscribe ``key``; each sample is queued as ``(tag, key, payload)``.
@@ -144,6 +245,11 @@ class ServiceShell:
 
     def stats(self) -> ServiceStats:
         lat = np.asarray(self._latencies_ms) if self._latencies_ms else np.zeros(1)
+        if self.roster is not None:
+            self.extra.update({k: float(v) for k, v in self.roster.counts.items()})
+            self.extra["missing"] = float(self.roster.missing())
+            self.extra["waiting"] = float(self.roster.waiting_count())
+            self.extra["robots_alive"] = float(len(self.roster.alive_ids()))
         return ServiceStats(
             service=self.name,
             instance=self.instance,
@@ -169,7 +275,10 @@ class ServiceShell:
             tag, key, payload, arrived = await self._queue.get()
             self.messages_in[tag] += 1
             try:
-                await self.handle(tag, key, payload)
+                if self.roster is not None and tag in ROBOT_TAGS:
+                    await self._robot_item(tag, key, payload)
+                else:
+                    await self.handle(tag, key, payload)
             except DecodeError as error:
                 self.reject_decode(error)
             except Exception:  # noqa: BLE001 - one bad message must never kill the service

@@ -17,6 +17,14 @@ class Router:
     env: dict[str, str]
 
 
+@pytest.fixture(autouse=True)
+def clean_environment(monkeypatch):
+    """Every test starts from a clean environment: no ``FLEETSLAM_*`` variable of the caller reaches it (and
+    so none reaches the processes it starts)."""
+    for name in [name for name in os.environ if name.startswith("FLEETSLAM_")]:
+        monkeypatch.delenv(name)
+
+
 @pytest.fixture
 def processes(tmp_path):
     """A group of fleetslam processes; all are stopped at the end of the test."""

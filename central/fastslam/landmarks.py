@@ -4,12 +4,16 @@ Slot ``s`` of particle ``p`` holds a landmark iff ``valid[p, s]``. New
 landmarks of a particle go after its high-water mark ``used[p]``; deleted ones
 leave holes that :meth:`LandmarkMap.compact` squeezes out when room runs short,
 and the capacity doubles when that is not enough (amortised O(1) growth).
-Resampling is a gather along the particle axis.
+Resampling is a gather along the particle axis. The functions after the class
+are the EKF of a landmark seen from a pose: predicted detection, update, creation.
 """
 
 from __future__ import annotations
 
 import numpy as np
+
+from robots.gaussian import LOG_2PI, inv2, quad2, sandwich2
+from robots.models import RangeBearingSensor
 
 
 class LandmarkMap:
@@ -91,3 +95,42 @@ class LandmarkMap:
         self.valid[particle, slot] = True
         np.add.at(self.used, particle, 1)
         return slot
+
+
+def predict(landmarks: LandmarkMap, sensor: RangeBearingSensor, pose: np.ndarray, particle: np.ndarray,
+            slot: np.ndarray, r: np.ndarray) -> tuple:
+    """(ẑ, H, S, S⁻¹, |S|) of landmark ``slot`` of ``particle`` seen from ``pose`` (broadcast over any leading
+    shape), S = H Σ Hᵀ + R."""
+    flat = landmarks.flat(particle, slot)
+    zhat, h = sensor.observe_with_jacobian(pose, landmarks.mean_rows()[flat])
+    s = sandwich2(h, landmarks.cov_rows()[flat]) + r
+    s_inv, det = inv2(s)
+    return zhat, h, s, s_inv, det
+
+
+def update(landmarks: LandmarkMap, sensor: RangeBearingSensor, particle: np.ndarray, z: np.ndarray, slot: np.ndarray,
+           terms: tuple, exist_hit: float, exist_max: float) -> np.ndarray:
+    """EKF update of landmark ``slot`` of ``particle`` by detection ``z`` (one pair per row), given their
+    :func:`predict` ``terms``; one more hit, existence score up by ``exist_hit`` (at most ``exist_max``).
+    Returns the log-likelihood log N(ν; 0, S) of each pair."""
+    zhat, h, s, s_inv, det = terms
+    flat = landmarks.flat(particle, slot)
+    means, covs = landmarks.mean_rows(), landmarks.cov_rows()
+    exist, hits = landmarks.exist.reshape(-1), landmarks.hits.reshape(-1)
+    sig = covs[flat]
+    nu = sensor.innovation(z, zhat)
+    gain = sig @ np.swapaxes(h, -1, -2) @ s_inv
+    means[flat] += (gain @ nu[..., None])[..., 0]
+    covs[flat] = sig - sandwich2(gain, s)
+    exist[flat] = np.minimum(exist[flat] + exist_hit, exist_max)
+    hits[flat] += 1
+    return -0.5 * quad2(nu, s_inv) - 0.5 * np.log(np.maximum(det, 1e-300)) - LOG_2PI
+
+
+def create(landmarks: LandmarkMap, sensor: RangeBearingSensor, pose: np.ndarray, particle: np.ndarray, z: np.ndarray,
+           r: np.ndarray, exist: float, label: np.ndarray) -> np.ndarray:
+    """New landmarks of ``particle`` (sorted) at the inverse observation of ``z`` from ``pose``, with the
+    sensor noise ``r`` carried into the map; returns their slots (call :meth:`LandmarkMap.reserve` first)."""
+    mean = sensor.inverse(pose, z)
+    _, g = sensor.inverse_jacobians(pose, z)
+    return landmarks.append(particle, mean, sandwich2(g, r), exist, label)

@@ -1,1 +1,2 @@
-"""Data association (paper 000 and JCBB): core, solvers, the EKF-SLAM baseline and the ``fleetslam assoc`` queryable."""
+"""Data association (Zhang, Xie, Adams, "An Efficient Data Association Approach to Simultaneous Localization and
+Map Building", and JCBB): core and solvers (numeric, no Zenoh), the ``fleetslam assoc`` queryable and its client."""

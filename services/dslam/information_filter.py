@@ -1,4 +1,5 @@
-"""The static extended information filter of D-SLAM (paper 003, §2.2 and §3.2-3.3).
+"""The static extended information filter of D-SLAM (Wang, Huang, Dissanayake,
+"Implementation Issues and Experimental Evaluation of D-SLAM", §2.2 and §3.2-3.3).
 
 The state is the absolute landmark positions X = (x_1, y_1, ..., x_n, y_n)
 only. The information matrix I is exactly sparse: a 2×2 block (i, j) is
@@ -30,6 +31,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg
 from scipy.stats import chi2
 
+from robots.gaussian import inv2
 from services.dslam.recast import choose_reference, initialise, innovation, map_measurement, recast, scan_points
 
 
@@ -53,16 +55,6 @@ def block_rows(index: np.ndarray) -> np.ndarray:
     """Scalar rows (2k,) of the landmarks ``index`` (k,): 2i, 2i+1, ..."""
     index = np.asarray(index, np.int64)
     return (2 * index[:, None] + np.arange(2)).ravel()
-
-
-def inverse_2x2(blocks: np.ndarray) -> np.ndarray:
-    """Closed-form inverses of a stack of 2×2 blocks (the block-Jacobi preconditioner)."""
-    a, b, c, d = blocks[:, 0, 0], blocks[:, 0, 1], blocks[:, 1, 0], blocks[:, 1, 1]
-    det = a * d - b * c
-    det = np.where(np.abs(det) > 0.0, det, 1.0)
-    out = np.empty_like(blocks)
-    out[:, 0, 0], out[:, 0, 1], out[:, 1, 0], out[:, 1, 1] = d / det, -b / det, -c / det, a / det
-    return out
 
 
 def block_pcg(matvec, precondition, rhs: np.ndarray, start: np.ndarray, tol: np.ndarray | float,
@@ -169,7 +161,7 @@ class BlockSparseMatrix:
                          np.int64).reshape(m, m)
         self._data[slots] += blocks
         touched = np.asarray(idx, np.int64)
-        self._diag_inverse[touched] = inverse_2x2(self._data[self._diag[touched]])
+        self._diag_inverse[touched] = inv2(self._data[self._diag[touched]])[0]
         built = slots < self._built
         if built.any():
             self._csr.data[self._pos[slots[built]]] += blocks[built].reshape(-1, 4)

@@ -1,4 +1,5 @@
-"""Localisation in D-SLAM (paper 003, §2.3): a 3-dof estimate of each robot's pose.
+"""Localization in D-SLAM (Wang, Huang, Dissanayake, "Implementation Issues and Experimental Evaluation of D-SLAM",
+§2.3): a 3-dof estimate of each robot's pose.
 
 Two estimates of the pose are combined by covariance intersection (CI),
 because their correlation is unknown (the map they both depend on was built
@@ -164,7 +165,7 @@ def covariance_intersection(mean_a: np.ndarray, cov_a: np.ndarray, mean_b: np.nd
     return intersect(mean_a, info_a, info_b, info_b @ delta, criterion, angle_index)
 
 
-def localise(prior_pose: np.ndarray, prior_cov: np.ndarray, estimate: ObservationEstimate,
+def localize(prior_pose: np.ndarray, prior_cov: np.ndarray, estimate: ObservationEstimate,
              criterion: str = "trace") -> tuple[np.ndarray, np.ndarray, float]:
     """Combine the process-model estimate with the observation estimate by CI; returns (pose, cov, ω).
 

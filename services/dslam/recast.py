@@ -1,4 +1,5 @@
-"""The recast measurement of D-SLAM (paper 003, eqs. 3, 4, 7, 8).
+"""The recast measurement of D-SLAM (Wang, Huang, Dissanayake,
+"Implementation Issues and Experimental Evaluation of D-SLAM", eqs. 3, 4, 7, 8).
 
 A scan of m range-bearing observations is turned into points in the sensor
 frame (eq. 4); the part of the scan that does not depend on the robot, z_map,

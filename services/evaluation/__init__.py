@@ -1,1 +1,1 @@
-"""Truth and scoring: metrics (pure numpy), the dead-reckoning baseline, reports, and the live evaluator."""
+"""Truth and scoring: metrics (pure numpy), reports, and the live evaluator (the baselines are in :mod:`services.baselines`)."""

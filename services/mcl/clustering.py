@@ -1,4 +1,5 @@
-"""Grid clustering of the particle set into pose hypotheses (paper 004 §5.2).
+"""Grid clustering of the particle set into pose hypotheses (Sehestedt and Schneider,
+"Monte Carlo Localization in Highly Symmetric Environments", §5.2).
 
 A coarse fixed grid (about 2 m × 2 m × 45°) gives a first estimate: each
 occupied cell is a piece of a cluster. Neighbouring cells (the 26 around a

@@ -1,4 +1,5 @@
-"""Monte Carlo localisation on a landmark map, in the six variants of paper 004.
+"""Monte Carlo localization on a landmark map, in the six variants of Sehestedt and Schneider, "Monte Carlo
+Localization in Highly Symmetric Environments".
 
 One :class:`MonteCarloLocalizer` tracks one robot. Odometry moves the
 particles (:meth:`predict`, Table 1 step 1); each scan runs the rest of the
@@ -17,7 +18,7 @@ variant's table (:meth:`update`):
 
 Every variant clusters the weighted set after each scan to report its
 hypotheses, and detects a kidnapping (no cluster explains the scans for
-``kidnap_scans`` scans in a row), after which it starts global localisation
+``kidnap_scans`` scans in a row), after which it starts global localization
 again from the scan. Poses drawn from a scan are weighed by the whole scan's
 likelihood; a sample added before the update (KLD-SRL) enters the update
 with the candidates' mean likelihood rather than its own, so the scan is not
@@ -34,16 +35,17 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from robots.models import motion_model, wrap_angle
-from schemas.config import MclFilterSettings
+from robots.gaussian import sqrt_psd, systematic_resample
+from robots.models import robot_models, wrap_angle
 from schemas.messages import RobotInfo
 from services.mcl.clustering import Clusters, cluster_particles
+from services.mcl.config import MclConfig
 from services.mcl.kld import bin_keys, kld_prefix_size, kld_sample_size, support
 from services.mcl.likelihood import LandmarkMap, ScanModel, scan_log_likelihood
-from services.mcl.resampling import systematic_resample, two_stage_resample
+from services.mcl.resampling import two_stage_resample
 from services.mcl.resetting import poses_from_scan, uniform_poses
 
-VARIANTS: tuple[str, ...] = typing.get_args(MclFilterSettings.model_fields["variant"].annotation)
+VARIANTS: tuple[str, ...] = typing.get_args(MclConfig.model_fields["variant"].annotation)
 ADAPTIVE = frozenset({"kld_srl", "cluster_kld_srl"})
 CLUSTERED = frozenset({"csrl", "cluster_kld_srl"})
 RESETTING = frozenset({"srl", "csrl"})
@@ -73,31 +75,25 @@ class UpdateReport:
     localized: bool
 
 
-def _sqrt_psd(cov: np.ndarray) -> np.ndarray:
-    """A square root L (L Lᵀ = cov) of a symmetric positive semi-definite matrix."""
-    values, vectors = np.linalg.eigh(0.5 * (cov + cov.T))
-    return vectors * np.sqrt(np.clip(values, 0.0, None))
-
-
 class MonteCarloLocalizer:
     """Particle filter over one robot's pose (x, y, θ) on a fixed landmark map."""
 
-    def __init__(self, landmarks: np.ndarray, info: RobotInfo, settings: MclFilterSettings,
+    def __init__(self, landmarks: np.ndarray, info: RobotInfo, config: MclConfig,
                  rng: np.random.Generator | None = None):
-        if settings.variant not in VARIANTS:
-            raise ValueError(f"unknown MCL variant {settings.variant!r}; choose from {', '.join(VARIANTS)}")
-        self.settings = settings
-        self.variant = settings.variant
-        self.rng = rng if rng is not None else np.random.default_rng(settings.seed)
-        self.motion = motion_model(info.motion_model, info.wheelbase, info.encoder_offset)
+        if config.variant not in VARIANTS:
+            raise ValueError(f"unknown MCL variant {config.variant!r}; choose from {', '.join(VARIANTS)}")
+        self.config = config
+        self.variant = config.variant
+        self.rng = rng if rng is not None else np.random.default_rng(config.seed)
+        self.motion, _ = robot_models(info)
         self.model = ScanModel.from_spec(
-            info.sensor, settings.noise_scale, settings.clutter_weight, settings.miss_floor,
-            settings.view_margin_range, settings.view_margin_bearing, settings.match_sigmas,
+            info.sensor, config.noise_scale, config.clutter_weight, config.miss_floor,
+            config.view_margin_range, config.view_margin_bearing, config.match_sigmas,
         )
-        self.map = LandmarkMap(landmarks, self.model, settings.lookup_cell, settings.match_candidates)
+        self.map = LandmarkMap(landmarks, self.model, config.lookup_cell, config.match_candidates)
         self.particles = np.zeros((0, 3))
         self.weights = np.zeros(0)
-        self.size = settings.particles  # N_old: the sample size the next resampling draws
+        self.size = config.particles  # N_old: the sample size the next resampling draws
         self.clusters: Clusters | None = None
         self.significant = np.zeros(0, np.int64)
         self.restarts = 0
@@ -120,50 +116,50 @@ class MonteCarloLocalizer:
 
     @property
     def localized(self) -> bool:
-        return self._localized_run >= self.settings.localized_scans
+        return self._localized_run >= self.config.localized_scans
 
     def set_map(self, landmarks: np.ndarray) -> None:
         """Replace the map (a newer estimate of it); the particles stay."""
-        self.map = LandmarkMap(landmarks, self.model, self.settings.lookup_cell, self.settings.match_candidates)
+        self.map = LandmarkMap(landmarks, self.model, self.config.lookup_cell, self.config.match_candidates)
 
     def initialize_at(self, pose: np.ndarray, cov: np.ndarray | None = None, count: int | None = None) -> None:
         """Position tracking: particles drawn around a known pose."""
-        count = count or self.settings.particles
+        count = count or self.config.particles
         self.size = count
         cov = np.diag([1e-4, 1e-4, 1e-6]) if cov is None else np.asarray(cov, float)
-        self.particles = np.asarray(pose, float) + self.rng.standard_normal((count, 3)) @ _sqrt_psd(cov).T
+        self.particles = np.asarray(pose, float) + self.rng.standard_normal((count, 3)) @ sqrt_psd(cov).T
         self.particles[:, 2] = wrap_angle(self.particles[:, 2])
         self.weights = np.full(count, 1.0 / count)
         self._recluster(np.ones(count))
 
     def initialize_global(self, observations: np.ndarray | None = None, count: int | None = None) -> None:
-        """Global localisation: ``count`` × ``reset_oversample`` poses from the scan and the map (or ``count``
+        """Global localization: ``count`` × ``reset_oversample`` poses from the scan and the map (or ``count``
         uniform ones); the update then weighs them by the scan and resamples to ``count``."""
-        s = self.settings
-        count = count or s.particles
+        cfg = self.config
+        count = count or cfg.particles
         self.size = count
         self.restarts += 1
         self._localized_run = 0
         self._lost_run = 0
-        if s.init == "uniform" or observations is None:
-            self.particles = uniform_poses(self.map, count, s.map_margin, self.rng)
+        if cfg.init == "uniform" or observations is None:
+            self.particles = uniform_poses(self.map, count, cfg.map_margin, self.rng)
             self.weights = np.full(count, 1.0 / count)
             self.clusters, self.significant = None, np.zeros(0, np.int64)
             return
-        self.particles = self._scan_candidates(observations, count * s.reset_oversample)
+        self.particles = self._scan_candidates(observations, count * cfg.reset_oversample)
         self.weights = np.full(self.count, 1.0 / self.count)
 
     def _scan_candidates(self, observations: np.ndarray, count: int) -> np.ndarray:
-        s = self.settings
-        return poses_from_scan(observations, self.map, self.model, count, s.pair_sigmas, s.reset_jitter_xy,
-                               s.reset_jitter_theta, s.map_margin, self.rng, s.reset_draws)
+        cfg = self.config
+        return poses_from_scan(observations, self.map, self.model, count, cfg.pair_sigmas, cfg.reset_jitter_xy,
+                               cfg.reset_jitter_theta, cfg.map_margin, self.rng, cfg.reset_draws)
 
     def _likelihood(self, poses: np.ndarray, observations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        return scan_log_likelihood(poses, observations, self.map, self.model, self.settings.chunk_particles)
+        return scan_log_likelihood(poses, observations, self.map, self.model, self.config.chunk_particles)
 
     def _draw_from_scan(self, observations: np.ndarray, count: int) -> tuple[np.ndarray, float]:
         """``count`` poses drawn from p(y | x) over the map, and the log of the candidates' mean likelihood."""
-        candidates = self._scan_candidates(observations, count * self.settings.reset_oversample)
+        candidates = self._scan_candidates(observations, count * self.config.reset_oversample)
         loglik, _ = self._likelihood(candidates, observations)
         top = loglik.max()
         likelihood = np.exp(loglik - top)
@@ -176,21 +172,21 @@ class MonteCarloLocalizer:
         """Move every particle with a control drawn from the odometry's noise (Table 1 step 1)."""
         if not self.initialized:
             return
-        s = self.settings
+        cfg = self.config
         n = self.count
-        root = _sqrt_psd(np.asarray(control_cov, float)) * s.motion_noise_scale
+        root = sqrt_psd(np.asarray(control_cov, float)) * cfg.motion_noise_scale
         controls = np.asarray(control, float) + self.rng.standard_normal((n, 2)) @ root.T
         moved = self.motion.step(self.particles, controls, dt)
         spread = math.sqrt(max(dt, 0.0))
-        moved[:, :2] += self.rng.normal(0.0, s.diffusion_xy * spread, size=(n, 2))
-        moved[:, 2] = wrap_angle(moved[:, 2] + self.rng.normal(0.0, s.diffusion_theta * spread, size=n))
+        moved[:, :2] += self.rng.normal(0.0, cfg.diffusion_xy * spread, size=(n, 2))
+        moved[:, 2] = wrap_angle(moved[:, 2] + self.rng.normal(0.0, cfg.diffusion_theta * spread, size=n))
         self.particles = moved
 
     # ---------------------------------------------------------------- update
 
     def update(self, observations: np.ndarray) -> UpdateReport:
         """Run the variant's table on one scan ``(n, 2)`` of (range, bearing)."""
-        s = self.settings
+        cfg = self.config
         z = np.asarray(observations, float).reshape(-1, 2)
         fresh = not self.initialized
         if fresh:
@@ -199,13 +195,13 @@ class MonteCarloLocalizer:
         added = 0
         override = np.zeros(0)
         if self.variant in ADAPTIVE and not fresh:
-            needed = int(np.clip(kld_sample_size(support(self.particles, s.kld_bin_xy, s.kld_bin_theta),
-                                                 s.kld_epsilon, s.kld_delta), s.min_particles, s.max_particles))
+            needed = int(np.clip(kld_sample_size(support(self.particles, cfg.kld_bin_xy, cfg.kld_bin_theta),
+                                                 cfg.kld_epsilon, cfg.kld_delta), cfg.min_particles, cfg.max_particles))
             if needed > self.size:
                 added = needed - self.size
                 new, log_evidence = self._draw_from_scan(z, added)
                 self.particles = np.vstack([self.particles, new])
-                self.weights = np.concatenate([self.weights, np.full(added, s.reset_prior * self.weights.mean())])
+                self.weights = np.concatenate([self.weights, np.full(added, cfg.reset_prior * self.weights.mean())])
                 override = np.full(added, log_evidence)
                 self.size = needed
             elif needed < self.size and (self.variant == "kld_srl" or self.significant.size <= 1):
@@ -231,7 +227,7 @@ class MonteCarloLocalizer:
         return self.last_report
 
     def weigh(self, observations: np.ndarray) -> None:
-        """Weigh the particles by one scan and cluster them, without resampling (one-shot localisation)."""
+        """Weigh the particles by one scan and cluster them, without resampling (one-shot localization)."""
         z = np.asarray(observations, float).reshape(-1, 2)
         if not self.initialized:
             self.initialize_global(z)
@@ -246,10 +242,10 @@ class MonteCarloLocalizer:
         self._recluster(quality)
 
     def _recluster(self, quality: np.ndarray) -> None:
-        s = self.settings
-        self.clusters = cluster_particles(self.particles, self.weights, quality, s.cluster_cell_xy, s.cluster_cell_theta,
-                                          s.cluster_merge_xy, s.cluster_merge_theta, s.cluster_prune)
-        self.significant = self.clusters.significant(s.cluster_min_weight, s.cluster_min_quality, s.max_hypotheses)
+        cfg = self.config
+        self.clusters = cluster_particles(self.particles, self.weights, quality, cfg.cluster_cell_xy, cfg.cluster_cell_theta,
+                                          cfg.cluster_merge_xy, cfg.cluster_merge_theta, cfg.cluster_prune)
+        self.significant = self.clusters.significant(cfg.cluster_min_weight, cfg.cluster_min_quality, cfg.max_hypotheses)
 
     def _best_quality(self) -> float:
         """Mean match quality of the heaviest cluster: how well the filter's main hypothesis explains the scan."""
@@ -260,50 +256,50 @@ class MonteCarloLocalizer:
         """Lost: no cluster has explained the scans for ``kidnap_scans`` scans, and poses drawn from the scan do
         clearly better (``kidnap_ratio``) than the best particle — with a partial map even the true pose
         explains a scan poorly, and starting again would not help."""
-        s = self.settings
-        if len(z) < s.kidnap_min_observations:
+        cfg = self.config
+        if len(z) < cfg.kidnap_min_observations:
             return False  # too few observations to tell a lost robot from an ambiguous view: the run neither grows nor ends
-        self._lost_run = self._lost_run + 1 if best_quality < s.kidnap_quality else 0
-        if self._lost_run < s.kidnap_scans or not s.kidnap_recovery:
+        self._lost_run = self._lost_run + 1 if best_quality < cfg.kidnap_quality else 0
+        if self._lost_run < cfg.kidnap_scans or not cfg.kidnap_recovery:
             return False
-        probe = self._scan_candidates(z, s.kidnap_probe)
+        probe = self._scan_candidates(z, cfg.kidnap_probe)
         _, probe_quality = self._likelihood(probe, z)
-        if probe_quality.max() <= s.kidnap_ratio * particle_best:
+        if probe_quality.max() <= cfg.kidnap_ratio * particle_best:
             return False
         self.kidnaps += 1
         return True
 
     def dominant(self) -> bool:
         """Does one hypothesis hold the weight now, compactly (``localized_*`` settings)?"""
-        s = self.settings
+        cfg = self.config
         c = self.clusters
         if c is None or not self.significant.size:
             return False
         top = int(self.significant[0])
         cov = c.cov[top]
-        return bool(c.weight[top] >= s.localized_weight and math.sqrt(max(cov[0, 0] + cov[1, 1], 0.0)) <= s.localized_std_xy
-                    and math.sqrt(max(cov[2, 2], 0.0)) <= s.localized_std_theta)
+        return bool(c.weight[top] >= cfg.localized_weight and math.sqrt(max(cov[0, 0] + cov[1, 1], 0.0)) <= cfg.localized_std_xy
+                    and math.sqrt(max(cov[2, 2], 0.0)) <= cfg.localized_std_theta)
 
     def _update_localized(self) -> None:
         self._localized_run = self._localized_run + 1 if self.dominant() else 0
 
     def _resample(self, mean_quality: float, z: np.ndarray, fresh: bool) -> int:
         """The variant's resampling step to ``self.size`` samples; returns how many poses it drew from the scan."""
-        s = self.settings
+        cfg = self.config
         target = self.size
         if self.variant == "kld" and not fresh:
             # Fox's rule over the draws in random order; the draws are binned before the next motion step spreads
             # them (one step's motion noise rarely leaves a 0.5 m × 10° bin), so copies of one parent share a bin
-            draws = systematic_resample(self.weights, s.max_particles, self.rng)
+            draws = systematic_resample(self.weights, cfg.max_particles, self.rng)
             draws = draws[self.rng.permutation(draws.size)]
-            keys = bin_keys(self.particles[draws], s.kld_bin_xy, s.kld_bin_theta)
-            n = kld_prefix_size(keys, s.kld_epsilon, s.kld_delta, s.min_particles, s.max_particles)
+            keys = bin_keys(self.particles[draws], cfg.kld_bin_xy, cfg.kld_bin_theta)
+            n = kld_prefix_size(keys, cfg.kld_epsilon, cfg.kld_delta, cfg.min_particles, cfg.max_particles)
             self.size = n
             self._take(draws[:n], np.full(n, 1.0 / n))
             return 0
         if self.variant in CLUSTERED and self.significant.size > 1:
             # right after a (re)start the weights reflect where candidates happened to fall, not evidence: forget them
-            memory = 0.0 if fresh else s.cluster_memory
+            memory = 0.0 if fresh else cfg.cluster_memory
             index, weights = two_stage_resample(self.weights, self.clusters.labels, self.significant, target, self.rng,
                                                 memory)
             self._take(index, weights)
@@ -324,7 +320,7 @@ class MonteCarloLocalizer:
 
     def _sensor_reset(self, mean_quality: float, z: np.ndarray) -> int:
         """Eq. 1: replace N_s = (1 − P̃/P_t)·N random particles by poses drawn from the scan."""
-        replace = int(self.count * max(0.0, 1.0 - mean_quality / self.settings.srl_threshold))
+        replace = int(self.count * max(0.0, 1.0 - mean_quality / self.config.srl_threshold))
         if replace <= 0:
             return 0
         slots = self.rng.choice(self.count, size=replace, replace=False)

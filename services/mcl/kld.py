@@ -1,4 +1,5 @@
-"""KLD-sampling (Fox 2003; paper 004 eq. 2): how many samples the posterior needs.
+"""KLD-sampling (Fox 2003; eq. 2 of Sehestedt and Schneider, "Monte Carlo Localization in Highly
+Symmetric Environments"): how many samples the posterior needs.
 
 With k bins of a fixed grid over (x, y, θ) holding at least one sample, the
 number of samples that keeps the Kullback-Leibler distance between the sample

@@ -1,4 +1,5 @@
-"""Scan likelihood on a landmark map with unknown correspondence (paper 004, Table 1 step 2).
+"""Scan likelihood on a landmark map with unknown correspondence (Sehestedt and Schneider,
+"Monte Carlo Localization in Highly Symmetric Environments", Table 1 step 2).
 
 Each observation is scored against its best-matching landmark (the smallest
 Mahalanobis distance of the range-bearing innovation), mixed with a uniform

@@ -1,4 +1,5 @@
-"""Resampling: systematic (low variance), and two-stage cluster sampling (paper 004 §5.1).
+"""Two-stage cluster resampling (Sehestedt and Schneider, "Monte Carlo Localization in Highly Symmetric
+Environments", §5.1); the systematic resampling inside each cluster is :func:`robots.gaussian.systematic_resample`.
 
 Two-stage sampling first draws clusters, then particles inside each cluster.
 With the weights normalised per cluster (η(x) = 1/C_j, eqs. 6-7) every
@@ -11,17 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-
-def systematic_resample(weights: np.ndarray, count: int, rng: np.random.Generator) -> np.ndarray:
-    """``count`` indices drawn systematically (one uniform offset, equal steps) from ``weights``."""
-    weights = np.asarray(weights, float)
-    total = weights.sum()
-    if count <= 0 or weights.size == 0:
-        return np.zeros(0, np.int64)
-    cdf = np.cumsum(weights / total) if total > 0 else np.arange(1, weights.size + 1) / weights.size
-    cdf[-1] = 1.0
-    points = (rng.random() + np.arange(count)) / count
-    return np.minimum(np.searchsorted(cdf, points, side="right"), weights.size - 1)
+from robots.gaussian import systematic_resample
 
 
 def two_stage_resample(weights: np.ndarray, labels: np.ndarray, clusters: np.ndarray, count: int,

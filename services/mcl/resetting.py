@@ -1,4 +1,5 @@
-"""Sensor resetting (Lenser & Veloso 2000; paper 004 §3.1, §4.2): poses drawn from a scan and the map.
+"""Sensor resetting (Lenser & Veloso 2000; Sehestedt and Schneider, "Monte Carlo Localization in Highly
+Symmetric Environments", §3.1, §4.2): poses drawn from a scan and the map.
 
 Two observations fix a pose once they are matched to two landmarks: the
 distance between the observed points (in the robot frame) must equal the

@@ -1,4 +1,4 @@
-"""``fleetslam mcl``: Monte Carlo localisation of robots against a map, over Zenoh.
+"""``fleetslam mcl``: Monte Carlo localization of robots against a map, over Zenoh.
 
 The map comes from the ``source`` setting: ``central`` (the latest
 :class:`Estimate` on ``{prefix}/central/estimate``), ``dslam`` (the
@@ -8,15 +8,16 @@ The map comes from the ``source`` setting: ``central`` (the latest
 replaces the old one at most every ``map_period_s``.
 
 Every robot whose :class:`RobotInfo` announces no start pose (every robot with
-``all_robots``) gets a :class:`~services.mcl.core.MonteCarloLocalizer`; its
-odometry moves the particles, each scan runs the variant's update, and an
-:class:`MclPose` (every significant hypothesis, the best pose, ``localized``)
-goes to ``{prefix}/mcl/{rid}/pose``. The central FastSLAM service takes a
-robot with an unknown start pose in on its first ``localized`` message.
+``all_robots``) joins the :class:`~services.mcl.fleet.MclFleet`, which gives
+it a filter; its odometry moves the particles, each scan runs the variant's
+update, and an :class:`MclPose` (every significant hypothesis, the best pose,
+``localized``) goes to ``{prefix}/mcl/{rid}/pose``. The central FastSLAM
+service takes a robot with an unknown start pose in on its first
+``localized`` message.
 
 The queryable ``{prefix}/mcl/localize`` answers a :class:`LocalizeRequest`
 (one scan and its sensor) with the hypotheses of a one-shot global
-localisation, or a tracked robot's belief. Bad input — undecodable payloads,
+localization, or a tracked robot's belief. Bad input — undecodable payloads,
 out-of-order or duplicate stream messages, keys that disagree with the
 message's robot id, a map of the wrong shape — is counted and dropped.
 """
@@ -26,7 +27,6 @@ from __future__ import annotations
 import argparse
 import logging
 import time
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -34,11 +34,14 @@ import zenoh
 
 from schemas.codec import decode, encode
 from schemas.config import MclSettings, add_settings_arguments, settings_from_args
+from schemas.contract import OdomEvent, ScanEvent
 from schemas.mcl import LocalizeReply, LocalizeRequest
 from schemas.messages import Estimate, MapEstimate, MclPose, Odometry, PoseHypothesis, RobotInfo, Scan, WorldTruth
 from schemas.streams import Verdict, StreamTracker
 from schemas.transport import StreamPublisher
+from services.mcl.config import MclConfig
 from services.mcl.core import MonteCarloLocalizer
+from services.mcl.fleet import MclFleet, RobotState
 from services.runtime import ServiceShell
 
 log = logging.getLogger(__name__)
@@ -63,16 +66,6 @@ def load_map_file(path: str) -> np.ndarray:
     return data
 
 
-@dataclass
-class Tracked:
-    """One robot the service localises."""
-
-    info: RobotInfo
-    mcl: MonteCarloLocalizer | None = None
-    scans: int = 0
-    was_localized: bool = False
-
-
 def hypotheses_message(mcl: MonteCarloLocalizer) -> tuple[np.ndarray, np.ndarray, list[PoseHypothesis]]:
     """(best pose, best covariance, hypotheses) of a filter, ready for a message."""
     found = mcl.hypotheses()
@@ -84,7 +77,7 @@ def hypotheses_message(mcl: MonteCarloLocalizer) -> tuple[np.ndarray, np.ndarray
 
 
 class MclService(ServiceShell):
-    """Localises robots with unknown start poses against the chosen map; answers localisation queries."""
+    """Localizes robots with unknown start poses against the chosen map; answers localization queries."""
 
     name = "mcl"
 
@@ -92,14 +85,12 @@ class MclService(ServiceShell):
         super().__init__(settings, instance)
         self.settings: MclSettings = settings
         self.source = settings.source.partition(":")[0]
-        self.landmarks: np.ndarray | None = None
         self.map_applied = float("-inf")
-        self.robots: dict[str, Tracked] = {}
+        landmarks = load_map_file(settings.source.partition(":")[2]) if self.source == "file" else None
+        self.fleet = MclFleet(settings.core(MclConfig), landmarks)
         self.tracker = StreamTracker()
         self.pose_pubs: dict[str, StreamPublisher] = {}
         self.pose_seq: dict[str, int] = {}  # kept when a robot leaves: its MclPose stream goes on where it stopped
-        if self.source == "file":
-            self.landmarks = load_map_file(settings.source.partition(":")[2])
 
     # ----------------------------------------------------------------- wiring
 
@@ -142,7 +133,7 @@ class MclService(ServiceShell):
             self._on_map(payload)
         elif tag == "gone":
             parsed = self.keys.parse_robot_key(key)
-            if parsed and parsed[0] in self.robots:
+            if parsed and parsed[0] in self.fleet:
                 log.info("robot %s left (its filter stays, for a return after a link cut)", parsed[0])
                 self.tracker.leave(parsed[0])
         elif tag in ("info", "odom", "scan"):
@@ -160,83 +151,69 @@ class MclService(ServiceShell):
         if landmarks.shape[0] == 0:
             self.reject("empty_map")
             return
-        if self.landmarks is not None and now - self.map_applied < self.settings.map_period_s:
+        if self.fleet.landmarks is not None and now - self.map_applied < self.settings.map_period_s:
             return
-        self.landmarks, self.map_applied = landmarks, now
-        for tracked in self.robots.values():
-            if tracked.mcl is None:
-                tracked.mcl = self._make_filter(tracked.info)
-            else:
-                tracked.mcl.set_map(landmarks)
+        self.map_applied = now
+        self.fleet.set_map(landmarks)
 
     def _on_info(self, rid: str, payload: bytes) -> None:
         info = decode(payload, RobotInfo)
         if info.robot_id != rid:
             self.reject("robot_id_mismatch", f"{info.robot_id} on the key of {rid}")
             return
-        if rid in self.robots or not (info.start_pose is None or self.settings.all_robots):
+        if rid in self.fleet or not (info.start_pose is None or self.settings.all_robots):
             return
-        log.info("localising robot %s (%s start pose)", rid, "unknown" if info.start_pose is None else "known")
-        self.robots[rid] = Tracked(info=info, mcl=self._make_filter(info))
+        log.info("localizing robot %s (%s start pose)", rid, "unknown" if info.start_pose is None else "known")
+        self.fleet.add_robot(info)
         self.pose_pubs.setdefault(rid, self.publisher(self.keys.mcl_pose(rid)))
 
-    def _make_filter(self, info: RobotInfo) -> MonteCarloLocalizer | None:
-        if self.landmarks is None:
-            return None
-        rng = np.random.default_rng([self.settings.seed, len(self.pose_pubs)])
-        return MonteCarloLocalizer(self.landmarks, info, self.settings, rng)
-
-    def _accept(self, rid: str, stream: str, message) -> Tracked | None:
-        """The tracked robot for a stream message that is in order, else None (counted)."""
+    def _accept(self, rid: str, stream: str, message) -> RobotState | None:
+        """The fleet's robot for a stream message that is in order, else None (counted)."""
         if message.robot_id != rid:
             self.reject("robot_id_mismatch", f"{message.robot_id} on the key of {rid}")
             return None
-        tracked = self.robots.get(rid)
-        if tracked is None:
+        state = self.fleet.robots.get(rid)
+        if state is None:
             return None
         if self.tracker.new_run(rid, stream, message.seq):
-            tracked = self._restart(rid)
+            state = self._restart(rid)
         verdict = self.tracker.check(rid, stream, message.seq, message.stamp)
         if verdict is not Verdict.ACCEPT:
             self.reject(verdict.value, f"{rid}/{stream} seq {message.seq}")
             return None
-        if tracked.mcl is None:
+        if state.mcl is None:
             self.rejected["no_map_yet"] += 1
             return None
-        return tracked
+        return state
 
-    def _restart(self, rid: str) -> Tracked:
-        """A robot that left is back with a new run (seq 0 again): localise it from scratch."""
-        log.info("robot %s started a new run; localising it again", rid)
-        info = self.robots[rid].info
-        self.robots[rid] = Tracked(info=info, mcl=self._make_filter(info))
+    def _restart(self, rid: str) -> RobotState:
+        """A robot that left is back with a new run (seq 0 again): localize it from scratch."""
+        log.info("robot %s started a new run; localizing it again", rid)
         self.extra["robot_restarts"] = self.extra.get("robot_restarts", 0.0) + 1.0
-        return self.robots[rid]
+        return self.fleet.restart_robot(rid)
 
     def _on_odom(self, rid: str, payload: bytes) -> None:
         odom = decode(payload, Odometry)
-        tracked = self._accept(rid, "odom", odom)
-        if tracked is not None:
-            tracked.mcl.predict(odom.control, odom.dt, odom.control_cov)
+        if self._accept(rid, "odom", odom) is not None:
+            self.fleet.on_odometry(OdomEvent.from_message(odom))
 
     def _on_scan(self, rid: str, payload: bytes) -> None:
         scan = decode(payload, Scan)
-        tracked = self._accept(rid, "scan", scan)
-        if tracked is None:
+        state = self._accept(rid, "scan", scan)
+        if state is None:
             return
-        report = tracked.mcl.update(np.stack([scan.ranges, scan.bearings], -1))
-        tracked.scans += 1
+        was_localized = state.localized
+        report = self.fleet.on_scan(ScanEvent.from_message(scan))
         if report.kidnapped:
-            log.warning("robot %s: no hypothesis explains its scans; global localisation again", rid)
-        changed = report.localized != tracked.was_localized
+            log.warning("robot %s: no hypothesis explains its scans; global localization again", rid)
+        changed = report.localized != was_localized
         if report.localized and changed:
-            log.info("robot %s localised at %s after %d scans", rid, np.round(tracked.mcl.best()[0], 2), tracked.scans)
-        tracked.was_localized = report.localized
-        if changed or tracked.scans % self.settings.publish_every == 0:
-            self._publish(rid, tracked, scan.stamp)
+            log.info("robot %s localized at %s after %d scans", rid, np.round(state.mcl.best()[0], 2), state.scans)
+        if changed or state.scans % self.settings.publish_every == 0:
+            self._publish(rid, state, scan.stamp)
 
-    def _publish(self, rid: str, tracked: Tracked, stamp: float) -> None:
-        mcl = tracked.mcl
+    def _publish(self, rid: str, state: RobotState, stamp: float) -> None:
+        mcl = state.mcl
         best, cov, hypotheses = hypotheses_message(mcl)
         seq = self.pose_seq.get(rid, 0)
         message = MclPose(robot_id=rid, seq=seq, stamp=stamp, best_pose=best, best_cov=cov,
@@ -246,28 +223,24 @@ class MclService(ServiceShell):
         self.published += 1
 
     def _answer(self, query: zenoh.Query) -> None:
-        """One-shot localisation (or a tracked robot's belief) for a LocalizeRequest."""
+        """One-shot localization (or a tracked robot's belief) for a LocalizeRequest."""
         key = self.keys.mcl_localize
         request = self.decode_request(query, LocalizeRequest)
         if request is None:
             return
-        tracked = self.robots.get(request.robot_id) if request.robot_id else None
-        if request.ranges.size == 0 and tracked is not None and tracked.mcl is not None and tracked.mcl.initialized:
-            mcl, source = tracked.mcl, "track"
+        state = self.fleet.robots.get(request.robot_id) if request.robot_id else None
+        if request.ranges.size == 0 and state is not None and state.mcl is not None and state.mcl.initialized:
+            mcl, source = state.mcl, "track"
         else:
-            sensor = request.sensor or (tracked.info.sensor if tracked else None)
+            sensor = request.sensor or (state.info.sensor if state else None)
             if sensor is None:
                 self.refuse(query, "no_sensor", "a scan needs its sensor (or the id of a robot the service tracks)")
                 return
-            if self.landmarks is None:
+            if self.fleet.landmarks is None:
                 self.refuse(query, "no_map", f"no map from source {self.settings.source!r} yet")
                 return
-            info = RobotInfo(robot_id=request.robot_id or "query", stamp=0.0, motion_model="unicycle", sensor=sensor,
-                             odom_rate_hz=1.0, scan_rate_hz=1.0)
             count = request.particles or self.settings.localize_particles
-            mcl = MonteCarloLocalizer(self.landmarks, info, self.settings, np.random.default_rng(request.seed))
-            mcl.initialize_global(request.observations, count)
-            mcl.weigh(request.observations)
+            mcl = self.fleet.localize_once(request.observations, sensor, count, request.seed, request.robot_id or "query")
             source = "scan"
         best, cov, hypotheses = hypotheses_message(mcl)
         reply = LocalizeReply(request_id=request.request_id, robot_id=request.robot_id, stamp=time.time(), source=source,
@@ -278,9 +251,9 @@ class MclService(ServiceShell):
         self.extra["localize_replies"] = self.extra.get("localize_replies", 0.0) + 1.0
 
     def _refresh_extra(self) -> None:
-        self.extra["robots"] = float(len(self.robots))
-        self.extra["localized"] = float(sum(1 for t in self.robots.values() if t.mcl is not None and t.mcl.localized))
-        self.extra["map_landmarks"] = float(0 if self.landmarks is None else self.landmarks.shape[0])
+        self.extra["robots"] = float(len(self.fleet.robots))
+        self.extra["localized"] = float(self.fleet.localized_count())
+        self.extra["map_landmarks"] = float(0 if self.fleet.landmarks is None else self.fleet.landmarks.shape[0])
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -23,9 +23,7 @@ import time
 from pathlib import Path
 
 from robots.loaders import data_root
-from services.cli import COMMANDS
 from services.healthcheck import check, endpoint_ports
-from services.launcher import module_exists as importable
 from tests.helpers import REPO, wait_until
 from tests.integration.netns import NetnsLab
 
@@ -69,10 +67,6 @@ def compose_config(binary: Path, *words: str, files: tuple[str, ...] = ("docker-
     assert result.returncode == 0, result.stderr
     return json.loads(result.stdout)
 
-
-def module_exists(command: str) -> bool:
-    """Whether ``fleetslam COMMAND`` is installed (services land one by one)."""
-    return importable(COMMANDS[command][0])
 
 
 class ComposeFleet:

@@ -30,7 +30,7 @@ import time
 import pytest
 
 from tests.helpers import wait_until
-from tests.integration.compose import ComposeFleet, compose_config, module_exists
+from tests.integration.compose import ComposeFleet, compose_config
 from tests.integration.observer import read_rows
 
 pytestmark = pytest.mark.integration
@@ -73,7 +73,7 @@ def test_no_observation_lost_across_a_15s_link_cut_and_a_router_restart(compose_
     fleet = ComposeFleet(netns_lab, project, tmp_path)
     robots = [n for n, s in project["services"].items() if s["command"] == ["robot"]]
     rids = {name: fleet.service(name)["environment"]["FLEETSLAM_ROBOT_ID"] for name in robots}
-    receivers = ["central"] if module_exists("central") else []  # the fusing service, when it exists
+    receivers = ["central"]
     # real-time robots that outlive the faults; the test stops them
     running = {"FLEETSLAM_DURATION": "600", "FLEETSLAM_SPEEDUP": "1", "FLEETSLAM_START_DELAY": "0.5"}
     observed = fleet.start_fleet(receivers, robots, running)

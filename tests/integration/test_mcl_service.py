@@ -1,4 +1,4 @@
-"""``fleetslam mcl`` over a real router: a robot that joins with no start pose is localised; one-shot queries."""
+"""``fleetslam mcl`` over a real router: a robot that joins with no start pose is localized; one-shot queries."""
 
 from __future__ import annotations
 
@@ -31,7 +31,7 @@ def nearest_truth(truths: list[GroundTruth], stamp: float) -> np.ndarray:
     return best.pose
 
 
-def test_robot_with_unknown_start_pose_is_localised(processes, zsession, prefix):
+def test_robot_with_unknown_start_pose_is_localized(processes, zsession, prefix):
     keys = Keys(prefix)
     poses = Collector(zsession, keys.mcl_pose("r4"))
     truth = Collector(zsession, keys.truth("r4"))
@@ -43,10 +43,10 @@ def test_robot_with_unknown_start_pose_is_localised(processes, zsession, prefix)
     processes.start("r4", "robot", "--id", "r4", "--world", "office", "--unknown-start", "--seed", "3",
                     "--speedup", "4", "--duration", "24", "--start-delay", "0.5")
 
-    def localised():
+    def localized():
         return [p for p in poses.decoded(MclPose) if p.localized]
 
-    found = wait_until(localised, 40, what="a localised MclPose for r4")
+    found = wait_until(localized, 40, what="a localized MclPose for r4")
     first = found[0]
     truths = wait_until(lambda: truth.decoded(GroundTruth), 5, what="truth of r4")
     wait_until(lambda: max(t.stamp for t in truth.decoded(GroundTruth)) >= first.stamp, 10, what="truth up to the fix")
@@ -58,7 +58,7 @@ def test_robot_with_unknown_start_pose_is_localised(processes, zsession, prefix)
     seqs = [p.seq for p in poses.decoded(MclPose)]
     assert seqs == sorted(seqs) and len(set(seqs)) == len(seqs)
 
-    # one-shot localisation from one of the robot's scans: the truth is among the hypotheses
+    # one-shot localization from one of the robot's scans: the truth is among the hypotheses
     info = infos.decoded(RobotInfo)[-1]
     scan = [s for s in scans.decoded(Scan) if len(s) >= 4][-1]
     request = LocalizeRequest(request_id=7, ranges=scan.ranges, bearings=scan.bearings, sensor=info.sensor, seed=1)
@@ -83,7 +83,7 @@ def test_robot_with_unknown_start_pose_is_localised(processes, zsession, prefix)
     assert truths
 
 
-def test_unknown_robot_is_localised_in_the_central_map_and_merged(processes, zsession, prefix):
+def test_unknown_robot_is_localized_in_the_central_map_and_merged(processes, zsession, prefix):
     """Paper 001's use: MCL finds r7 in the map central builds from r1; central then takes r7 in.
 
     In the office world robot 7 starts where robot 1 does (its own random walk), so r1's first scans already map
@@ -112,9 +112,9 @@ def test_unknown_robot_is_localised_in_the_central_map_and_merged(processes, zse
     assert np.hypot(*(r7.pose[:2] - nearest_truth(truth.decoded(GroundTruth), r7.stamp)[:2])) < 1.0
 
 
-def test_a_robot_that_leaves_and_runs_again_is_localised_again(processes, zsession, prefix):
+def test_a_robot_that_leaves_and_runs_again_is_localized_again(processes, zsession, prefix):
     """The same robot id twice in a row: the second run (seq 0 after its token went away) starts a new global
-    localisation instead of being rejected as duplicates."""
+    localization instead of being rejected as duplicates."""
     keys = Keys(prefix)
     poses = Collector(zsession, keys.mcl_pose("r4"))
     truth = Collector(zsession, keys.truth("r4"))
@@ -124,13 +124,13 @@ def test_a_robot_that_leaves_and_runs_again_is_localised_again(processes, zsessi
     run = ("robot", "--id", "r4", "--world", "office", "--unknown-start", "--seed", "3", "--speedup", "4",
            "--duration", "8", "--start-delay", "0.5")
     assert processes.start("r4-run1", *run).wait(timeout=60) == 0
-    wait_until(lambda: any(p.localized for p in poses.decoded(MclPose)), 10, what="r4 localised in its first run")
+    wait_until(lambda: any(p.localized for p in poses.decoded(MclPose)), 10, what="r4 localized in its first run")
     first_run = poses.count()
     assert processes.start("r4-run2", *run).wait(timeout=60) == 0
     restarted = wait_until(lambda: [s for s in stats.decoded(ServiceStats) if s.extra.get("robot_restarts") == 1.0],
                            10, what="the restart counted")
     assert not {k for k in restarted[-1].rejected if k in ("duplicate", "out_of_order", "time_backwards")}, restarted[-1].rejected
     second = wait_until(lambda: [p for p in poses.decoded(MclPose)[first_run:] if p.localized], 10,
-                        what="r4 localised in its second run")
+                        what="r4 localized in its second run")
     actual = nearest_truth(truth.decoded(GroundTruth), second[-1].stamp)
     assert np.hypot(*(second[-1].best_pose[:2] - actual[:2])) < 0.5

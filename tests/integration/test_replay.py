@@ -2,7 +2,7 @@
 
 import pytest
 
-from robots.dataset import OdomEvent, ScanEvent, TruthEvent
+from schemas.contract import OdomEvent, ScanEvent, TruthEvent
 from robots.loaders import data_root, load_dataset
 from schemas.messages import GroundTruth, Odometry, Scan
 from tests.helpers import Collector, wait_until

@@ -5,16 +5,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from robots.dataset import OdomEvent, ScanEvent
+from schemas.contract import OdomEvent, ScanEvent
 from robots.simulator import simulate
 from schemas.association import CLUTTER, NEW
-from services.association.ekf_slam import EkfOptions, EkfSlam, make_estimator
-from services.estimator import RunOptions
+from schemas.contract import RunOptions
+from services.baselines.ekf_slam import EkfConfig, EkfSlam, make_estimator
 
 
-def run(dataset, association: str, extra: dict | None = None):
+def run(dataset, association: str, settings: dict | None = None):
     infos = [log.info for log in dataset.robots.values()]
-    estimator = make_estimator(RunOptions(estimator="ekf", association=association, extra=extra or {}), infos)
+    estimator = make_estimator(RunOptions(estimator="ekf", association=association, settings=settings or {}), infos)
     handlers = {OdomEvent: estimator.on_odometry, ScanEvent: estimator.on_scan}
     for event in dataset.events():
         handlers[type(event)](event)
@@ -69,7 +69,7 @@ def test_unknown_association_is_refused():
 
 
 def test_decisions_are_scored_against_the_true_ids():
-    estimator = EkfSlam(RunOptions(estimator="ekf", association="exact"), EkfOptions())
+    estimator = EkfSlam("exact", EkfConfig())
     estimator.origin = [7, 8]
     assignment = np.array([0, 1, NEW, NEW, CLUTTER, NEW])
     labels = np.array([0, 1, -1, -1, -1, -1])

@@ -5,17 +5,17 @@ import dataclasses
 import numpy as np
 from scipy.stats import chi2
 
-from robots.dataset import OdomEvent, ScanEvent
 from robots.simulator import simulate
 from robots.worlds import make_world
-from services.dslam.estimator import DSlam
-from services.estimator import RunOptions, make_estimator
-from schemas.config import DslamFilterSettings
+from schemas.contract import OdomEvent, RunOptions, ScanEvent
+from services.dslam.config import DslamConfig
+from services.dslam.core import DSlam
+from services.estimators import make_estimator
 
 
 def run(estimator, data):
     for log in data.robots.values():
-        if log.robot_id not in estimator.robots:
+        if not estimator.has_robot(log.robot_id):
             estimator.add_robot(log.info)
     for event in data.events():
         if isinstance(event, OdomEvent):
@@ -59,7 +59,7 @@ def test_noiseless_data_give_the_exact_map_and_poses():
 
 def test_grid_map_is_consistent_and_sparse():
     data = simulate("grid196", robots=1, seed=3, duration=30.0)
-    estimator = run(DSlam(DslamFilterSettings()), data)
+    estimator = run(DSlam(DslamConfig()), data)
     view = estimator.landmark_map()
     n = view.means.shape[0]
     nees = estimator.map.normalised_error(data.landmarks[view.ids])
@@ -85,8 +85,8 @@ def test_robots_feed_one_map_and_an_unknown_start_is_placed():
 
 def test_clutter_stays_out_of_the_map_with_association():
     data = simulate("arena", robots=1, seed=2, duration=25.0, clutter_rate=1.0)
-    settings = DslamFilterSettings(association="auto", confirm_hits=3, tentative_misses=2)
-    estimator = run(DSlam(settings), data)
+    config = DslamConfig(association="auto", confirm_hits=3, tentative_misses=2)
+    estimator = run(DSlam(config), data)
     view = estimator.landmark_map()
     distance = np.linalg.norm(view.means[:, None] - data.landmarks[None], axis=-1).min(axis=1)
     assert view.means.shape[0] >= 10

@@ -1,10 +1,10 @@
-"""D-SLAM localisation: covariance intersection (consistent for any correlation), observation estimate, prediction."""
+"""D-SLAM localization: covariance intersection (consistent for any correlation), observation estimate, prediction."""
 
 import numpy as np
 import pytest
 
 from robots.models import RangeBearingSensor, UnicycleModel
-from services.dslam.localization import (choose_omega, covariance_intersection, intersect, localise,
+from services.dslam.localization import (choose_omega, covariance_intersection, intersect, localize,
                                          observation_estimate, pose_from_points, predict)
 
 R = np.diag([0.05**2, np.radians(1.0) ** 2])
@@ -74,7 +74,7 @@ def test_observation_estimate_recovers_the_pose_from_noiseless_observations():
     assert estimate.full_rank
     np.testing.assert_allclose(estimate.pose, pose, atol=1e-8)
     np.testing.assert_allclose(estimate.gradient, estimate.info @ (estimate.pose - guess), atol=1e-8)
-    fused, cov, _ = localise(guess, np.diag([0.5, 0.5, 0.1]), estimate)
+    fused, cov, _ = localize(guess, np.diag([0.5, 0.5, 0.1]), estimate)
     assert np.linalg.norm(fused[:2] - pose[:2]) < np.linalg.norm(guess[:2] - pose[:2])
 
 

@@ -1,4 +1,4 @@
-"""D-SLAM recast measurement (paper 003, eqs. 3, 4, 7-9): invariance, Jacobians, covariance, initialisation."""
+"""D-SLAM recast measurement (Wang, Huang, Dissanayake, eqs. 3, 4, 7-9): invariance, Jacobians, covariance, initialisation."""
 
 import numpy as np
 import pytest

@@ -9,15 +9,13 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
+from benchmarks.support.paper001 import two_beacons
 from central.fastslam import FastSlam, FastSlamConfig, make_estimator
 from central.fastslam.landmarks import LandmarkMap
-from central.paper001 import two_beacons
-from robots.dataset import OdomEvent, ScanEvent
 from robots.models import AckermannModel, UnicycleModel, integrate_controls, se2_accumulate, se2_compose, wrap_angle
 from robots.simulator import simulate
 from robots.worlds import _sensor, make_world
-from services.estimator import RunOptions
-from services.estimator import make_estimator as registry_make
+from schemas.contract import OdomEvent, RunOptions, ScanEvent, SettingsError
 
 
 def feed(estimator, dataset, robots=None):
@@ -131,7 +129,8 @@ def test_known_association_is_consistent():
 
 
 def test_mht_keeps_and_separates_two_close_beacons():
-    """Paper 001 Fig. 2-3: two beacons 18 cm apart with 15 cm range noise end up as two landmarks, one each."""
+    """Howard, "Multi-robot simultaneous localization and mapping using particle filters", Fig. 2-3: two beacons
+    18 cm apart with 15 cm range noise end up as two landmarks, one on each."""
     world = two_beacons()
     data = simulate(world, robots=1, seed=0, duration=70.0)
     slam = FastSlam(FastSlamConfig(particles=50, association="mht", seed=0), [data.robots["r1"].info])
@@ -142,8 +141,9 @@ def test_mht_keeps_and_separates_two_close_beacons():
     near = means[np.linalg.norm(means - pair.mean(0), axis=1) < 0.4]
     assert len(near) == 2
     error = np.linalg.norm(near[:, None] - pair[None], axis=-1)
-    assignment = [0, 1] if error[0, 0] + error[1, 1] < error[0, 1] + error[1, 0] else [1, 0]
-    assert assignment in ([0, 1], [1, 0])
+    own = error.argmin(1)
+    assert sorted(own.tolist()) == [0, 1], "both landmarks are nearest the same beacon"
+    assert error[[0, 1], own].max() < 0.5 * np.linalg.norm(pair[0] - pair[1]), "a landmark is not on its own beacon"
     separation = np.linalg.norm(near[0] - near[1])
     assert 0.09 < separation < 0.3
 
@@ -204,14 +204,15 @@ def test_bad_input_is_counted_and_never_corrupts_the_state():
 def test_robot_with_unknown_start_waits_until_placed():
     data = simulate("arena", robots=2, seed=0, duration=5.0, unknown_start=[False, True])
     slam = FastSlam(FastSlamConfig(particles=200, association="known", seed=0), [log.info for log in data.robots.values()])
-    assert set(slam.poses()) == {"r1"} and set(slam.parked) == {"r2"}
+    assert set(slam.poses()) == {"r1"} and slam.is_waiting("r2") and not slam.is_waiting("r1")
     feed(slam, data, robots=["r2"])
     assert slam.rejected["robot_not_placed"] > 0 and slam.map.counts().max() == 0
     truth = data.robots["r2"].truth_pose[-1]
     assert not slam.place_robot("r2", truth, np.full((3, 3), np.nan))
     assert not slam.place_robot("r2", truth, np.eye(3), stamp=float("nan"))
     assert slam.place_robot("r2", truth, np.diag([0.04, 0.04, 0.01]), stamp=float(data.robots["r2"].truth_stamp[-1]))
-    assert slam.robots["r2"].pose_time == data.robots["r2"].truth_stamp[-1]
+    assert slam.has_robot("r2") and not slam.is_waiting("r2")
+    assert slam.pose_stamp("r2") == data.robots["r2"].truth_stamp[-1]
     pose, cov = slam.poses()["r2"]
     np.testing.assert_allclose(pose[:2], truth[:2], atol=0.05)
     np.testing.assert_allclose(np.diag(cov), [0.04, 0.04, 0.01], rtol=0.3)
@@ -229,14 +230,15 @@ def test_a_robot_placed_mid_run_moves_on_from_the_placement_time():
         if event.stamp > log.truth_stamp[fix]:
             (slam.on_odometry if isinstance(event, OdomEvent) else slam.on_scan)(event)
     pose, _ = slam.poses()["r1"]
-    assert slam.robots["r1"].pose_time == pytest.approx(log.end_stamp)
+    assert slam.pose_stamp("r1") == pytest.approx(log.end_stamp)
     assert np.hypot(*(pose[:2] - log.truth_pose[-1, :2])) < 0.15
 
 
 def test_a_robot_that_has_not_moved_can_be_parked_again():
     data = simulate("arena", robots=2, seed=0, duration=2.0)
     slam = FastSlam(FastSlamConfig(particles=10, association="known", seed=0), [log.info for log in data.robots.values()])
-    assert slam.unplace("r1") is not None and set(slam.parked) == {"r1"} and set(slam.robots) == {"r2"}
+    assert slam.unplace("r1") is not None and slam.is_waiting("r1") and not slam.has_robot("r1")
+    assert slam.has_robot("r2") and not slam.is_waiting("r2") and set(slam.poses()) == {"r2"}
     assert slam.robots["r2"].index == 0 and slam.pose.shape[1] == 1
     feed(slam, data, robots=["r2"])
     assert slam.unplace("r2") is None and slam.unplace("ghost") is None
@@ -258,15 +260,35 @@ def test_a_robot_joining_later_shares_the_map():
 
 
 def test_registered_as_an_estimator():
+    from services.estimators import make_estimator as registry_make
+
     data = simulate("arena", robots=1, seed=0, duration=1.0)
     infos = [data.robots["r1"].info]
-    slam = registry_make(RunOptions("fastslam", "mht", 7, 3, "fastslam2", {"exclusive": False}), infos)
+    options = RunOptions("fastslam", "mht", 7, 3, settings={"proposal": "fastslam2", "exclusive": False})
+    slam = registry_make(options, infos)
     assert isinstance(slam, FastSlam)
     assert slam.config.particles == 7 and slam.config.proposal == "fastslam2" and not slam.config.exclusive
+    assert slam.config.association == "mht" and slam.config.seed == 3
+    assert make_estimator(RunOptions("fastslam", "nn"), infos).config.particles == FastSlamConfig().particles
     with pytest.raises(ValueError):
         registry_make(RunOptions("fastslam", "jcbb"), infos)
     with pytest.raises(ValueError):
-        registry_make(RunOptions("fastslam", "nn", extra={"no_such_setting": 1}), infos)
+        registry_make(RunOptions("fastslam", "nn", settings={"no_such_setting": 1}), infos)
+
+
+@pytest.mark.parametrize("association, settings, named", [
+    ("jcbb", {}, "association"),
+    ("nn", {"no_such_setting": 1}, "no_such_setting"),
+    ("nn", {"max_obs_range": "abc"}, "max_obs_range"),
+    ("nn", {"proposal": "fastslam3"}, "proposal"),
+    ("nn", {"gate_probability": 0.999, "new_landmark_probability": 0.99}, "new_landmark_probability"),
+])
+def test_bad_settings_are_one_line_errors(association, settings, named):
+    """A bad ``--set`` name or value is a SettingsError of one line naming the setting, never a numpy error."""
+    with pytest.raises(SettingsError) as error:
+        make_estimator(RunOptions("fastslam", association, settings=settings), [])
+    message = str(error.value)
+    assert "\n" not in message and named in message and "fastslam" in message
 
 
 def test_same_seed_same_result():

@@ -1,4 +1,5 @@
-"""Monte Carlo localisation (paper 004): KLD bound, resampling, clustering, likelihood, resetting."""
+"""Monte Carlo localization (Sehestedt and Schneider, "Monte Carlo Localization in Highly Symmetric Environments"):
+KLD bound, resampling, clustering, likelihood, resetting."""
 
 from __future__ import annotations
 
@@ -7,14 +8,15 @@ import math
 import numpy as np
 import pytest
 
+from robots.gaussian import systematic_resample
 from robots.models import RangeBearingSensor, wrap_angle
-from schemas.config import MclFilterSettings
 from schemas.messages import RobotInfo, SensorSpec
 from services.mcl.clustering import cluster_particles
+from services.mcl.config import MclConfig
 from services.mcl.core import VARIANTS, MonteCarloLocalizer
 from services.mcl.kld import bin_keys, kld_prefix_size, kld_sample_size, normal_quantile, support
 from services.mcl.likelihood import LandmarkMap, ScanModel, scan_log_likelihood
-from services.mcl.resampling import systematic_resample, two_stage_resample
+from services.mcl.resampling import two_stage_resample
 from services.mcl.resetting import poses_from_scan
 
 R = np.diag([0.05**2, math.radians(1.0) ** 2])
@@ -29,9 +31,9 @@ def info(spec: SensorSpec | None = None) -> RobotInfo:
                      scan_rate_hz=10.0)
 
 
-def scan_model(spec: SensorSpec, settings: MclFilterSettings) -> ScanModel:
-    return ScanModel.from_spec(spec, settings.noise_scale, settings.clutter_weight, settings.miss_floor,
-                               settings.view_margin_range, settings.view_margin_bearing, settings.match_sigmas)
+def scan_model(spec: SensorSpec, config: MclConfig) -> ScanModel:
+    return ScanModel.from_spec(spec, config.noise_scale, config.clutter_weight, config.miss_floor,
+                               config.view_margin_range, config.view_margin_bearing, config.match_sigmas)
 
 
 # ---------------------------------------------------------------- KLD bound
@@ -123,10 +125,10 @@ def test_grid_clustering_separates_rotated_hypotheses_and_merges_one_cloud():
 def test_likelihood_matches_the_exact_innovation_and_prefers_the_truth():
     rng = np.random.default_rng(4)
     landmarks = rng.uniform(-5.0, 5.0, size=(30, 2))
-    settings = MclFilterSettings(miss_floor=1.0)
+    config = MclConfig(miss_floor=1.0)
     spec = sensor()
-    model = scan_model(spec, settings)
-    lmap = LandmarkMap(landmarks, model, settings.lookup_cell, 4)
+    model = scan_model(spec, config)
+    lmap = LandmarkMap(landmarks, model, config.lookup_cell, 4)
     truth = np.array([0.3, -0.2, 0.4])
     z = RangeBearingSensor().observe(truth, landmarks)
     seen = z[:, 0] <= 5.5
@@ -144,9 +146,9 @@ def test_likelihood_matches_the_exact_innovation_and_prefers_the_truth():
 
 def test_one_false_detection_costs_the_floor_and_a_missed_landmark_costs_p_miss():
     landmarks = np.array([[2.0, 0.0], [0.0, 2.0], [-2.0, 0.5]])
-    settings = MclFilterSettings()
-    model = scan_model(sensor(), settings)
-    lmap = LandmarkMap(landmarks, model, settings.lookup_cell, 2)
+    config = MclConfig()
+    model = scan_model(sensor(), config)
+    lmap = LandmarkMap(landmarks, model, config.lookup_cell, 2)
     pose = np.zeros((1, 3))
     z = RangeBearingSensor().observe(pose[0], landmarks)
     full, _ = scan_log_likelihood(pose, z, lmap, model)
@@ -162,9 +164,9 @@ def test_one_false_detection_costs_the_floor_and_a_missed_landmark_costs_p_miss(
 def test_poses_drawn_from_a_scan_include_the_true_pose():
     rng = np.random.default_rng(5)
     landmarks = rng.uniform(0.0, 20.0, size=(60, 2))
-    settings = MclFilterSettings()
-    model = scan_model(sensor(fov=math.pi), settings)
-    lmap = LandmarkMap(landmarks, model, settings.lookup_cell, 2)
+    config = MclConfig()
+    model = scan_model(sensor(fov=math.pi), config)
+    lmap = LandmarkMap(landmarks, model, config.lookup_cell, 2)
     truth = np.array([10.0, 10.0, 1.0])
     z = RangeBearingSensor().observe(truth, landmarks)
     z = z[(z[:, 0] < 6.0) & (np.abs(z[:, 1]) < math.pi / 2)]
@@ -190,20 +192,20 @@ def test_every_variant_runs_and_unknown_variant_is_refused():
     z = RangeBearingSensor().observe(truth, landmarks)
     z = z[z[:, 0] < 6.0]
     for variant in VARIANTS:
-        mcl = MonteCarloLocalizer(landmarks, info(), MclFilterSettings(variant=variant, particles=300, max_particles=2000))
+        mcl = MonteCarloLocalizer(landmarks, info(), MclConfig(variant=variant, particles=300, max_particles=2000))
         for _ in range(4):
             mcl.predict(np.zeros(2), 0.1, np.diag([1e-4, 1e-4]))
             report = mcl.update(z)
         assert report.particles_after == mcl.count > 0 and mcl.weights.sum() == pytest.approx(1.0)
         assert np.hypot(*(mcl.best()[0][:2] - truth[:2])) < 0.3, variant
     with pytest.raises(ValueError):
-        MonteCarloLocalizer(landmarks, info(), MclFilterSettings.model_construct(variant="nope"))
+        MonteCarloLocalizer(landmarks, info(), MclConfig.model_construct(variant="nope"))
 
 
 def test_known_start_pose_tracks_without_global_initialisation():
     landmarks = np.array([[2.0, 0.0], [0.0, 2.0], [-2.0, 0.5], [1.0, -3.0]])
     start = info().model_copy(update={"start_pose": np.array([0.5, 0.5, 0.2]), "start_pose_cov": np.diag([1e-3] * 3)})
-    mcl = MonteCarloLocalizer(landmarks, start, MclFilterSettings(variant="csrl", particles=200))
+    mcl = MonteCarloLocalizer(landmarks, start, MclConfig(variant="csrl", particles=200))
     assert mcl.initialized and mcl.restarts == 0
     mcl.update(RangeBearingSensor().observe(np.array([0.5, 0.5, 0.2]), landmarks))
     assert np.allclose(mcl.best()[0], [0.5, 0.5, 0.2], atol=0.05) and mcl.restarts == 0
@@ -223,3 +225,40 @@ def test_map_files_load_as_landmark_arrays(tmp_path):
     np.save(tmp_path / "nan.npy", np.array([[np.nan, 1.0]]))
     with pytest.raises(ValueError):
         load_map_file(str(tmp_path / "nan.npy"))
+
+
+# ---------------------------------------------------------------- the fleet
+
+
+def test_fleet_waits_for_a_map_then_localizes_restarts_and_answers_one_shot_queries():
+    from schemas.contract import OdomEvent, ScanEvent
+    from services.mcl.fleet import MclFleet
+
+    rng = np.random.default_rng(7)
+    landmarks = rng.uniform(-8.0, 8.0, size=(40, 2))
+    truth = np.array([0.0, 0.0, 0.3])
+    z = RangeBearingSensor().observe(truth, landmarks)
+    z = z[z[:, 0] < 6.0]
+    scan = ScanEvent("r1", 0, 0.1, z[:, 0], z[:, 1], None, R)
+    fleet = MclFleet(MclConfig(variant="csrl", particles=300))
+    fleet.add_robot(info())
+    assert "r1" in fleet and fleet.robots["r1"].mcl is None and fleet.on_scan(scan) is None
+    assert fleet.poses()["r1"][1][0, 0] >= 1e6 and fleet.hypotheses("r1") == []
+    with pytest.raises(ValueError):
+        fleet.localize_once(z, sensor(), 500, seed=1)
+    fleet.set_map(landmarks)  # the robot waiting for a map gets its filter
+    for k in range(5):
+        fleet.on_odometry(OdomEvent("r1", k, 0.1 * k, 0.1, np.zeros(2), np.diag([1e-4, 1e-4])))
+        report = fleet.on_scan(scan)
+    state = fleet.robots["r1"]
+    assert report is not None and state.scans == 5 and state.localized == report.localized
+    assert np.hypot(*(fleet.poses()["r1"][0][:2] - truth[:2])) < 0.3 and fleet.hypotheses("r1")
+    fresh = fleet.restart_robot("r1")
+    assert fleet.robot_restarts == 1 and fresh.scans == 0 and fresh.mcl is not state.mcl and fresh.mcl.count == 0
+    once = fleet.localize_once(z, sensor(), 500, seed=1)
+    assert np.hypot(*(once.best()[0][:2] - truth[:2])) < 0.3 and fleet.robots["r1"].mcl.count == 0
+    tracked = MclFleet(MclConfig(particles=100), landmarks)  # a known start pose is tracked from it
+    tracked.add_robot(info().model_copy(update={"start_pose": truth, "start_pose_cov": np.diag([1e-3] * 3)}))
+    assert tracked.robots["r1"].mcl.initialized
+    fleet.remove_robot("r1")
+    assert "r1" not in fleet and fleet.landmark_map().means.shape == (0, 2)

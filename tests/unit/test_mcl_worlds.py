@@ -5,11 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from benchmarks.support.mcl_scenarios import kidnapped, symmetric_cross, trace_run
 from robots.simulator import simulate
-from schemas.config import MclFilterSettings
-from services.estimator import RunOptions, make_estimator
+from schemas.contract import RunOptions, SettingsError
+from services.mcl.config import MclConfig
 from services.mcl.core import MonteCarloLocalizer
-from services.mcl.scenarios import kidnapped, symmetric_cross, trace_run
+from services.mcl.fleet import make_estimator
 
 
 @pytest.fixture(scope="module")
@@ -20,7 +21,7 @@ def symmetric_run():
 @pytest.mark.parametrize("variant", ["csrl", "cluster_kld_srl"])
 def test_clustered_variants_keep_the_symmetric_hypotheses(symmetric_run, variant):
     log = symmetric_run.robots["r1"]
-    mcl = MonteCarloLocalizer(symmetric_run.landmarks, log.info, MclFilterSettings(variant=variant, particles=400))
+    mcl = MonteCarloLocalizer(symmetric_run.landmarks, log.info, MclConfig(variant=variant, particles=400))
     trace = trace_run(mcl, symmetric_run.events(), lambda t: log.truth_at(np.array([t]))[0])
     held = np.asarray(trace.hypotheses)
     assert held.min() >= 2 and np.mean(held == 4) > 0.9  # all four twins, nearly always
@@ -31,7 +32,7 @@ def test_clustered_variants_keep_the_symmetric_hypotheses(symmetric_run, variant
 
 def test_kld_sampling_collapses_in_the_symmetric_world(symmetric_run):
     log = symmetric_run.robots["r1"]
-    mcl = MonteCarloLocalizer(symmetric_run.landmarks, log.info, MclFilterSettings(variant="kld", particles=400))
+    mcl = MonteCarloLocalizer(symmetric_run.landmarks, log.info, MclConfig(variant="kld", particles=400))
     trace = trace_run(mcl, symmetric_run.events(), lambda t: log.truth_at(np.array([t]))[0])
     assert trace.hypotheses[-1] == 1  # without two-stage resampling one twin wins by chance
 
@@ -40,8 +41,8 @@ def test_kld_sampling_collapses_in_the_symmetric_world(symmetric_run):
 def test_recovery_from_kidnapping(variant):
     dataset = simulate("office", robots=2, seed=1, duration=20.0)
     events, truth = kidnapped(dataset, "r1", "r2", at=8.0)
-    settings = MclFilterSettings(variant=variant, seed=2, particles=500)
-    mcl = MonteCarloLocalizer(dataset.landmarks, dataset.robots["r1"].info, settings)
+    config = MclConfig(variant=variant, seed=2, particles=500)
+    mcl = MonteCarloLocalizer(dataset.landmarks, dataset.robots["r1"].info, config)
     trace = trace_run(mcl, events, truth)
     assert trace.first_converged(0.5, 0.2) is not None and trace.first_converged(0.5, 0.2) < 2.0
     back = trace.first_converged(0.5, 0.2, after=8.0)
@@ -52,8 +53,8 @@ def test_recovery_from_kidnapping(variant):
 def test_offline_estimator_reports_convergence():
     dataset = simulate("office", robots=1, seed=4, duration=6.0)
     log = dataset.robots["r1"]
-    options = RunOptions(estimator="mcl", seed=0, variant="cluster_kld_srl",
-                         extra={"map": dataset.landmarks, "truth": {"r1": (log.truth_stamp, log.truth_pose)}})
+    options = RunOptions(estimator="mcl", seed=0, settings={"variant": "cluster_kld_srl"}, landmarks=dataset.landmarks,
+                         truth={"r1": (log.truth_stamp, log.truth_pose)})
     estimator = make_estimator(options, [log.info])
     for event in dataset.events():
         (estimator.on_odometry if hasattr(event, "control") else estimator.on_scan)(event)
@@ -63,5 +64,7 @@ def test_offline_estimator_reports_convergence():
     pose, _ = estimator.poses()["r1"]
     assert np.hypot(*(pose[:2] - log.truth_pose[-1, :2])) < 0.5
     assert estimator.landmark_map().means.shape == (0, 2)
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match="map"):
         make_estimator(RunOptions(estimator="mcl"), [log.info])
+    with pytest.raises(SettingsError, match="unknown mcl setting varient"):
+        make_estimator(RunOptions(estimator="mcl", landmarks=dataset.landmarks, settings={"varient": "kld"}), [log.info])

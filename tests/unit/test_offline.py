@@ -10,10 +10,11 @@ from robots.loaders import data_root
 from robots.models import motion_model
 from robots.simulator import simulate
 from schemas.config import RunSettings
-from services import estimator as registry
+from services import estimators as registry
 from services.cli import main as cli_main
-from services.estimator import RunOptions, make_estimator
-from services.evaluation.odometry import DeadReckoning
+from schemas.contract import MapView, RunOptions
+from services.estimators import make_estimator
+from services.baselines.dead_reckoning import DeadReckoning
 from services.offline import run, run_estimator
 
 ROOT = data_root()
@@ -97,7 +98,7 @@ class _Constant:
         return {rid: (np.array(i.start_pose), np.eye(3)) for rid, i in self.infos.items()}
 
     def landmark_map(self):
-        return registry.MapView(np.zeros((0, 2)), np.zeros((0, 2, 2)))
+        return MapView(np.zeros((0, 2)), np.zeros((0, 2, 2)))
 
     def extra_metrics(self):
         return {"association_accuracy": 0.5, "scans_seen": self.scans}
@@ -108,8 +109,8 @@ def make_constant(options, infos):
 
 
 def test_run_writes_the_json_fields_and_merges_extra_metrics(tmp_path, monkeypatch):
-    monkeypatch.setitem(registry.ESTIMATORS, "constant", f"{__name__}:make_constant")
-    settings = RunSettings(dataset="sim:arena", estimator="constant", duration=5.0, sim_robots=2,
+    monkeypatch.setitem(registry.ESTIMATORS, "odometry", make_constant)
+    settings = RunSettings(dataset="sim:arena", estimator="odometry", duration=5.0, sim_robots=2,
                            json_out=str(tmp_path / "out.json"), progress=False)
     output = run(settings)
     written = json.loads((tmp_path / "out.json").read_text())
@@ -119,7 +120,7 @@ def test_run_writes_the_json_fields_and_merges_extra_metrics(tmp_path, monkeypat
     assert written["association_accuracy"] == 0.5 and written["scans_seen"] == written["events"]["scan"]
     assert set(written["ate_rmse_m"]) == {"r1", "r2"} and min(written["ate_rmse_m"].values()) > 0.1
     assert written["landmarks"] == {"estimated": 0, "matched": 0, "missed": 15, "spurious": 0}
-    assert written["settings"]["estimator"] == "constant"
+    assert written["settings"]["estimator"] == "odometry"
 
 
 def test_fleetslam_run_command_writes_json_and_a_report_folder(tmp_path):
@@ -140,8 +141,8 @@ def test_fleetslam_run_command_writes_json_and_a_report_folder(tmp_path):
 
 
 def test_unknown_estimator_and_robot_are_clear_errors():
-    with pytest.raises(ValueError, match="unknown estimator"):
-        run(RunSettings(dataset="sim:arena", estimator="nope", duration=1.0, progress=False))
+    with pytest.raises(ValueError, match="unknown estimator 'nope'; choose from odometry, ekf, fastslam, dslam, mcl"):
+        run_estimator(simulate("arena", robots=2, duration=1.0), RunOptions(estimator="nope"))
     with pytest.raises(ValueError, match="not in"):
         run_estimator(simulate("arena", robots=2, duration=1.0), RunOptions(), robots=["r9"])
 
@@ -173,6 +174,9 @@ def test_set_parses_estimator_settings_and_reaches_the_estimator(tmp_path):
 
 
 @pytest.mark.parametrize("estimator", ["odometry", "ekf", "fastslam", "dslam", "mcl"])
-def test_unknown_estimator_settings_are_refused(estimator, tmp_path):
+def test_unknown_estimator_settings_are_refused_with_the_known_names(estimator, capsys):
     assert cli_main(["run", "--dataset", "sim:arena", "--estimator", estimator, "--robots", "r1", "--duration", "1",
                      "--set", "no_such_setting=1", "--no-progress"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "Traceback" not in err[0], err
+    assert err[0].startswith("fleetslam run: error: unknown ") and "no_such_setting" in err[0] and "(known: " in err[0]

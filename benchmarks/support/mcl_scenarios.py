@@ -1,8 +1,8 @@
-"""Localisation scenarios shared by the MCL tests and benchmarks: runs with a per-scan trace, kidnapping.
+"""Localization scenarios shared by the MCL tests and benchmarks: runs with a per-scan trace, kidnapping.
 
 :func:`trace_run` drives one :class:`~services.mcl.core.MonteCarloLocalizer`
 over a robot's events and records, per scan, the particle count, the
-significant hypotheses, whether it is localised and the error of its best
+significant hypotheses, whether it is localized and the error of its best
 pose against the truth. :func:`kidnapped` splices two robots of one
 simulation: the events of the first until ``at``, then those of the second,
 as if the robot had been carried to where the second one is.
@@ -16,15 +16,16 @@ from typing import Iterable, Iterator
 
 import numpy as np
 
-from robots.dataset import Dataset, OdomEvent, ScanEvent
+from robots.dataset import Dataset
 from robots.models import wrap_angle
 from robots.worlds import World, make_world
+from schemas.contract import OdomEvent, ScanEvent
 from services.mcl.core import MonteCarloLocalizer
 
 
 @dataclass
 class Trace:
-    """Per scan: stamp, particles, significant hypotheses (means and weights), localised, error of the best pose."""
+    """Per scan: stamp, particles, significant hypotheses (means and weights), localized, error of the best pose."""
 
     stamp: list[float] = field(default_factory=list)
     particles: list[int] = field(default_factory=list)
@@ -37,12 +38,12 @@ class Trace:
     kidnapped: list[bool] = field(default_factory=list)
 
     def converged(self, xy: float, theta: float) -> np.ndarray:
-        """Mask of scans where the filter is localised on the truth."""
+        """Mask of scans where the filter is localized on the truth."""
         return (np.asarray(self.localized) & (np.asarray(self.error_m) <= xy)
                 & (np.asarray(self.error_rad) <= theta))
 
     def first_converged(self, xy: float, theta: float, after: float = -np.inf) -> float | None:
-        """Stamp of the first scan at or after ``after`` where the filter is localised on the truth."""
+        """Stamp of the first scan at or after ``after`` where the filter is localized on the truth."""
         stamps = np.asarray(self.stamp)
         hits = np.flatnonzero(self.converged(xy, theta) & (stamps >= after))
         return float(stamps[hits[0]]) if hits.size else None

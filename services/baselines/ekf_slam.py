@@ -1,4 +1,6 @@
-"""EKF-SLAM, the "traditional SLAM" baseline of papers 000 and 003 (single robot, full covariance).
+"""EKF-SLAM, the "traditional SLAM" baseline (single robot, full covariance) of the association study (Zhang,
+Xie, Adams, "An Efficient Data Association Approach to Simultaneous Localization and Map Building"; paper 000)
+and of D-SLAM (Wang, Huang, Dissanayake, "Implementation Issues and Experimental Evaluation of D-SLAM").
 
 State [x, y, θ, l1x, l1y, ...] with one dense covariance. Odometry predicts the
 pose block and its cross-covariances; each scan is associated by
@@ -20,14 +22,13 @@ from __future__ import annotations
 import logging
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
 
-from robots.dataset import OdomEvent, ScanEvent
-from robots.models import RangeBearingSensor, motion_model, wrap_angle
+from robots.models import robot_models, wrap_angle
 from schemas.association import CLUTTER, NEW, AssociationRequest
+from schemas.contract import CoreConfig, MapView, OdomEvent, RunOptions, ScanEvent, SettingsError, build_config
 from schemas.messages import RobotInfo
 from services.association.core import associate
-from services.estimator import MapView, RunOptions, refuse_unknown_settings
 from services.evaluation.metrics import association_accuracy
 
 log = logging.getLogger(__name__)
@@ -39,10 +40,9 @@ SUCCESS_CRITERION = (
 ASSOCIATIONS = ("known", "nn", "greedy", "ihgr", "exact", "jcbb", "auto")
 
 
-class EkfOptions(BaseModel):
-    """Settings of the EKF-SLAM baseline, read from ``RunOptions.extra`` (unknown keys are refused)."""
+class EkfConfig(CoreConfig):
+    """Settings of the EKF-SLAM baseline (``fleetslam run --estimator ekf --set NAME=VALUE``)."""
 
-    model_config = ConfigDict(extra="forbid")
     gate_probability: float = Field(0.999, gt=0, lt=1, description="chi-square gate of the association")
     new_feature_gate_probability: float = Field(0.999999, gt=0, lt=1, description="start a landmark only outside this gate of all")
     new_feature_density: float = Field(1e-3, gt=0, description="new landmarks per m·rad of measurement space")
@@ -54,11 +54,11 @@ class EkfOptions(BaseModel):
 class EkfSlam:
     """Single-robot EKF-SLAM with pluggable data association."""
 
-    def __init__(self, options: RunOptions, settings: EkfOptions):
-        if options.association not in ASSOCIATIONS:
-            raise ValueError(f"unknown association {options.association!r}; choose from {', '.join(ASSOCIATIONS)}")
-        self.method = options.association
-        self.settings = settings
+    def __init__(self, association: str = "known", config: EkfConfig | None = None):
+        if association not in ASSOCIATIONS:
+            raise SettingsError(f"unknown association {association!r}; choose from {', '.join(ASSOCIATIONS)}")
+        self.method = association
+        self.config = config or EkfConfig()
         self.info: RobotInfo | None = None
         self.x = np.zeros(3)
         self.P = np.zeros((3, 3))
@@ -75,14 +75,13 @@ class EkfSlam:
         if self.info is not None:
             raise ValueError("the EKF-SLAM baseline is single-robot")
         self.info = info
-        self.motion = motion_model(info.motion_model, info.wheelbase, info.encoder_offset)
-        self.sensor = RangeBearingSensor(tuple(info.sensor.offset))
+        self.motion, self.sensor = robot_models(info)
         self.x = np.array(info.start_pose if info.start_pose is not None else np.zeros(3), float)
         self.P = np.array(info.start_pose_cov if info.start_pose_cov is not None else np.zeros((3, 3)), float)
         spec = info.sensor
         volume = max(spec.max_range - spec.min_range, 1e-6) * spec.fov
         self.clutter_density = spec.clutter_rate / volume
-        self.detection_probability = min(max(spec.detection_probability, 0.01), self.settings.detection_probability_max)
+        self.detection_probability = min(max(spec.detection_probability, 0.01), self.config.detection_probability_max)
 
     def on_odometry(self, event: OdomEvent) -> None:
         if event.robot_id != self.info.robot_id:
@@ -163,8 +162,8 @@ class EkfSlam:
     def _candidates(self, expected: np.ndarray) -> np.ndarray:
         """Indices of the landmarks whose predicted observations ``expected`` lie near the sensor's view."""
         spec = self.info.sensor
-        near = (expected[:, 0] <= spec.max_range + self.settings.view_margin_m) & (
-            np.abs(expected[:, 1]) <= 0.5 * spec.fov + self.settings.view_margin_rad
+        near = (expected[:, 0] <= spec.max_range + self.config.view_margin_m) & (
+            np.abs(expected[:, 1]) <= 0.5 * spec.fov + self.config.view_margin_rad
         )
         return np.flatnonzero(near)
 
@@ -187,7 +186,7 @@ class EkfSlam:
         joint = h @ self.P @ h.T
         k = predicted.shape[0]
         blocks = joint.reshape(k, 2, k, 2)[np.arange(k), :, np.arange(k), :] if k else np.zeros((0, 2, 2))
-        s = self.settings
+        s = self.config
         request = AssociationRequest.model_construct(  # this filter's own well-formed arrays: no validation pass
             measurements=z, noise=noise, predicted=predicted, innovation_covs=blocks + noise,
             joint_cov=0.5 * (joint + joint.T) if self.method in ("jcbb", "auto") else None,
@@ -261,7 +260,8 @@ class EkfSlam:
 
 
 def make_estimator(options: RunOptions, infos: list[RobotInfo]) -> EkfSlam:
-    """Build the EKF-SLAM baseline for the first robot (``options.association`` picks the association method).
+    """Build the EKF-SLAM baseline for the first robot (``options.association`` picks the association method,
+    ``options.settings`` are :class:`EkfConfig`'s).
 
     It is single-robot: given a fleet, it follows ``infos[0]`` and ignores the other robots' events.
     """
@@ -270,8 +270,8 @@ def make_estimator(options: RunOptions, infos: list[RobotInfo]) -> EkfSlam:
     if len(infos) > 1:
         log.warning("EKF-SLAM is single-robot: following %s, ignoring %s", infos[0].robot_id,
                     ", ".join(i.robot_id for i in infos[1:]))
-    refuse_unknown_settings("ekf", options.extra, EkfOptions.model_fields)
-    estimator = EkfSlam(options, EkfOptions.model_validate(options.extra or {}))
+    config = build_config(EkfConfig, options.settings, owner="ekf", given=set(options.settings))
+    estimator = EkfSlam(options.association, config)
     estimator.add_robot(infos[0])
     return estimator
 

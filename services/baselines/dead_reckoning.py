@@ -15,18 +15,24 @@ robot would draw with no SLAM at all.
 from __future__ import annotations
 
 import numpy as np
+from pydantic import Field
 
-from robots.dataset import OdomEvent, ScanEvent
-from robots.models import RangeBearingSensor, compose_jacobian, integrate_controls, motion_model, se2_compose
+from robots.models import RangeBearingSensor, compose_jacobian, integrate_controls, robot_models, se2_compose
+from schemas.contract import CoreConfig, MapView, OdomEvent, RunOptions, ScanEvent, SettingsError
 from schemas.messages import RobotInfo
-from services.estimator import MapView, RunOptions, refuse_unknown_settings
+
+
+class DeadReckoningConfig(CoreConfig):
+    """The dead-reckoning baseline: nothing a user sets (``make_estimator`` derives ``map_known_ids``)."""
+
+    map_known_ids: bool = Field(True, description="place landmarks by the scans' true ids (with association known)")
 
 
 class DeadReckoning:
     """Dead-reckoning estimator for any number of robots (see the module docstring)."""
 
-    def __init__(self, map_known_ids: bool = True):
-        self.map_known_ids = map_known_ids
+    def __init__(self, config: DeadReckoningConfig | None = None):
+        self.config = config or DeadReckoningConfig()
         self._models: dict = {}
         self._sensors: dict[str, RangeBearingSensor] = {}
         self._pose: dict[str, np.ndarray] = {}
@@ -38,8 +44,7 @@ class DeadReckoning:
 
     def add_robot(self, info: RobotInfo) -> None:
         rid = info.robot_id
-        self._models[rid] = motion_model(info.motion_model, info.wheelbase, info.encoder_offset)
-        self._sensors[rid] = RangeBearingSensor(tuple(float(v) for v in info.sensor.offset))
+        self._models[rid], self._sensors[rid] = robot_models(info)
         self._pose[rid] = np.zeros(3) if info.start_pose is None else np.array(info.start_pose, float)
         self._cov[rid] = np.zeros((3, 3)) if info.start_pose_cov is None else np.array(info.start_pose_cov, float)
         self._pending[rid] = []
@@ -67,7 +72,7 @@ class DeadReckoning:
         pending.clear()
 
     def on_scan(self, event: ScanEvent) -> None:
-        if not self.map_known_ids or event.landmark_ids is None or event.ranges.size == 0:
+        if not self.config.map_known_ids or event.landmark_ids is None or event.ranges.size == 0:
             return
         rid = event.robot_id
         self._flush(rid)
@@ -97,11 +102,19 @@ class DeadReckoning:
         covs = np.array([self._landmark_cov_sum[i] for i in ids]) / counts[:, None, None]
         return MapView(means, covs, np.array(ids, np.int64))
 
+    def extra_metrics(self) -> dict:
+        """No figures of its own."""
+        return {}
+
 
 def make_estimator(options: RunOptions, infos: list[RobotInfo]) -> DeadReckoning:
-    """The dead-reckoning baseline; it maps landmarks by their true ids when the association is ``known``."""
-    refuse_unknown_settings("odometry", options.extra, ())
-    estimator = DeadReckoning(map_known_ids=options.association == "known")
+    """The dead-reckoning baseline; it maps landmarks by their true ids when the association is ``known``.
+    It has no settings of its own (:class:`SettingsError` for any in ``options.settings``)."""
+    if options.settings:
+        unknown = sorted(options.settings)
+        raise SettingsError(f"unknown odometry setting{'s' if len(unknown) > 1 else ''} {', '.join(unknown)} "
+                            "(known: none)")
+    estimator = DeadReckoning(DeadReckoningConfig(map_known_ids=options.association == "known"))
     for info in infos:
         estimator.add_robot(info)
     return estimator

@@ -1,4 +1,5 @@
-"""Small closed-form Gaussian helpers on stacks of 2-vectors and 2×2 matrices, and systematic resampling."""
+"""The numeric helpers every filter shares: closed-form Gaussian algebra on stacks of 2-vectors and 2×2
+matrices, a PSD square root, and systematic resampling. One copy, imported by FastSLAM, D-SLAM and MCL."""
 
 from __future__ import annotations
 
@@ -65,8 +66,13 @@ def sqrt_psd(cov: np.ndarray) -> np.ndarray:
 
 
 def systematic_resample(weights: np.ndarray, count: int, rng: np.random.Generator) -> np.ndarray:
-    """Indices of ``count`` draws by systematic resampling of normalised ``weights`` (one uniform offset)."""
-    edges = np.cumsum(weights)
-    edges[-1] = 1.0
+    """``count`` indices drawn by systematic (low-variance) resampling of ``weights`` (one uniform offset, equal
+    steps); the weights need not be normalised (all-zero weights draw uniformly)."""
+    weights = np.asarray(weights, float)
+    total = weights.sum()
+    if count <= 0 or weights.size == 0:
+        return np.zeros(0, np.int64)
+    cdf = np.cumsum(weights / total) if total > 0 else np.arange(1, weights.size + 1) / weights.size
+    cdf[-1] = 1.0
     points = (rng.random() + np.arange(count)) / count
-    return np.minimum(np.searchsorted(edges, points, side="right"), weights.size - 1)
+    return np.minimum(np.searchsorted(cdf, points, side="right"), weights.size - 1)

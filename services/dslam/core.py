@@ -1,4 +1,5 @@
-"""The D-SLAM estimator (paper 003): one shared static map, a 3-dof localisation per robot.
+"""The D-SLAM core: one shared static map, a 3-dof localization per robot (Wang, Huang, Dissanayake,
+"Implementation Issues and Experimental Evaluation of D-SLAM"). Numeric only: no Zenoh, no settings.
 
 Per scan of a robot:
 
@@ -6,12 +7,12 @@ Per scan of a robot:
    (:func:`services.association.core.associate`, or the queryable in the
    service) on the landmarks and tentative features near the robot.
    Measurements that claim the same feature are set aside.
-2. Localisation (phase II): the process-model estimate and the estimate from
+2. Localization (phase II): the process-model estimate and the estimate from
    the mapped landmarks seen, combined by covariance intersection
    (:mod:`services.dslam.localization`). A robot whose start pose is unknown
    is placed once it sees two mapped landmarks (ids needed then).
 3. Mapping. Phase I (robot still at its known start pose; or, to start a map,
-   moved but not yet localised against it, with a small dead-reckoning error
+   moved but not yet localized against it, with a small dead-reckoning error
    and fewer than two mapped features in view): the raw observations give
    absolute positions with the joint covariance of the pose and the noise.
    Phase II: with at least two mapped landmarks in the scan, the scan is
@@ -38,18 +39,18 @@ import numpy as np
 import scipy.linalg
 from scipy.stats import chi2
 
-from robots.dataset import OdomEvent, ScanEvent
-from robots.models import RangeBearingSensor, in_field_of_view, motion_model, wrap_angle
+from robots.gaussian import inv2
+from robots.models import in_field_of_view, robot_models, wrap_angle
 from schemas.association import NEW, AssociationReply, AssociationRequest
-from schemas.config import DslamFilterSettings
+from schemas.contract import MapView, OdomEvent, RunOptions, ScanEvent, SettingsError, build_config
 from schemas.messages import RobotInfo
-from services.dslam.information_filter import InformationMap, inverse_2x2
-from services.dslam.localization import localise, observation_estimate, pose_from_points, predict
+from services.dslam.config import DslamConfig
+from services.dslam.information_filter import InformationMap
+from services.dslam.localization import localize, observation_estimate, pose_from_points, predict
 from services.dslam.recast import scan_points
-from services.estimator import MapView, RunOptions, refuse_unknown_settings
 
 MAPPED, TENTATIVE, FRESH, CLUTTER = 0, 1, 2, 3
-LOCALISATION_GATE = float(chi2.ppf(1 - 1e-6, 3))  # prediction and observation estimate cannot both be right
+LOCALIZATION_GATE = float(chi2.ppf(1 - 1e-6, 3))  # prediction and observation estimate cannot both be right
 
 Associator = Callable[[AssociationRequest, str], AssociationReply]
 
@@ -66,7 +67,7 @@ class Tentative:
     """A feature seen but not yet in the map."""
 
     key: int
-    position: np.ndarray  # (2,) world estimate (NaN when seen by an unlocalised robot)
+    position: np.ndarray  # (2,) world estimate (NaN when seen by an unlocalized robot)
     cov: np.ndarray  # (2, 2)
     hits: int = 1
     misses: int = 0
@@ -74,8 +75,8 @@ class Tentative:
 
 
 @dataclass
-class RobotTrack:
-    """One robot's localisation state."""
+class RobotState:
+    """One robot's localization state."""
 
     info: RobotInfo
     pose: np.ndarray | None
@@ -85,12 +86,11 @@ class RobotTrack:
     omega: float = float("nan")
     observed: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     streams: set = field(default_factory=set)
-    localised: bool = False
+    localized: bool = False
     disagreements: int = 0
 
     def __post_init__(self) -> None:
-        self.model = motion_model(self.info.motion_model, self.info.wheelbase or 2.83, self.info.encoder_offset)
-        self.sensor = RangeBearingSensor(tuple(float(v) for v in self.info.sensor.offset))
+        self.model, self.sensor = robot_models(self.info)
 
     @property
     def known_start(self) -> bool:
@@ -111,44 +111,74 @@ class RobotTrack:
 
         Yes while it stands at its known start pose (the paper's phase I). Also,
         to start a map when the robot moves before it sees anything (MR.CLAM), while
-        it has not yet been localised against the map, sees fewer than two mapped
+        it has not yet been localized against the map, sees fewer than two mapped
         features and its dead-reckoned position std is at most ``bootstrap_std``.
         """
-        if self.pose is None or not self.known_start or self.localised:
+        if self.pose is None or not self.known_start or self.localized:
             return False
         if not self.moved:
             return True
         return mapped < 2 and float(np.sqrt(np.max(np.linalg.eigvalsh(self.cov[:2, :2])))) <= bootstrap_std
 
 
-class DSlam:
-    """The D-SLAM map of every robot, with each robot's localisation (implements the Estimator protocol)."""
+@dataclass
+class MapSnapshot:
+    """What the service publishes of the map: every landmark mean and id (feature key: the true id with known
+    association), the marginal covariances of the landmarks with a cached column (those near the robots),
+    information-matrix nnz, the last recovery's iterations and the newest robot stamp."""
 
-    def __init__(self, settings: DslamFilterSettings | None = None, associator: Associator | None = None,
+    means: np.ndarray  # (n, 2)
+    ids: np.ndarray  # (n,)
+    covariance_ids: np.ndarray  # (k,) ids of the landmarks in ``covariances``
+    covariances: np.ndarray  # (k, 2, 2)
+    info_nnz: int
+    recovery_iterations: int
+    stamp: float
+
+
+class DSlam:
+    """The D-SLAM map of every robot, with each robot's localization (implements the Estimator protocol)."""
+
+    def __init__(self, config: DslamConfig | None = None, associator: Associator | None = None,
                  record: bool = False):
-        self.settings = settings or DslamFilterSettings()
-        s = self.settings
+        self.config = config or DslamConfig()
+        s = self.config
         self.map = InformationMap(s.recovery_tol, s.recovery_max_iter, s.column_tol, s.column_max_iter, s.column_cache,
                                   refactor_iterations=s.refactor_iterations)
         self.associator = associator or in_process_associate
         self.ids: list[int] = []
         self.index_of: dict[int, int] = {}
         self.tentative: dict[int, Tentative] = {}
-        self.robots: dict[str, RobotTrack] = {}
+        self.robots: dict[str, RobotState] = {}
         self.counts: Counter = Counter()
         self.last_step_ms = 0.0
         self._next_key = 0
         self.measurements: list[tuple] | None = [] if record else None
 
     # ----------------------------------------------------------------- robots
+    def has_robot(self, rid: str) -> bool:
+        return rid in self.robots
+
     def add_robot(self, info: RobotInfo) -> None:
+        """Take a robot in (replacing any robot of that id), at its start pose if known."""
         pose = None if info.start_pose is None else np.asarray(info.start_pose, float).copy()
         cov = None
         if pose is not None:
             cov = np.diag([1e-9, 1e-9, 1e-12]) if info.start_pose_cov is None else np.asarray(info.start_pose_cov, float)
-        self.robots[info.robot_id] = RobotTrack(info, pose, cov)
+        self.robots[info.robot_id] = RobotState(info, pose, cov)
 
-    def _robot_of(self, event: OdomEvent | ScanEvent, stream: str) -> RobotTrack | None:
+    def remove_robot(self, rid: str) -> None:
+        """Forget a robot's localization (its map contributions stay); nothing if it is unknown."""
+        self.robots.pop(rid, None)
+
+    def robot_pose(self, rid: str) -> tuple[np.ndarray, np.ndarray] | None:
+        """(pose, covariance) of a robot, or None while it is unknown or not localized."""
+        robot = self.robots.get(rid)
+        if robot is None or robot.pose is None:
+            return None
+        return robot.pose.copy(), robot.cov.copy()
+
+    def _robot_of(self, event: OdomEvent | ScanEvent, stream: str) -> RobotState | None:
         """The robot an event belongs to (None, counted, if unknown); notes a missed start."""
         robot = self.robots.get(event.robot_id)
         if robot is None:
@@ -193,10 +223,10 @@ class DSlam:
             return
         kinds, refs = labels
         mapped = np.flatnonzero(kinds == MAPPED)
-        phase_one = robot.in_phase_one(mapped.size, self.settings.bootstrap_std)
+        phase_one = robot.in_phase_one(mapped.size, self.config.bootstrap_std)
         robot.observed = refs[mapped]
         if not phase_one:
-            self._localise(robot, obs[mapped], noise, refs[mapped])
+            self._localize(robot, obs[mapped], noise, refs[mapped])
         confirmed = self._bookkeep(robot, obs, noise, kinds, refs, phase_one)
         mapped = np.flatnonzero(kinds == MAPPED)
         if phase_one:
@@ -207,7 +237,7 @@ class DSlam:
         self.last_step_ms = (time.perf_counter() - started) * 1e3
 
     # ------------------------------------------------------------ association
-    def _associate(self, robot: RobotTrack, obs: np.ndarray, noise: np.ndarray, ids: np.ndarray | None):
+    def _associate(self, robot: RobotState, obs: np.ndarray, noise: np.ndarray, ids: np.ndarray | None):
         """(kinds (n,), refs (n,)): map index, tentative key, new key or -1 per observation; None if impossible.
 
         Measurements that claim the same feature (per-measurement NN can do that,
@@ -216,7 +246,7 @@ class DSlam:
         n = obs.shape[0]
         kinds = np.full(n, CLUTTER, np.int64)
         refs = np.full(n, -1, np.int64)
-        if self.settings.association == "known" and ids is not None:
+        if self.config.association == "known" and ids is not None:
             for k, lm in enumerate(ids.tolist()):
                 if lm < 0:
                     continue
@@ -229,9 +259,9 @@ class DSlam:
         elif robot.pose is None:
             return None
         elif n:
-            if self.settings.association == "known":
+            if self.config.association == "known":
                 self.counts["scans_without_ids"] += 1
-            method = "auto" if self.settings.association == "known" else self.settings.association
+            method = "auto" if self.config.association == "known" else self.config.association
             candidates, tentative_keys, request = self.association_request(robot, obs, noise)
             reply = self.associator(request, method)
             assignment = np.asarray(reply.assignment, np.int64)
@@ -262,10 +292,10 @@ class DSlam:
         self._next_key += 1
         return self._next_key - 1
 
-    def association_request(self, robot: RobotTrack, obs: np.ndarray, noise: np.ndarray):
+    def association_request(self, robot: RobotState, obs: np.ndarray, noise: np.ndarray):
         """(candidate map indices, candidate tentative keys, AssociationRequest in landmark form) near the robot."""
         spec = robot.info.sensor
-        reach = spec.max_range + self.settings.candidate_margin
+        reach = spec.max_range + self.config.candidate_margin
         position = robot.sensor.sensor_position(robot.pose)[0]
         means = self.map.means
         near = np.flatnonzero(np.sum((means - position) ** 2, axis=1) <= reach * reach) if self.map.n else np.zeros(0, np.int64)
@@ -275,7 +305,7 @@ class DSlam:
         landmarks = np.vstack([means[near], *[self.tentative[k].position[None] for k in keys]]) if near.size or keys else np.zeros((0, 2))
         landmark_covs = np.concatenate([covs, *[self.tentative[k].cov[None] for k in keys]]) if near.size or keys else covs
         area = max(spec.max_range - spec.min_range, 1e-3) * spec.fov
-        s = self.settings
+        s = self.config
         request = AssociationRequest(
             measurements=obs.reshape(-1, 2), noise=noise, landmarks=landmarks.reshape(-1, 2),
             landmark_covs=0.5 * (landmark_covs + np.swapaxes(landmark_covs, 1, 2)), pose=robot.pose,
@@ -286,8 +316,8 @@ class DSlam:
         )
         return near, keys, request
 
-    # ----------------------------------------------------------- localisation
-    def _localise(self, robot: RobotTrack, obs: np.ndarray, noise: np.ndarray, index: np.ndarray) -> None:
+    # ----------------------------------------------------------- localization
+    def _localize(self, robot: RobotState, obs: np.ndarray, noise: np.ndarray, index: np.ndarray) -> None:
         """CI of the process-model estimate with the estimate from the mapped landmarks seen (§2.3).
 
         When the two disagree beyond any doubt, the observations are set aside (a
@@ -306,7 +336,7 @@ class DSlam:
             if estimate.full_rank:
                 robot.pose = estimate.pose
                 robot.cov = scipy.linalg.inv(estimate.info)
-                robot.localised = True
+                robot.localized = True
                 self.counts["robots_placed"] += 1
             return
         estimate = observation_estimate(robot.sensor, robot.pose, obs, noise, landmarks, joint)
@@ -314,29 +344,29 @@ class DSlam:
             cov = np.linalg.inv(estimate.info)
             delta = estimate.pose - robot.pose
             delta[2] = wrap_angle(delta[2])
-            if delta @ np.linalg.solve(robot.cov + cov, delta) > LOCALISATION_GATE:
+            if delta @ np.linalg.solve(robot.cov + cov, delta) > LOCALIZATION_GATE:
                 robot.disagreements += 1
-                if robot.disagreements < self.settings.relocalise_after:
+                if robot.disagreements < self.config.relocalise_after:
                     self.counts["localisation_rejected"] += 1
                     return
                 robot.pose, robot.cov = estimate.pose, 0.5 * (cov + cov.T)
                 robot.disagreements = 0
                 self.counts["relocalised"] += 1
                 return
-        robot.pose, robot.cov, robot.omega = localise(robot.pose, robot.cov, estimate, self.settings.ci_criterion)
-        robot.localised = True
+        robot.pose, robot.cov, robot.omega = localize(robot.pose, robot.cov, estimate, self.config.ci_criterion)
+        robot.localized = True
         robot.disagreements = 0
 
     # ---------------------------------------------------------- feature lists
-    def _bookkeep(self, robot: RobotTrack, obs: np.ndarray, noise: np.ndarray, kinds: np.ndarray, refs: np.ndarray,
+    def _bookkeep(self, robot: RobotState, obs: np.ndarray, noise: np.ndarray, kinds: np.ndarray, refs: np.ndarray,
                   phase_one: bool) -> list[int]:
         """Count sightings and misses of tentative features; return the observations of features confirmed now.
 
         Features with stored phase-I sightings enter the map here (kinds become
         MAPPED); the others are returned to be added by this scan's update.
         """
-        known = self.settings.association == "known"
-        need = 1 if known else self.settings.confirm_hits
+        known = self.config.association == "known"
+        need = 1 if known else self.config.confirm_hits
         located = robot.pose is not None
         world = robot.sensor.inverse(robot.pose, obs) if located and obs.size else np.full(obs.shape, np.nan)
         covs = self._world_covs(robot, obs, noise) if located and obs.size else np.full((obs.shape[0], 2, 2), np.nan)
@@ -373,7 +403,7 @@ class DSlam:
             self._count_misses(robot, seen)
         return confirmed
 
-    def _count_misses(self, robot: RobotTrack, seen: set[int]) -> None:
+    def _count_misses(self, robot: RobotState, seen: set[int]) -> None:
         spec = robot.info.sensor
         for key in [key for key in self.tentative if key not in seen]:
             t = self.tentative[key]
@@ -382,11 +412,11 @@ class DSlam:
             predicted = robot.sensor.observe(robot.pose, t.position)
             if in_field_of_view(predicted, spec.max_range, spec.fov, spec.min_range):
                 t.misses += 1
-                if t.misses >= self.settings.tentative_misses:
+                if t.misses >= self.config.tentative_misses:
                     del self.tentative[key]
                     self.counts["tentative_dropped"] += 1
 
-    def _world_covs(self, robot: RobotTrack, obs: np.ndarray, noise: np.ndarray) -> np.ndarray:
+    def _world_covs(self, robot: RobotState, obs: np.ndarray, noise: np.ndarray) -> np.ndarray:
         """Covariances (n, 2, 2) of the world positions of observations from the robot's pose."""
         g_pose, g_obs = robot.sensor.inverse_jacobians(robot.pose, obs)
         return g_obs @ noise @ np.swapaxes(g_obs, 1, 2) + g_pose @ robot.cov @ np.swapaxes(g_pose, 1, 2)
@@ -399,7 +429,7 @@ class DSlam:
             self.tentative.pop(int(key), None)
 
     # ---------------------------------------------------------------- mapping
-    def _map_phase_one(self, robot: RobotTrack, obs, noise, kinds, refs, confirmed: list[int]) -> None:
+    def _map_phase_one(self, robot: RobotState, obs, noise, kinds, refs, confirmed: list[int]) -> None:
         """Phase I: positions from the known start pose, joint covariance of pose and noise."""
         old_rows = np.flatnonzero(kinds == MAPPED)
         rows = np.concatenate([old_rows, np.asarray(confirmed, np.int64)]).astype(np.int64)
@@ -424,7 +454,7 @@ class DSlam:
                 self.counts["scans_too_few_mapped"] += 1
             return
         done = self.map.update_scan(obs, noise, mapped, refs[mapped], np.asarray(confirmed, np.int64),
-                                    self.settings.min_reference_distance, self.settings.map_gate_probability)
+                                    self.config.min_reference_distance, self.config.map_gate_probability)
         if done is None:
             self.counts["z_map_refused"] += 1
             return
@@ -442,8 +472,8 @@ class DSlam:
 
     # ------------------------------------------------------------------- maps
     def adopt(self, information_map: InformationMap, keys: list[int]) -> None:
-        """Continue from a map built elsewhere (``keys``: the feature key of each landmark index), with these settings."""
-        s = self.settings
+        """Continue from a map built elsewhere (``keys``: the feature key of each landmark index), with this configuration."""
+        s = self.config
         information_map.track_columns = True
         information_map.tol, information_map.max_iter = s.recovery_tol, s.recovery_max_iter
         information_map.column_tol, information_map.column_max_iter = s.column_tol, s.column_max_iter
@@ -460,14 +490,25 @@ class DSlam:
         their own information block (a lower bound: the reports' cost stays O(N)).
         """
         means = self.map.means.copy()
-        if self.map.n <= self.settings.marginals_limit:
+        if self.map.n <= self.config.marginals_limit:
             covs = self.map.all_marginals()
         else:
-            covs = inverse_2x2(self.map.matrix.diagonal_blocks())
+            covs = inv2(self.map.matrix.diagonal_blocks())[0]
             cached, cached_covs = self.map.cached_marginals()
             covs[cached] = cached_covs
-        ids = np.asarray(self.ids, np.int64) if self.settings.association == "known" else None
+        ids = np.asarray(self.ids, np.int64) if self.config.association == "known" else None
         return MapView(means, covs, ids)
+
+    def map_snapshot(self) -> MapSnapshot:
+        """The map as the service publishes it (see :class:`MapSnapshot`); cheap: no covariance is solved."""
+        ids = np.asarray(self.ids, np.int64)
+        near, covs = self.map.cached_marginals()
+        stamps = [r.stamp for r in self.robots.values() if np.isfinite(r.stamp)]
+        return MapSnapshot(
+            means=self.map.means.copy(), ids=ids, covariance_ids=ids[near] if near.size else np.zeros(0, np.int64),
+            covariances=covs, info_nnz=self.map.matrix.nnz, recovery_iterations=self.map.recovery_iterations,
+            stamp=max(stamps) if stamps else 0.0,
+        )
 
     def extra_metrics(self) -> dict:
         """Figures for ``fleetslam run``: the core's counters and sparsity."""
@@ -490,10 +531,16 @@ class DSlam:
 
 
 def make_estimator(options: RunOptions, infos: list[RobotInfo]) -> DSlam:
-    """The "dslam" estimator of :data:`services.estimator.ESTIMATORS` (settings from ``options.extra``)."""
-    refuse_unknown_settings("dslam", options.extra, set(DslamFilterSettings.model_fields) - {"association"})
-    settings = DslamFilterSettings(association=options.association, **options.extra)
-    estimator = DSlam(settings)
+    """The "dslam" estimator: ``options.association`` and the ``options.settings`` of :class:`DslamConfig`
+    (:class:`SettingsError` naming an unknown setting or a bad value, with the known ones)."""
+    known = sorted(set(DslamConfig.model_fields) - {"association"})  # association: RunOptions.association
+    unknown = sorted(set(options.settings) - set(known))
+    if unknown:
+        raise SettingsError(f"unknown dslam setting{'s' if len(unknown) > 1 else ''} {', '.join(unknown)} "
+                            f"(known: {', '.join(known)})")
+    config = build_config(DslamConfig, {**options.settings, "association": options.association}, owner="dslam",
+                          given=set(options.settings))
+    estimator = DSlam(config)
     for info in infos:
         estimator.add_robot(info)
     return estimator

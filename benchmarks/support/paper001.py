@@ -1,4 +1,6 @@
-"""The simulated worlds of paper 001's experiments (its Fig. 2, 13 and 14), for the benchmarks and tests.
+"""The simulated worlds of the experiments of Howard, "Multi-robot simultaneous localization and mapping using
+particle filters" (its Fig. 2, 13 and 14), for the benchmarks and tests (the worlds keep their names
+``paper001-*``, paper 001 of the project's reading list).
 
 The paper gives only some numbers: two beacons at (4, 6.8) less than 20 cm apart
 with 15 cm range noise; four beacons 1-1.5 m apart; two robots in a larger area
@@ -15,7 +17,7 @@ import numpy as np
 from robots.worlds import World, _sensor
 
 DEG = math.pi / 180.0
-#: beacons that anchor localisation around the ambiguous ones (well separated: 4-5 m apart)
+#: beacons that anchor localization around the ambiguous ones (well separated: 4-5 m apart)
 ANCHORS = np.array([[0.0, 0.0], [8.0, 0.0], [0.0, 8.0], [8.0, 8.0], [-1.5, 4.0], [9.5, 4.0]])
 
 

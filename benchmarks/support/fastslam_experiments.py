@@ -14,7 +14,7 @@ import time
 import numpy as np
 
 from robots.dataset import Dataset
-from services.estimator import RunOptions
+from schemas.contract import RunOptions
 from services.evaluation.metrics import Trajectory, map_error, score_estimates
 from services.offline import run_estimator
 
@@ -33,7 +33,7 @@ def run_and_score(dataset: Dataset, options: RunOptions, robots: list[str] | Non
     summary = metrics["summary"]["run"]
     out = {
         "estimator": options.estimator, "association": options.association, "particles": options.particles,
-        "variant": options.variant, "options": dict(options.extra), "robots": chosen,
+        "settings": dict(options.settings), "robots": chosen,
         "wall_s": round(result.wall_s, 2), "cpu_s": round(cpu, 2), "data_s": round(result.data_s, 1),
         "ate_rmse_m": _rounded(summary["ate_rmse_m"]), "ate_aligned_rmse_m": _rounded(summary["ate_aligned_rmse_m"]),
         "landmarks_mapped": int(len(result.map_means)),

@@ -1,0 +1,1 @@
+"""Benchmarks of fleetslam: scripts run as ``python benchmarks/NAME.py`` (see each one's docstring)."""

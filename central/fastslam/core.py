@@ -1,0 +1,234 @@
+"""Centralised multi-robot FastSLAM (Howard, "Multi-robot simultaneous localization and mapping using
+particle filters"), vectorised over particles.
+
+Each particle holds the pose of every placed robot and one shared landmark map with an EKF per landmark.
+Robots' streams arrive in time order; a robot's controls are buffered and applied once per scan, then the
+scan updates every particle. :class:`FastSlam` holds the state and orchestrates; the work is done by
+functions that take it explicitly, one module per concern:
+
+- :mod:`~central.fastslam.robots`: robots waiting, placed, sent back to wait, removed;
+- :mod:`~central.fastslam.motion`: buffering controls and applying them;
+- :mod:`~central.fastslam.proposal`: the FastSLAM 2.0 proposal (``proposal="fastslam2"``);
+- :mod:`~central.fastslam.association`: known / nn / mht association and the landmark updates;
+- :mod:`~central.fastslam.evidence`: negative evidence, landmark existence, merging duplicates;
+- :mod:`~central.fastslam.robot_detections`: robot-to-robot detections (``robot_detections``);
+- :mod:`~central.fastslam.resampling`: weights, effective sample size, resampling;
+- :mod:`~central.fastslam.landmarks`: every particle's landmark map and its EKF.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+
+import numpy as np
+from scipy.stats import chi2
+
+from central.fastslam import association, motion, proposal, resampling, robot_detections, robots
+from central.fastslam.config import FastSlamConfig
+from central.fastslam.landmarks import LandmarkMap
+from central.fastslam.robots import RobotState
+from robots.gaussian import sandwich, valid_cov2
+from robots.models import compose_jacobian, se2_compose, wrap_angle
+from schemas.contract import MapView, OdomEvent, ScanEvent
+from schemas.messages import RobotInfo
+
+
+class FastSlam:
+    """The central filter: robots in and out, ``on_odometry``, ``on_scan``, ``poses``, ``landmark_map``.
+
+    State: ``pose`` ``(P, R, 3)`` (every particle's pose of every placed robot), ``logw`` ``(P,)``
+    (log-weights), ``map`` (:class:`LandmarkMap`), ``robots`` (placed, by id) and ``waiting`` (known, no
+    pose yet), ``known_slots`` (known association: landmark id → map slot), and the counters ``counts`` and
+    ``rejected``. Bad input (wrong shapes, NaN, negative ranges, time going backwards, robots never
+    announced or not yet placed) is counted in ``rejected`` and leaves the state untouched.
+    """
+
+    def __init__(self, config: FastSlamConfig, infos=()):
+        self.config = config
+        self.rng = np.random.default_rng(config.seed)
+        n = config.particles
+        self.pose = np.zeros((n, 0, 3))
+        self.logw = np.zeros(n)
+        self.map = LandmarkMap(n)
+        self.robots: dict[str, RobotState] = {}
+        self.waiting: dict[str, RobotInfo] = {}
+        self.known_slots: dict[int, int] = {}
+        self.rejected: Counter = Counter()
+        self.counts: Counter = Counter()
+        self.gate = float(chi2.ppf(config.gate_probability, 2))
+        self.new_gate = float(chi2.ppf(config.new_landmark_probability, 2))
+        self.best_hint = 0  # the particle that inherited the heaviest one at the last resampling
+        for info in infos:
+            self.add_robot(info)
+
+    # ------------------------------------------------------------------ robots
+    def has_robot(self, robot_id: str) -> bool:
+        """True when the robot is placed (its pose is in the particles)."""
+        return robot_id in self.robots
+
+    def is_waiting(self, robot_id: str) -> bool:
+        """True when the robot is known but waits for a pose (:meth:`place_robot`)."""
+        return robot_id in self.waiting
+
+    def add_robot(self, info: RobotInfo) -> bool:
+        """Place a robot with a known start pose, make one without wait; True when it was placed now.
+        A robot already known is left as it is (robots republish their RobotInfo)."""
+        return robots.add(self, info)
+
+    def place_robot(self, robot_id: str, pose, cov, stamp: float | None = None) -> bool:
+        """Place a waiting robot at ``pose`` ``(3,)``, spreading the particles by ``cov`` ``(3, 3)`` (the
+        localization hook); ``stamp`` is the time the pose holds at. False (counted) if refused."""
+        return robots.place(self, robot_id, pose, cov, stamp)
+
+    def unplace(self, robot_id: str) -> RobotInfo | None:
+        """Send a placed robot that has not moved yet back to wait; its RobotInfo, or None."""
+        return robots.unplace(self, robot_id)
+
+    def remove_robot(self, robot_id: str) -> RobotInfo | None:
+        """Take a robot out, placed or waiting (the landmarks it mapped stay); its RobotInfo, or None."""
+        return robots.remove(self, robot_id)
+
+    # ------------------------------------------------------------------ events
+    def on_odometry(self, event: OdomEvent) -> bool:
+        """Buffer one control; it is applied with the others at the robot's next scan (or every ``max_batch_s``)."""
+        robot = robots.placed(self, event.robot_id)
+        return robot is not None and motion.take_control(self, robot, event)
+
+    def on_scan(self, event: ScanEvent) -> bool:
+        """Update every particle with one scan of one robot: motion (or the FastSLAM 2.0 proposal), landmark
+        association and updates, robot detections, then resampling if the weights have degenerated."""
+        robot = robots.placed(self, event.robot_id)
+        if robot is None:
+            return False
+        ranges, bearings = np.asarray(event.ranges, float).ravel(), np.asarray(event.bearings, float).ravel()
+        ids = None if event.landmark_ids is None else np.asarray(event.landmark_ids).ravel()
+        noise = np.asarray(event.noise_cov, float)
+        stamp = float(event.stamp)
+        reason = _scan_problem(ranges, bearings, ids, noise, stamp)
+        if reason is None and stamp < robot.last_scan_stamp:
+            reason = "time_backwards"
+        if reason is not None:
+            self.rejected[reason] += 1
+            return False
+        robot.last_scan_stamp = stamp
+        motion.advance_to(robot, stamp, self.config)
+        keep = ranges > 1e-6
+        if self.config.max_obs_range is not None:
+            keep &= ranges <= self.config.max_obs_range
+        self.counts["detections_dropped"] += int((~keep).sum())
+        z = np.stack([ranges[keep], wrap_angle(bearings[keep])], -1)
+        ids = None if ids is None else ids[keep].astype(np.int64)
+        r = noise * self.config.sensor_noise_scale
+        self.counts["scans"] += 1
+        self.counts["detections"] += z.shape[0]
+        weigh_updates = True
+        if self.config.proposal == "fastslam2" and z.shape[0]:
+            weigh_updates = not proposal.propose(self, robot, z, r, ids)
+        else:
+            motion.flush(self, robot)
+        if self.config.association == "known":
+            association.update_known(self, robot, z, r, ids, weigh_updates)
+        elif z.shape[0]:
+            association.update_unknown(self, robot, z, r, ids, weigh_updates)
+        if self.config.robot_detections and len(event.robot_ids):
+            robot_detections.weigh(self, robot, event, r)
+        resampling.normalise_and_resample(self)
+        return True
+
+    # ------------------------------------------------------------------ estimates
+    @property
+    def particle_count(self) -> int:
+        return self.pose.shape[0]
+
+    def weights(self) -> np.ndarray:
+        """Normalised particle weights."""
+        return resampling.weights(self.logw)
+
+    def effective_particles(self) -> float:
+        return resampling.effective_particles(self.logw)
+
+    def best_particle(self) -> int:
+        """The highest-weight particle (after a resampling: a child of the heaviest particle before it)."""
+        return resampling.best_particle(self)
+
+    def pose_stamp(self, robot_id: str) -> float | None:
+        """The time a placed robot's reported pose holds at (None: not placed, or it has not moved yet)."""
+        robot = self.robots.get(robot_id)
+        return None if robot is None else robot.pose_time
+
+    def poses(self) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+        """Every placed robot's weighted mean pose and covariance (buffered controls included, no draw)."""
+        w = self.weights()
+        out = {}
+        for rid, robot in self.robots.items():
+            pose = self.pose[:, robot.index]
+            extra = np.zeros((3, 3))
+            pending = motion.pending_motion(robot, self.config)
+            if pending is not None:
+                extra = np.einsum("p,pij->ij", w, sandwich(compose_jacobian(pose[:, 2]), pending[1]))
+                pose = se2_compose(pose, pending[0])
+            theta = np.arctan2(w @ np.sin(pose[:, 2]), w @ np.cos(pose[:, 2]))
+            mean = np.array([w @ pose[:, 0], w @ pose[:, 1], theta])
+            resid = pose - mean
+            resid[:, 2] = wrap_angle(resid[:, 2])
+            cov = np.einsum("p,pi,pj->ij", w, resid, resid) + extra
+            out[rid] = (mean, 0.5 * (cov + cov.T))
+        return out
+
+    def landmark_map(self) -> MapView:
+        """Known association: the weighted mixture per landmark; otherwise the best particle's confirmed landmarks
+        (associated at least ``confirm_hits`` times, and either permanent or with an existence score at least
+        its initial value)."""
+        if self.config.association == "known":
+            if not self.known_slots:
+                return MapView(np.zeros((0, 2)), np.zeros((0, 2, 2)), np.zeros(0, np.int64))
+            ids = np.array(list(self.known_slots.keys()), np.int64)
+            slots = np.array(list(self.known_slots.values()), np.int64)
+            w = self.weights()
+            mu, sig = self.map.mean[:, slots], self.map.cov[:, slots]
+            mean = np.einsum("p,pkj->kj", w, mu)
+            resid = mu - mean
+            cov = np.einsum("p,pkij->kij", w, sig) + np.einsum("p,pki,pkj->kij", w, resid, resid)
+            return MapView(mean, cov, ids)
+        p = self.best_particle()
+        hits = self.map.hits[p]
+        settled = self.map.exist[p] >= self.config.exist_init
+        if self.config.permanent_hits is not None:
+            settled |= hits >= self.config.permanent_hits
+        keep = self.map.valid[p] & (hits >= self.config.confirm_hits) & settled
+        return MapView(self.map.mean[p, keep].copy(), self.map.cov[p, keep].copy(), None)
+
+    def extra_metrics(self) -> dict:
+        """Figures ``fleetslam run`` adds to its JSON: the filter's counters and particle statistics."""
+        return {"fastslam": self.stats()}
+
+    def stats(self) -> dict[str, float]:
+        """Counters and particle statistics (for the service's stats and the benchmarks)."""
+        counts = self.map.counts()
+        out = {
+            "particles": float(self.pose.shape[0]),
+            "effective_particles": self.effective_particles(),
+            "robots": float(len(self.robots)),
+            "robots_waiting": float(len(self.waiting)),
+            "landmarks_mean": float(counts.mean()) if counts.size else 0.0,
+            "landmarks_best": float(counts[self.best_particle()]) if counts.size else 0.0,
+            "map_capacity": float(self.map.capacity),
+        }
+        out.update({k: float(v) for k, v in self.counts.items()})
+        out.update({f"rejected_{k}": float(v) for k, v in self.rejected.items()})
+        return out
+
+
+def _scan_problem(ranges, bearings, ids, noise, stamp) -> str | None:
+    """Why a scan is refused (the ``rejected`` counter's name), or None if it is well formed."""
+    if ranges.shape != bearings.shape or (ids is not None and ids.shape != ranges.shape):
+        return "bad_scan_shape"
+    if not (np.all(np.isfinite(ranges)) and np.all(np.isfinite(bearings)) and np.isfinite(stamp)):
+        return "bad_scan_values"
+    if np.any(ranges < 0):
+        return "negative_range"
+    if ids is not None and ids.dtype.kind not in "iu":
+        return "bad_scan_ids"
+    if not valid_cov2(noise) or noise[0, 0] * noise[1, 1] - noise[0, 1] ** 2 <= 0:
+        return "bad_scan_noise"
+    return None

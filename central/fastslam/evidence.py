@@ -1,0 +1,96 @@
+"""Negative evidence and landmark existence (unknown association only).
+
+A landmark's existence score rises with each association and falls, by ln(1 − P_D·v), each time the landmark
+is near and not associated (v: its visibility, the chance its detection falls inside the sensor's limits);
+below ``exist_min`` it is deleted, so landmarks born of clutter die, while landmarks associated
+``permanent_hits`` times are kept. The same ln(1 − P_D·v) weights the particle (negative information), and a
+confirmed landmark statistically identical to one just associated is merged away.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+from scipy.special import ndtr
+
+from central.fastslam.robots import RobotState
+from robots.gaussian import inv2, quad2
+
+if TYPE_CHECKING:
+    from central.fastslam.association import ScanState
+    from central.fastslam.core import FastSlam
+
+
+def negative_evidence(slam: FastSlam, robot: RobotState, scan: ScanState, r: np.ndarray) -> None:
+    """Weigh particles and age landmarks by the candidates near the robot that this scan did not associate.
+
+    Each has a visibility v ∈ [0, 1]: the probability that its detection would fall inside the sensor's
+    range limits and field of view, given the sensor noise (soft edges, no hard margin). The particle is
+    weighted by (1 − P_D·v) for each (``miss_weight``: the price of a landmark that should have been seen;
+    this is what makes duplicates and clutter-born landmarks lose), the landmark's existence score moves by
+    ``exist_miss``·ln(1 − P_D·v), and landmarks below ``exist_min`` are deleted unless associated
+    ``permanent_hits`` times (a map built over many scans is not erased because the pose is briefly wrong at
+    a loop closure). With a sensor that often misses landmarks (a low P_D), a miss costs little.
+    """
+    config = slam.config
+    k = scan.k_view
+    if k == 0:
+        return
+    spec = robot.info.sensor
+    cand = scan.cand[:, :k]
+    zhat = scan.terms[0][:, :k]
+    max_range = spec.max_range if config.max_obs_range is None else min(spec.max_range, config.max_obs_range)
+    sigma_r, sigma_b = np.sqrt(np.diag(r))
+    visible = ndtr((max_range - zhat[..., 0]) / sigma_r) * ndtr((zhat[..., 0] - spec.min_range) / sigma_r)
+    if spec.fov < 2.0 * np.pi:
+        visible *= ndtr((0.5 * spec.fov - np.abs(zhat[..., 1])) / sigma_b)
+    visible = np.where(scan.mask[:, :k] & ~scan.hit[:, :k], visible, 0.0)
+    p_detect = spec.detection_probability if config.detection_probability is None else config.detection_probability
+    log_miss = np.log1p(-min(p_detect, config.max_detection_probability) * visible)
+    if config.miss_weight:
+        slam.logw += log_miss.sum(1)
+    rows, cols = np.nonzero(visible > 0.01)
+    slots = cand[rows, cols]
+    slam.map.exist[rows, slots] += config.exist_miss * log_miss[rows, cols]
+    dead = slam.map.exist[rows, slots] < config.exist_min
+    if config.permanent_hits is not None:
+        dead &= slam.map.hits[rows, slots] < config.permanent_hits
+    slam.map.valid[rows[dead], slots[dead]] = False
+    slam.counts["landmarks_deleted"] += int(dead.sum())
+
+
+def merge_duplicates(slam: FastSlam, scan: ScanState) -> None:
+    """Delete a confirmed landmark that is statistically the same as one associated in this scan.
+
+    Suspects are the rivals: landmarks that a detection gated but did not pick. Two landmarks of one particle
+    whose means differ by less than the χ² gate of Σ₁ + Σ₂ are one landmark seen twice (split hypotheses can
+    leave both alive, each taking every other detection); the one with fewer associations goes. Two real
+    landmarks that close cannot both be confirmed with covariances that small, so separate close beacons stay.
+    """
+    particle = np.arange(scan.cand.shape[0])[:, None]
+    hits = slam.map.hits[particle, scan.cand]
+    confirmed = scan.mask & (hits >= slam.config.confirm_hits)
+    p, j = np.nonzero(scan.rival & confirmed & ~scan.hit)
+    if p.size == 0:
+        return
+    rows, cols = np.nonzero(scan.hit & confirmed)
+    if rows.size == 0:
+        return
+    rank = np.arange(rows.size) - np.searchsorted(rows, rows)
+    hit_col = np.full((scan.cand.shape[0], int(rank.max()) + 1), -1, np.int64)
+    hit_col[rows, rank] = cols
+    pair_p = np.repeat(p, hit_col.shape[1])
+    pair_j = np.repeat(j, hit_col.shape[1])
+    pair_i = hit_col[p].ravel()
+    keep = pair_i >= 0
+    pair_p, pair_i, pair_j = pair_p[keep], pair_i[keep], pair_j[keep]
+    slot_i, slot_j = scan.cand[pair_p, pair_i], scan.cand[pair_p, pair_j]
+    fi, fj = slam.map.flat(pair_p, slot_i), slam.map.flat(pair_p, slot_j)
+    means, covs = slam.map.mean_rows(), slam.map.cov_rows()
+    close = quad2(means[fi] - means[fj], inv2(covs[fi] + covs[fj])[0]) < slam.gate
+    hits_i, hits_j = hits[pair_p, pair_i], hits[pair_p, pair_j]
+    drop = close & ((hits_j < hits_i) | ((hits_j == hits_i) & (slot_j > slot_i)))
+    valid = slam.map.valid.reshape(-1)
+    slam.counts["landmarks_merged"] += int(np.unique(fj[drop][valid[fj[drop]]]).size)
+    valid[fj[drop]] = False

@@ -1,0 +1,102 @@
+"""Motion: a robot's controls are buffered and applied in one draw per particle.
+
+The filter only looks at a robot's pose when one of its scans arrives, so it needs p(x_end | x_start,
+u_1..u_K), not every pose in between: the buffered controls are integrated into one Gaussian relative
+motion (:func:`robots.models.integrate_controls`) and each particle draws from it once, at the robot's
+next scan or every ``max_batch_s``. A control covers the time since the previous one; a scan later than
+the last control extends that control to its stamp (by at most ``max_extrapolation_s``).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from central.fastslam.config import FastSlamConfig
+from central.fastslam.robots import RobotState
+from robots.gaussian import sqrt_psd, valid_cov2
+from robots.models import integrate_controls, se2_compose
+from schemas.contract import OdomEvent
+
+if TYPE_CHECKING:
+    from central.fastslam.core import FastSlam
+
+
+def take_control(slam: FastSlam, robot: RobotState, event: OdomEvent) -> bool:
+    """Check and buffer one control of a placed robot; False (counted) if it is refused."""
+    control = np.asarray(event.control, float)
+    stamp, dt = float(event.stamp), float(event.dt)
+    if (control.shape != (2,) or not (math.isfinite(control[0]) and math.isfinite(control[1]))
+            or not (math.isfinite(dt) and 0.0 < dt <= 10.0) or not math.isfinite(stamp)):
+        slam.rejected["bad_odometry"] += 1
+        return False
+    if event.control_cov is not robot.checked_cov:  # a log passes one covariance object for all its controls
+        cov = np.asarray(event.control_cov, float)
+        if not valid_cov2(cov):
+            slam.rejected["bad_odometry"] += 1
+            return False
+        robot.checked_cov, robot.scaled_cov = event.control_cov, cov * slam.config.motion_noise_scale
+    if stamp < robot.last_odom_stamp:
+        slam.rejected["time_backwards"] += 1
+        return False
+    robot.last_odom_stamp = stamp
+    start = stamp - dt
+    if robot.pose_time is None:
+        robot.pose_time = start
+    if start - robot.pose_time > slam.config.max_extrapolation_s:
+        slam.counts["odometry_gaps"] += 1
+    span = min(stamp - robot.pose_time, dt + slam.config.max_extrapolation_s)
+    cov = robot.scaled_cov
+    if span > 0.0:
+        buffer(robot, control, span, cov)
+    robot.pose_time = max(robot.pose_time, stamp)
+    robot.last_control, robot.last_cov = control, cov
+    if robot.pending_s >= slam.config.max_batch_s:
+        flush(slam, robot)
+    return True
+
+
+def buffer(robot: RobotState, control: np.ndarray, span: float, cov: np.ndarray) -> None:
+    """Append one control applied over ``span`` seconds."""
+    robot.controls.append(control)
+    robot.dts.append(span)
+    robot.covs.append(cov)
+    robot.pending_s += span
+
+
+def pending_motion(robot: RobotState, config: FastSlamConfig) -> tuple[np.ndarray, np.ndarray] | None:
+    """(Δ̄, Σ_Δ) of the buffered controls in the robot's frame at their start, or None if nothing is buffered."""
+    if not robot.controls:
+        return None
+    delta, cov = integrate_controls(robot.model, np.array(robot.controls), np.array(robot.dts), np.array(robot.covs))
+    cov = cov + np.diag(np.square(config.pose_noise_per_s)) * robot.pending_s
+    return delta, cov
+
+
+def clear(robot: RobotState) -> None:
+    """Forget the buffered controls (they have been applied)."""
+    robot.controls, robot.dts, robot.covs, robot.pending_s = [], [], [], 0.0
+
+
+def flush(slam: FastSlam, robot: RobotState) -> None:
+    """Apply the buffered controls: one draw per particle from N(Δ̄, Σ_Δ), composed onto its pose."""
+    motion = pending_motion(robot, slam.config)
+    clear(robot)
+    if motion is None:
+        return
+    delta, cov = motion
+    noise = slam.rng.standard_normal((slam.pose.shape[0], 3)) @ sqrt_psd(cov).T
+    slam.pose[:, robot.index] = se2_compose(slam.pose[:, robot.index], delta + noise)
+
+
+def advance_to(robot: RobotState, stamp: float, config: FastSlamConfig) -> None:
+    """Extend the last control up to a scan's ``stamp`` (by at most ``max_extrapolation_s``)."""
+    if robot.pose_time is None:
+        robot.pose_time = stamp
+        return
+    if stamp > robot.pose_time and robot.last_control is not None:
+        span = min(stamp - robot.pose_time, config.max_extrapolation_s)
+        buffer(robot, robot.last_control, span, robot.last_cov)
+    robot.pose_time = max(robot.pose_time, stamp)

@@ -1,0 +1,70 @@
+"""Particle weights: normalised weights, effective sample size, systematic resampling and the best particle."""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from robots.gaussian import systematic_resample
+
+if TYPE_CHECKING:
+    from central.fastslam.association import ScanState
+    from central.fastslam.core import FastSlam
+
+
+def weights(logw: np.ndarray) -> np.ndarray:
+    """Normalised weights of log-weights ``logw`` (uniform when none is finite)."""
+    finite = np.isfinite(logw)
+    if not finite.any():
+        return np.full(logw.size, 1.0 / logw.size)
+    w = np.where(finite, np.exp(logw - logw[finite].max()), 0.0)
+    return w / w.sum()
+
+
+def effective_particles(logw: np.ndarray) -> float:
+    """Effective sample size 1 / Σ w²."""
+    w = weights(logw)
+    return float(1.0 / np.sum(w * w))
+
+
+def select(slam: FastSlam, index: np.ndarray, scan: ScanState | None = None) -> None:
+    """Keep particles ``index`` (with repetition), and the scan's bookkeeping with them."""
+    slam.pose = slam.pose[index]
+    slam.logw = slam.logw[index]
+    slam.map.select(index)
+    if scan is not None:
+        scan.select(index)
+
+
+def resample(slam: FastSlam, count: int, scan: ScanState | None = None) -> None:
+    """Systematic resampling to ``count`` equally weighted particles (remembering where the heaviest went)."""
+    w = weights(slam.logw)
+    index = systematic_resample(w, count, slam.rng)
+    best = int(np.argmax(w))
+    select(slam, index, scan)
+    slam.logw = np.zeros(count)
+    hits = np.flatnonzero(index == best)
+    slam.best_hint = int(hits[0]) if hits.size else 0
+    slam.counts["resamples"] += 1
+
+
+def normalise_and_resample(slam: FastSlam) -> None:
+    """Shift the log-weights to a maximum of 0; resample to N when the effective sample size falls below
+    ``resample_ess``·N. Weights that are all zero (no finite log-weight) are reset to uniform (counted)."""
+    finite = np.isfinite(slam.logw)
+    if not finite.any():
+        slam.logw = np.zeros(slam.logw.size)
+        slam.counts["degenerate_weights"] += 1
+        return
+    slam.logw = np.where(finite, slam.logw - slam.logw[finite].max(), -np.inf)
+    if effective_particles(slam.logw) < slam.config.resample_ess * slam.logw.size:
+        resample(slam, slam.config.particles)
+
+
+def best_particle(slam: FastSlam) -> int:
+    """The highest-weight particle (after a resampling: a child of the heaviest particle before it)."""
+    w = weights(slam.logw)
+    if w.max() - w.min() < 1e-12:
+        return min(slam.best_hint, w.size - 1)
+    return int(np.argmax(w))

@@ -1,0 +1,46 @@
+"""Robot-to-robot detections (only with ``robot_detections``): they weight the particles by how well the two
+robots' poses in each particle explain the detection; they never update the map."""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from central.fastslam import motion
+from central.fastslam.robots import RobotState
+from robots.gaussian import LOG_2PI, inv2, quad2, sandwich, sandwich2
+from robots.models import compose_jacobian, se2_compose
+from schemas.contract import ScanEvent
+
+if TYPE_CHECKING:
+    from central.fastslam.core import FastSlam
+
+
+def weigh(slam: FastSlam, robot: RobotState, event: ScanEvent, r: np.ndarray) -> None:
+    """Weight particles by each detected robot: N(z; h(x_i, x_j), R + H_j Σ_j H_jᵀ), Σ_j the spread of the
+    other robot's buffered motion. A robot not placed, or whose pose is more than ``robot_detection_max_dt``
+    away from the scan's stamp, is skipped (counted)."""
+    pose = slam.pose[:, robot.index]
+    for other_id, rng_, brg in zip(event.robot_ids, np.asarray(event.robot_ranges, float),
+                                   np.asarray(event.robot_bearings, float)):
+        other = slam.robots.get(other_id)
+        if other is None or other is robot or other.pose_time is None:
+            slam.counts["robot_detections_unused"] += 1
+            continue
+        if abs(other.pose_time - float(event.stamp)) > slam.config.robot_detection_max_dt:
+            slam.counts["robot_detections_unused"] += 1
+            continue
+        target = slam.pose[:, other.index]
+        spread = np.zeros((slam.pose.shape[0], 3, 3))
+        pending = motion.pending_motion(other, slam.config)
+        if pending is not None:
+            spread = sandwich(compose_jacobian(target[:, 2]), pending[1])
+            target = se2_compose(target, pending[0])
+        zhat = robot.sensor.observe(pose, target[:, :2])
+        _, h_lm = robot.sensor.jacobians(pose, target[:, :2])
+        s = sandwich2(h_lm, spread[:, :2, :2]) + r
+        s_inv, det = inv2(s)
+        nu = robot.sensor.innovation(np.array([rng_, brg]), zhat)
+        slam.logw += -0.5 * quad2(nu, s_inv) - 0.5 * np.log(np.maximum(det, 1e-300)) - LOG_2PI
+        slam.counts["robot_detections_used"] += 1

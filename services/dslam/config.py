@@ -1,0 +1,42 @@
+"""Configuration of the D-SLAM core (:mod:`services.dslam.core`): a plain frozen model, never read from the
+environment (the ``fleetslam dslam`` settings class composes it; ``fleetslam run --set`` overrides it)."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import Field
+
+from schemas.contract import CoreConfig
+
+
+class DslamConfig(CoreConfig):
+    """The D-SLAM core: association, feature lists, recovery, localization."""
+
+    association: Literal["known", "nn", "greedy", "ihgr", "exact", "jcbb", "auto"] = Field(
+        "known",
+        description="known (true ids from the scans) or a method of the association service: nn, greedy, ihgr, exact, jcbb, auto",
+    )
+    gate_probability: float = Field(0.99, gt=0, lt=1, description="chi-square gate of the association")
+    new_feature_gate_probability: float = Field(0.9999, gt=0, lt=1, description="a measurement starts a feature only outside this gate of every landmark")
+    new_feature_density: float = Field(1e-3, gt=0, description="expected new features per m·rad of measurement space")
+    candidate_margin: float = Field(1.0, ge=0, description="landmarks up to max range + this (m) are association candidates")
+    confirm_hits: int = Field(2, ge=1, description="sightings before a tentative feature enters the map (association methods; known ids map at once)")
+    tentative_misses: int = Field(3, ge=1, description="scans in view without a sighting before a tentative feature is dropped")
+    min_reference_distance: float = Field(0.3, gt=0, description="smallest distance (m) between the two reference features of z_map")
+    bootstrap_std: float = Field(
+        0.1, ge=0, description="a robot that moved before seeing two mapped features maps raw observations from its "
+        "dead-reckoned pose while its position std is below this (m; 0: only at the start pose)",
+    )
+    map_gate_probability: float = Field(0.9999, gt=0, lt=1, description="z_map is refused when its χ² test fails at this probability")
+    recovery_tol: float = Field(1e-5, gt=0, description="mean recovery stops when every block-Jacobi step is below this (m)")
+    recovery_max_iter: int = Field(200, ge=1, description="most PCG iterations of one mean recovery")
+    column_tol: float = Field(1e-9, gt=0, description="covariance-column recovery tolerance, relative to the landmark's variance")
+    column_max_iter: int = Field(100, ge=1, description="PCG iterations of a covariance-column solve before a fresh sparse LU solve finishes it")
+    refactor_iterations: int = Field(15, ge=1, description="a column solve slower than this many iterations makes the next one factorise I afresh")
+    column_cache: int = Field(64, ge=1, description="covariance columns kept to warm-start the next solves (landmarks)")
+    relocalise_after: int = Field(
+        10, ge=1, description="scans in a row whose observation estimate contradicts the prediction before the robot is relocalized"
+    )
+    ci_criterion: Literal["trace", "det"] = Field("trace", description="covariance intersection minimises the trace or the determinant")
+    marginals_limit: int = Field(3000, ge=0, description="maps up to this many landmarks report every marginal covariance exactly")

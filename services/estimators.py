@@ -1,0 +1,37 @@
+"""The estimators ``fleetslam run`` and the benchmarks can drive, by name.
+
+Each entry is a plain import of the estimator's ``make_estimator(options, infos)``
+(:class:`schemas.contract.RunOptions` in, an :class:`schemas.contract.Estimator`
+out), so a reader and a tool can follow it to the code.
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+from central.fastslam import make_estimator as make_fastslam
+from schemas.contract import Estimator, RunOptions
+from schemas.messages import RobotInfo
+from services.baselines.dead_reckoning import make_estimator as make_dead_reckoning
+from services.baselines.ekf_slam import make_estimator as make_ekf_slam
+from services.dslam.core import make_estimator as make_dslam
+from services.mcl.fleet import make_estimator as make_mcl
+
+Factory = Callable[[RunOptions, list[RobotInfo]], Estimator]
+
+ESTIMATORS: dict[str, Factory] = {
+    "odometry": make_dead_reckoning,
+    "ekf": make_ekf_slam,
+    "fastslam": make_fastslam,
+    "dslam": make_dslam,
+    "mcl": make_mcl,
+}
+
+
+def make_estimator(options: RunOptions, infos: list[RobotInfo]) -> Estimator:
+    """Build the estimator ``options.estimator`` for the robots ``infos`` (ValueError naming the choices)."""
+    try:
+        factory = ESTIMATORS[options.estimator]
+    except KeyError:
+        raise ValueError(f"unknown estimator {options.estimator!r}; choose from {', '.join(ESTIMATORS)}") from None
+    return factory(options, infos)

@@ -1,0 +1,225 @@
+"""The robots one Monte Carlo localization run tracks: one filter per robot on a shared map.
+
+:class:`MclFleet` is the single per-robot table of both drivers: the
+``fleetslam mcl`` service (robots join as their RobotInfo arrives, the map may
+come later) and the offline estimator ``fleetslam run --estimator mcl``
+(:func:`make_estimator`: a prior map, every robot from no pose, and with the
+truth the time each robot took to converge). It offers the
+:class:`~schemas.contract.Estimator` protocol. Every filter it builds draws
+from its own stream ``[seed, n]``, n counting the filters built so far.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from robots.models import wrap_angle
+from schemas.contract import MapView, OdomEvent, RunOptions, ScanEvent
+from schemas.messages import RobotInfo, SensorSpec
+from services.mcl.config import MclConfig
+from services.mcl.core import Hypothesis, MonteCarloLocalizer, UpdateReport
+
+UNKNOWN_COV = np.diag([1e6, 1e6, 1e2])
+
+
+@dataclass
+class RobotState:
+    """One robot of the fleet: its filter (None until there is a map) and what was measured about it."""
+
+    info: RobotInfo
+    mcl: MonteCarloLocalizer | None = None
+    scans: int = 0
+    localized: bool = False  # as of the last scan
+    first_stamp: float | None = None
+    hypotheses_max: int = 0
+    localized_s: float | None = None  # robot time from the first scan until first localized
+    converge_s: float | None = None  # ... until first localized within converge_xy / converge_theta of the truth
+    final_error_m: float | None = None
+    final_error_rad: float | None = None
+    particles_total: int = 0  # sum over the scans of the sample size after each
+    particles_max: int = 0
+
+
+class MclFleet:
+    """One :class:`MonteCarloLocalizer` per robot on one landmark map.
+
+    ``use_start_pose``: a robot whose RobotInfo gives a start pose is tracked from it (else it is localized
+    globally, as every robot is offline). ``truth`` ``{rid: (stamps, poses)}`` lets the fleet measure errors.
+    """
+
+    def __init__(self, config: MclConfig, landmarks: np.ndarray | None = None,
+                 truth: dict[str, tuple[np.ndarray, np.ndarray]] | None = None, use_start_pose: bool = True):
+        self.config = config
+        self.landmarks = None if landmarks is None else np.asarray(landmarks, float).reshape(-1, 2)
+        self.truth = {rid: (np.asarray(s, float), np.asarray(p, float)) for rid, (s, p) in (truth or {}).items()}
+        self.use_start_pose = use_start_pose
+        self.robots: dict[str, RobotState] = {}
+        self.filters_built = 0
+        self.robot_restarts = 0
+
+    # ------------------------------------------------------------ membership
+
+    def __contains__(self, rid: str) -> bool:
+        return rid in self.robots
+
+    def add_robot(self, info: RobotInfo) -> None:
+        """Take a robot in (its filter is built now if there is a map, else with the first map)."""
+        self.robots[info.robot_id] = RobotState(info=info, mcl=self._build(info))
+
+    def remove_robot(self, rid: str) -> None:
+        self.robots.pop(rid, None)
+
+    def restart_robot(self, rid: str) -> RobotState:
+        """Forget what the fleet knows about a robot and localize it from scratch (a new run of it)."""
+        self.robot_restarts += 1
+        self.add_robot(self.robots[rid].info)
+        return self.robots[rid]
+
+    def set_map(self, landmarks: np.ndarray) -> None:
+        """Use a (newer) map: robots waiting for one get their filter, the others keep their particles."""
+        self.landmarks = np.asarray(landmarks, float).reshape(-1, 2)
+        for state in self.robots.values():
+            if state.mcl is None:
+                state.mcl = self._build(state.info)
+            else:
+                state.mcl.set_map(self.landmarks)
+
+    def _build(self, info: RobotInfo) -> MonteCarloLocalizer | None:
+        if self.landmarks is None:
+            return None
+        if not self.use_start_pose:
+            info = info.model_copy(update={"start_pose": None, "start_pose_cov": None})
+        rng = np.random.default_rng([self.config.seed, self.filters_built])
+        self.filters_built += 1
+        return MonteCarloLocalizer(self.landmarks, info, self.config, rng)
+
+    # ---------------------------------------------------------------- events
+
+    def on_odometry(self, event: OdomEvent) -> None:
+        state = self.robots.get(event.robot_id)
+        if state is not None and state.mcl is not None:
+            state.mcl.predict(event.control, event.dt, event.control_cov)
+
+    def on_scan(self, event: ScanEvent) -> UpdateReport | None:
+        """Run the filter's update; None for a robot the fleet has no filter for."""
+        state = self.robots.get(event.robot_id)
+        if state is None or state.mcl is None:
+            return None
+        mcl = state.mcl
+        report = mcl.update(event.observations)
+        state.scans += 1
+        state.localized = report.localized
+        if state.first_stamp is None:
+            state.first_stamp = event.stamp
+        elapsed = event.stamp - state.first_stamp
+        state.hypotheses_max = max(state.hypotheses_max, report.hypotheses)
+        state.particles_total += report.particles_after
+        state.particles_max = max(state.particles_max, report.particles_after)
+        if report.localized and state.localized_s is None:
+            state.localized_s = elapsed
+        error = self._error(event.robot_id, event.stamp, mcl)
+        if error is not None:
+            state.final_error_m, state.final_error_rad = error
+            close = error[0] <= self.config.converge_xy and error[1] <= self.config.converge_theta
+            if report.localized and close and state.converge_s is None:
+                state.converge_s = elapsed
+        return report
+
+    def _error(self, rid: str, stamp: float, mcl: MonteCarloLocalizer) -> tuple[float, float] | None:
+        """(position, heading) error of the best hypothesis against the nearest truth sample, if any."""
+        if rid not in self.truth or mcl.best() is None:
+            return None
+        stamps, poses = self.truth[rid]
+        if stamps.size == 0:
+            return None
+        k = int(np.clip(np.searchsorted(stamps, stamp), 1, stamps.size - 1)) if stamps.size > 1 else 0
+        if stamps.size > 1 and abs(stamps[k - 1] - stamp) < abs(stamps[k] - stamp):
+            k -= 1
+        truth = poses[k]
+        if abs(stamps[k] - stamp) > 0.5 or not np.all(np.isfinite(truth)):
+            return None
+        best = mcl.best()[0]
+        return float(np.hypot(*(best[:2] - truth[:2]))), float(abs(wrap_angle(best[2] - truth[2])))
+
+    # --------------------------------------------------------------- outputs
+
+    def poses(self) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+        """Every robot's best hypothesis (mean, covariance); a huge covariance before its first scan."""
+        out = {}
+        for rid, state in self.robots.items():
+            best = state.mcl.best() if state.mcl is not None else None
+            out[rid] = best if best is not None else (np.zeros(3), UNKNOWN_COV.copy())
+        return out
+
+    def hypotheses(self, rid: str) -> list[Hypothesis]:
+        """A robot's significant hypotheses, heaviest first (empty before its first scan)."""
+        state = self.robots.get(rid)
+        return state.mcl.hypotheses() if state is not None and state.mcl is not None else []
+
+    def localized_count(self) -> int:
+        return sum(1 for state in self.robots.values() if state.mcl is not None and state.mcl.localized)
+
+    def landmark_map(self) -> MapView:
+        """Localization only: no map of its own."""
+        return MapView.empty()
+
+    def extra_metrics(self) -> dict:
+        """Per robot: localized at the end, time to converge (s of robot time), most hypotheses held, and more."""
+        built = {rid: state for rid, state in self.robots.items() if state.mcl is not None}
+        return {
+            "localized": {rid: state.mcl.localized for rid, state in built.items()},
+            "converge_s": {rid: state.converge_s for rid, state in built.items()},
+            "hypotheses_max": {rid: state.hypotheses_max for rid, state in built.items()},
+            "mcl": {
+                "variant": self.config.variant,
+                "robots": {
+                    rid: {
+                        "localized_s": state.localized_s,
+                        "final_error_m": state.final_error_m,
+                        "final_error_rad": state.final_error_rad,
+                        "particles_mean": state.particles_total / state.scans if state.scans else None,
+                        "particles_max": state.particles_max if state.scans else None,
+                        "restarts": state.mcl.restarts,
+                        "kidnaps_detected": state.mcl.kidnaps,
+                    }
+                    for rid, state in built.items()
+                },
+            },
+        }
+
+    # -------------------------------------------------------------- one-shot
+
+    def localize_once(self, observations: np.ndarray, sensor: SensorSpec, particles: int, seed: int,
+                      robot_id: str = "query") -> MonteCarloLocalizer:
+        """A fresh filter globally localized from one scan ``(n, 2)`` and weighed by it (not resampled).
+
+        Needs a map (ValueError without one); the fleet's robots are not touched.
+        """
+        if self.landmarks is None:
+            raise ValueError("no map to localize against yet")
+        info = RobotInfo(robot_id=robot_id, stamp=0.0, motion_model="unicycle", sensor=sensor, odom_rate_hz=1.0,
+                         scan_rate_hz=1.0)
+        mcl = MonteCarloLocalizer(self.landmarks, info, self.config, np.random.default_rng(seed))
+        mcl.initialize_global(observations, particles)
+        mcl.weigh(observations)
+        return mcl
+
+
+def make_estimator(options: RunOptions, infos: list[RobotInfo]) -> MclFleet:
+    """The offline MCL estimator: every robot localized from no pose against ``options.landmarks``.
+
+    ``options.settings`` are :class:`MclConfig` settings (``--set variant=kld``); ``options.particles``, when
+    given, is the sample size; ``options.truth`` enables the convergence figures. SettingsError (a ValueError)
+    on an unknown or bad setting, ValueError without a map.
+    """
+    if options.landmarks is None:
+        raise ValueError("the mcl estimator localizes against a map: pass RunOptions.landmarks, an (L, 2) array")
+    given = {"seed": options.seed, **({"particles": options.particles} if options.particles is not None else {}),
+             **options.settings}
+    config = MclConfig().with_overrides(given, owner="mcl")
+    fleet = MclFleet(config, options.landmarks, options.truth, use_start_pose=False)
+    for info in infos:
+        fleet.add_robot(info)
+    return fleet

@@ -1,0 +1,87 @@
+"""The command line: ordinary mistakes end with one line and exit code 2, never a traceback; --help lists the
+choices of every choice flag; --version."""
+
+import argparse
+import os
+import subprocess
+import sys
+import typing
+
+import pytest
+
+from schemas import config
+from services.cli import COMMANDS, build_parser, main as cli_main
+from tests.helpers import REPO
+
+
+def one_error_line(capsys) -> str:
+    err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert len(err) == 1, err
+    assert "Traceback" not in err[0]
+    return err[0]
+
+
+@pytest.mark.parametrize("words, expected", [
+    (["--set", "max_obs_range=abc"], ["max_obs_range='abc'", "valid number"]),
+    (["--set", "particles=abc"], ["particles='abc'", "valid integer"]),
+    (["--set", "foo=1"], ["unknown fastslam setting foo", "(known: ", "max_obs_range"]),
+    (["--set", "proposal=fastslam3"], ["proposal='fastslam3'", "'fastslam1' or 'fastslam2'"]),
+])
+def test_bad_estimator_settings_give_one_line(words, expected, capsys):
+    code = cli_main(["run", "--dataset", "sim:arena", "--estimator", "fastslam", "--duration", "1", "--no-progress",
+                     *words])
+    line = one_error_line(capsys)
+    assert code == 2 and line.startswith("fleetslam run: error: ")
+    for text in expected:
+        assert text in line, line
+
+
+def test_a_bad_environment_variable_gives_one_line(monkeypatch, capsys):
+    monkeypatch.setenv("FLEETSLAM_RATE", "abc")
+    assert cli_main(["robot"]) == 2
+    line = one_error_line(capsys)
+    assert line.startswith("fleetslam robot: error: FLEETSLAM_RATE: rate='abc'"), line
+
+
+def test_a_bad_choice_gives_one_line(capsys):
+    assert cli_main(["mcl", "--variant", "xyz"]) == 2
+    line = one_error_line(capsys)
+    assert line.startswith("fleetslam mcl: error: --variant: variant='xyz': Input should be 'mcl', 'kld'"), line
+
+
+def test_the_cli_process_prints_no_traceback_for_a_bad_variable():
+    env = {k: v for k, v in os.environ.items() if not k.startswith("FLEETSLAM_")}
+    result = subprocess.run([sys.executable, "-m", "services.cli", "central", "--particles", "0"], cwd=REPO,
+                            capture_output=True, text=True, timeout=60, env={**env, "FLEETSLAM_PREFIX": "a b"})
+    assert result.returncode == 2
+    assert "Traceback" not in result.stderr and len(result.stderr.strip().splitlines()) == 1, result.stderr
+
+
+def test_version(capsys):
+    with pytest.raises(SystemExit) as stop:
+        build_parser().parse_args(["--version"])
+    assert stop.value.code == 0 and capsys.readouterr().out.startswith("fleetslam 0.")
+
+
+def _settings_classes() -> dict[str, type]:
+    return {"router": config.RouterSettings, "robot": config.RobotSettings, "monitor": config.MonitorSettings,
+            "demo": config.DemoSettings, "run": config.RunSettings, "evaluate": config.EvaluateSettings,
+            "assoc": config.AssocSettings, "central": config.CentralSettings, "dslam": config.DslamSettings,
+            "mcl": config.MclSettings}
+
+
+@pytest.mark.parametrize("command", list(COMMANDS))
+def test_help_lists_the_choices_of_every_choice_flag(command):
+    parser = build_parser(command)
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices[command]
+    text = sub.format_help()
+    settings_cls = _settings_classes()[command]
+    for name, field in settings_cls.model_fields.items():
+        choices = config._choices(field.annotation)
+        if choices:
+            assert "one of: " + ", ".join(map(str, choices)) in " ".join(text.split()), (command, name)
+    if command == "run":
+        assert "one of: odometry, ekf, fastslam, dslam, mcl" in " ".join(text.split())
+    assert set(_settings_classes()) == set(COMMANDS)
+    assert all(typing.get_origin(f.annotation) is not None or f.annotation is not None
+               for f in settings_cls.model_fields.values())
