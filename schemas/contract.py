@@ -174,9 +174,11 @@ class CoreConfig(BaseModel):
 def describe_validation_error(error: ValidationError, owner: str, known: list[str]) -> str:
     """One line for the first problem of a pydantic validation error: setting, value, what was expected."""
     first = error.errors()[0]
-    name = ".".join(str(part) for part in first["loc"]) or "?"
+    name = ".".join(str(part) for part in first["loc"])
     if first["type"] == "extra_forbidden":
         return f"unknown {owner} setting {name!r} (known: {', '.join(known)})"
+    if not name:  # a check across several settings
+        return f"{owner} settings: {first['msg']}"
     value = first.get("input")
     return f"{owner} setting {name}={value!r}: {first['msg']}"
 

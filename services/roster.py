@@ -120,18 +120,15 @@ class Roster:
         member.info = info
         return True, None
 
-    def admit(self, robot_id: str, after: float | None = None) -> list[StreamEvent]:
-        """The service took the robot in: its events flow from now on. Returns the events it held, in order;
-        with ``after``, those not after that stamp are dropped (counted as ``before_placement``)."""
+    def admit(self, robot_id: str, after: float | None = None) -> tuple[list[StreamEvent], int]:
+        """The service took the robot in: its events flow from now on. Returns the events it held, in order,
+        and how many were dropped: with ``after``, those not after that stamp (a robot placed at that time)."""
         member = self.member(robot_id)
         member.admitted = True
         held = list(member.waiting)
         member.waiting.clear()
-        if after is None:
-            return held
-        kept = [event for event in held if event.stamp > after]
-        self.counts["before_placement"] += len(held) - len(kept)
-        return kept
+        kept = held if after is None else [event for event in held if event.stamp > after]
+        return kept, len(held) - len(kept)
 
     def hold(self, robot_id: str) -> None:
         """Keep the robot's events again until :meth:`admit` (a robot taken out to be placed afresh)."""

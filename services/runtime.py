@@ -110,7 +110,10 @@ class ServiceShell:
     async def admit(self, robot_id: str, after: float | None = None) -> None:
         """Take a robot in: the events it held go to :meth:`robot_event` in order (with ``after``, only those
         after that stamp; the others are counted)."""
-        for event in self.roster.admit(robot_id, after):
+        events, dropped = self.roster.admit(robot_id, after)
+        if dropped:
+            self.rejected["before_placement"] += dropped
+        for event in events:
             await self.robot_event(event)
 
     async def robot_announced(self, info: RobotInfo) -> None:

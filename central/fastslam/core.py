@@ -137,6 +137,11 @@ class FastSlam:
 
     # ------------------------------------------------------------------ estimates
     @property
+    def robot_count(self) -> int:
+        """Robots placed in the particles."""
+        return len(self.robots)
+
+    @property
     def particle_count(self) -> int:
         return self.pose.shape[0]
 

@@ -41,8 +41,8 @@ def test_messages_wait_for_the_announcement_and_flow_in_order_once_admitted():
     assert roster.on_stream("r1", "scan", scan(0)).ask_info is True  # still unannounced: ask again
     assert roster.on_info("r1", info()) == (True, None)
     assert roster.on_info("r1", info()) == (False, None)  # robots republish: announced once per run
-    held = roster.admit("r1")
-    assert [(type(e), e.seq) for e in held] == [(OdomEvent, 0), (ScanEvent, 0)]
+    held, dropped = roster.admit("r1")
+    assert dropped == 0 and [(type(e), e.seq) for e in held] == [(OdomEvent, 0), (ScanEvent, 0)]
     arrival = roster.on_stream("r1", "odom", odom(1))
     assert isinstance(arrival.event, OdomEvent) and arrival.event.seq == 1 and arrival.refused is None
 
@@ -66,7 +66,7 @@ def test_waiting_is_bounded_and_the_overflow_counted():
     reasons = [roster.on_stream("r1", "odom", odom(k)).refused for k in range(5)]
     assert reasons[:3] == [None, None, None] and all(r[0] == "waiting_overflow" for r in reasons[3:])
     roster.on_info("r1", info())
-    assert [e.seq for e in roster.admit("r1")] == [2, 3, 4]
+    assert [e.seq for e in roster.admit("r1")[0]] == [2, 3, 4]
 
 
 def test_a_new_run_after_leaving_is_told_and_a_return_after_a_link_cut_is_not():
@@ -84,7 +84,7 @@ def test_a_new_run_after_leaving_is_told_and_a_return_after_a_link_cut_is_not():
     assert again.new_run and again.event is None and again.ask_info  # a new run: announced afresh before it flows
     assert roster.info("r1") is None and roster.counts["robot_restarts"] == 1
     assert roster.on_info("r1", info()) == (True, None)
-    assert [e.seq for e in roster.admit("r1")] == [0]
+    assert [e.seq for e in roster.admit("r1")[0]] == [0]
 
 
 def test_late_join_and_admission_after_a_placement_stamp():
@@ -93,8 +93,8 @@ def test_late_join_and_admission_after_a_placement_stamp():
     late = roster.on_stream("r1", "odom", odom(7))
     assert late.late and roster.counts["robots_joined_late"] == 1
     assert not roster.on_stream("r1", "odom", odom(8)).late
-    kept = roster.admit("r1", after=0.75)
-    assert [e.seq for e in kept] == [8] and roster.counts["before_placement"] == 1
+    kept, dropped = roster.admit("r1", after=0.75)
+    assert [e.seq for e in kept] == [8] and dropped == 1
     roster.hold("r1")
     assert roster.on_stream("r1", "odom", odom(9)).event is None and roster.waiting_count() == 1
 
