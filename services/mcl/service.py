@@ -7,7 +7,8 @@ The map comes from the ``source`` setting: ``central`` (the latest
 ``file:PATH`` (an ``(L, 2)`` array in a .npy or text file). A newer map
 replaces the old one at most every ``map_period_s``.
 
-Every robot whose :class:`RobotInfo` announces no start pose (every robot with
+Robots are followed through the shared roster (:meth:`ServiceShell.follow_robots`);
+every robot whose :class:`RobotInfo` announces no start pose (every robot with
 ``all_robots``) joins the :class:`~services.mcl.fleet.MclFleet`, which gives
 it a filter; its odometry moves the particles, each scan runs the variant's
 update, and an :class:`MclPose` (every significant hypothesis, the best pose,
@@ -34,10 +35,9 @@ import zenoh
 
 from schemas.codec import decode, encode
 from schemas.config import MclSettings, add_settings_arguments, settings_from_args
-from schemas.contract import OdomEvent, ScanEvent
+from schemas.contract import OdomEvent
 from schemas.mcl import LocalizeReply, LocalizeRequest
-from schemas.messages import Estimate, MapEstimate, MclPose, Odometry, PoseHypothesis, RobotInfo, Scan, WorldTruth
-from schemas.streams import Verdict, StreamTracker
+from schemas.messages import Estimate, MapEstimate, MclPose, PoseHypothesis, RobotInfo, WorldTruth
 from schemas.transport import StreamPublisher
 from services.mcl.config import MclConfig
 from services.mcl.core import MonteCarloLocalizer
@@ -88,7 +88,6 @@ class MclService(ServiceShell):
         self.map_applied = float("-inf")
         landmarks = load_map_file(settings.source.partition(":")[2]) if self.source == "file" else None
         self.fleet = MclFleet(settings.core(MclConfig), landmarks)
-        self.tracker = StreamTracker()
         self.pose_pubs: dict[str, StreamPublisher] = {}
         self.pose_seq: dict[str, int] = {}  # kept when a robot leaves: its MclPose stream goes on where it stopped
 
@@ -96,26 +95,16 @@ class MclService(ServiceShell):
 
     def setup(self, session: zenoh.Session) -> None:
         keys = self.keys
-        for stream in ("info", "odom", "scan"):
-            self.subscribe(keys.all_robot_stream(stream), stream)
-        self._declared.append(session.liveliness().declare_subscriber(keys.alive_any, self._on_alive, history=False))
+        self.follow_robots()
         map_key = {"central": keys.central_estimate, "dslam": keys.dslam_map, "truth": keys.world_truth}.get(self.source)
         if map_key is not None:
             self.subscribe(map_key, "map")
-            session.get(map_key, self._on_reply("map"))
-        session.get(keys.all_robot_stream("info"), self._on_reply("info"))
+            session.get(map_key, self._on_map_reply)
         self._declared.append(session.declare_queryable(keys.mcl_localize, self._on_query))
 
-    def _on_reply(self, tag: str):
-        def callback(reply: zenoh.Reply) -> None:
-            if reply.ok is not None:
-                self.enqueue(tag, str(reply.ok.key_expr), reply.ok.payload.to_bytes())
-
-        return callback
-
-    def _on_alive(self, sample: zenoh.Sample) -> None:
-        if sample.kind == zenoh.SampleKind.DELETE:
-            self.enqueue("gone", str(sample.key_expr), b"")
+    def _on_map_reply(self, reply: zenoh.Reply) -> None:
+        if reply.ok is not None:
+            self.enqueue("map", str(reply.ok.key_expr), reply.ok.payload.to_bytes())
 
     def _on_query(self, query: zenoh.Query) -> None:
         self.enqueue("localize", str(query.key_expr), query)  # the query rides the queue; answered in handle()
@@ -128,20 +117,8 @@ class MclService(ServiceShell):
                 self._answer(payload)
             finally:
                 payload.drop()
-            return
-        if tag == "map":
+        elif tag == "map":
             self._on_map(payload)
-        elif tag == "gone":
-            parsed = self.keys.parse_robot_key(key)
-            if parsed and parsed[0] in self.fleet:
-                log.info("robot %s left (its filter stays, for a return after a link cut)", parsed[0])
-                self.tracker.leave(parsed[0])
-        elif tag in ("info", "odom", "scan"):
-            parsed = self.keys.parse_robot_key(key)
-            if parsed is None:
-                self.reject("bad_key", key)
-                return
-            {"info": self._on_info, "odom": self._on_odom, "scan": self._on_scan}[tag](parsed[0], payload)
         self._refresh_extra()
 
     def _on_map(self, payload: bytes) -> None:
@@ -156,61 +133,44 @@ class MclService(ServiceShell):
         self.map_applied = now
         self.fleet.set_map(landmarks)
 
-    def _on_info(self, rid: str, payload: bytes) -> None:
-        info = decode(payload, RobotInfo)
-        if info.robot_id != rid:
-            self.reject("robot_id_mismatch", f"{info.robot_id} on the key of {rid}")
-            return
-        if rid in self.fleet or not (info.start_pose is None or self.settings.all_robots):
-            return
-        log.info("localizing robot %s (%s start pose)", rid, "unknown" if info.start_pose is None else "known")
-        self.fleet.add_robot(info)
-        self.pose_pubs.setdefault(rid, self.publisher(self.keys.mcl_pose(rid)))
+    # ------------------------------------------------------------------ robots
 
-    def _accept(self, rid: str, stream: str, message) -> RobotState | None:
-        """The fleet's robot for a stream message that is in order, else None (counted)."""
-        if message.robot_id != rid:
-            self.reject("robot_id_mismatch", f"{message.robot_id} on the key of {rid}")
-            return None
-        state = self.fleet.robots.get(rid)
+    async def robot_announced(self, info: RobotInfo) -> None:
+        """Localize a robot that announces no start pose (every robot with ``all_robots``); the others' events
+        flow past untouched."""
+        rid = info.robot_id
+        if info.start_pose is None or self.settings.all_robots:
+            log.info("localizing robot %s (%s start pose)", rid, "unknown" if info.start_pose is None else "known")
+            self.fleet.add_robot(info)
+            self.pose_pubs.setdefault(rid, self.publisher(self.keys.mcl_pose(rid)))
+        await self.admit(rid)
+        self._refresh_extra()
+
+    def robot_new_run(self, robot_id: str) -> None:
+        """Localized from scratch once its new run announces itself (its MclPose stream goes on)."""
+        self.fleet.remove_robot(robot_id)
+
+    async def robot_event(self, event) -> None:
+        state = self.fleet.robots.get(event.robot_id)
         if state is None:
-            return None
-        if self.tracker.new_run(rid, stream, message.seq):
-            state = self._restart(rid)
-        verdict = self.tracker.check(rid, stream, message.seq, message.stamp)
-        if verdict is not Verdict.ACCEPT:
-            self.reject(verdict.value, f"{rid}/{stream} seq {message.seq}")
-            return None
+            return
         if state.mcl is None:
             self.rejected["no_map_yet"] += 1
-            return None
-        return state
-
-    def _restart(self, rid: str) -> RobotState:
-        """A robot that left is back with a new run (seq 0 again): localize it from scratch."""
-        log.info("robot %s started a new run; localizing it again", rid)
-        self.extra["robot_restarts"] = self.extra.get("robot_restarts", 0.0) + 1.0
-        return self.fleet.restart_robot(rid)
-
-    def _on_odom(self, rid: str, payload: bytes) -> None:
-        odom = decode(payload, Odometry)
-        if self._accept(rid, "odom", odom) is not None:
-            self.fleet.on_odometry(OdomEvent.from_message(odom))
-
-    def _on_scan(self, rid: str, payload: bytes) -> None:
-        scan = decode(payload, Scan)
-        state = self._accept(rid, "scan", scan)
-        if state is None:
+            return
+        if isinstance(event, OdomEvent):
+            self.fleet.on_odometry(event)
             return
         was_localized = state.localized
-        report = self.fleet.on_scan(ScanEvent.from_message(scan))
+        report = self.fleet.on_scan(event)
         if report.kidnapped:
-            log.warning("robot %s: no hypothesis explains its scans; global localization again", rid)
+            log.warning("robot %s: no hypothesis explains its scans; global localization again", event.robot_id)
         changed = report.localized != was_localized
         if report.localized and changed:
-            log.info("robot %s localized at %s after %d scans", rid, np.round(state.mcl.best()[0], 2), state.scans)
+            log.info("robot %s localized at %s after %d scans", event.robot_id, np.round(state.mcl.best()[0], 2),
+                     state.scans)
         if changed or state.scans % self.settings.publish_every == 0:
-            self._publish(rid, state, scan.stamp)
+            self._publish(event.robot_id, state, event.stamp)
+        self._refresh_extra()
 
     def _publish(self, rid: str, state: RobotState, stamp: float) -> None:
         mcl = state.mcl

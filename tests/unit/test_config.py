@@ -37,3 +37,21 @@ def test_help_lists_every_installed_command():
     for name in COMMANDS:
         assert name in text
     assert set(COMMANDS) == {"router", "robot", "monitor", "demo", "run", "evaluate", "assoc", "central", "dslam", "mcl"}
+
+
+def test_core_configurations_never_read_the_environment(monkeypatch):
+    from central.fastslam import FastSlamConfig
+    from schemas.config import CentralSettings, MclSettings
+    from services.dslam.config import DslamConfig
+    from services.mcl.config import MclConfig
+
+    for name, value in {"ASSOCIATION": "nn", "VARIANT": "kld", "PARTICLES": "7"}.items():
+        monkeypatch.setenv(f"FLEETSLAM_{name}", value)
+    assert FastSlamConfig().particles == 100 and FastSlamConfig().association == "nn"
+    assert MclConfig().variant == "cluster_kld_srl" and MclConfig().particles == 1000
+    assert DslamConfig().association == "known"
+    # only a process's settings class reads them, and composes its core's configuration from them
+    assert CentralSettings().core(FastSlamConfig).particles == 7
+    monkeypatch.setenv("FLEETSLAM_PARTICLES", "70")  # MCL needs at least 10
+    mcl = MclSettings().core(MclConfig)
+    assert mcl.variant == "kld" and mcl.particles == 70
