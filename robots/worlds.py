@@ -136,7 +136,7 @@ def _arena(seed: int) -> World:
 
 
 def _office(seed: int) -> World:
-    """An office floor for global localisation (paper 004 §6): symmetric structure, a few unique features.
+    """An office floor for global localization (paper 004 §6): symmetric structure, a few unique features.
 
     A 30 m corridor (2.5 m wide) with six 5 m × 6 m rooms on each side. Reflectors
     mark every wall junction and both frames of every door, all on a 5 m period

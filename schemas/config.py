@@ -217,16 +217,16 @@ def settings_from_args(settings_cls: type[S], args: argparse.Namespace, **overri
 
 
 class MclSettings(FleetSettings, MclConfig):
-    """``fleetslam mcl``: localise robots against a map; publish hypotheses; answer one-shot localisation queries."""
+    """``fleetslam mcl``: localize robots against a map; publish hypotheses; answer one-shot localization queries."""
 
     source: str = Field(
         "truth", pattern=r"^(central|dslam|truth|file:.+)$",
         description="map source: central (Estimate), dslam (MapEstimate), truth (WorldTruth) or file:PATH (.npy/.txt, (L,2))",
     )
-    all_robots: bool = Field(False, description="localise every robot, not only those that announce no start pose")
+    all_robots: bool = Field(False, description="localize every robot, not only those that announce no start pose")
     publish_every: int = Field(1, ge=1, description="publish a robot's MclPose every this many scans")
     map_period_s: float = Field(1.0, ge=0, description="take a new map from the source at most this often (s)")
-    localize_particles: int = Field(2000, ge=10, description="sample size of a one-shot localisation query")
+    localize_particles: int = Field(2000, ge=10, description="sample size of a one-shot localization query")
 
 
 

@@ -135,7 +135,7 @@ class Estimator(Protocol):
         """Every robot's current (pose ``(3,)``, covariance ``(3,3)``)."""
 
     def landmark_map(self) -> MapView:
-        """The current map (empty arrays for a localisation-only estimator)."""
+        """The current map (empty arrays for a localization-only estimator)."""
 
     def extra_metrics(self) -> dict:
         """The estimator's own figures for the run's JSON (counters, timings)."""

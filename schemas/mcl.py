@@ -1,4 +1,4 @@
-"""Messages of the one-shot global localisation queryable ``{prefix}/mcl/localize`` (DESIGN §2).
+"""Messages of the one-shot global localization queryable ``{prefix}/mcl/localize`` (DESIGN §2).
 
 A :class:`LocalizeRequest` carries one scan (ranges, bearings in the sensor
 frame) and the sensor that took it; the MCL service draws poses from the scan

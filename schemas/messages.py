@@ -230,7 +230,7 @@ class MapEstimate(Message):
 
 
 class PoseEstimate(StreamMessage):
-    """One robot's pose estimate from a localisation service."""
+    """One robot's pose estimate from a localization service."""
 
     pose: Pose
     cov: Covariance3

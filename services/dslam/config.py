@@ -35,7 +35,7 @@ class DslamConfig(CoreConfig):
     column_max_iter: int = Field(100, ge=1, description="PCG iterations of a covariance-column solve before a fresh sparse LU solve finishes it")
     refactor_iterations: int = Field(15, ge=1, description="a column solve slower than this many iterations makes the next one factorise I afresh")
     column_cache: int = Field(64, ge=1, description="covariance columns kept to warm-start the next solves (landmarks)")
-    relocalise_after: int = Field(
+    relocalize_after: int = Field(
         10, ge=1, description="scans in a row whose observation estimate contradicts the prediction before the robot is relocalized"
     )
     ci_criterion: Literal["trace", "det"] = Field("trace", description="covariance intersection minimises the trace or the determinant")

@@ -321,7 +321,7 @@ class DSlam:
         """CI of the process-model estimate with the estimate from the mapped landmarks seen (§2.3).
 
         When the two disagree beyond any doubt, the observations are set aside (a
-        misread feature, an ambiguous pair); after ``relocalise_after`` such scans in
+        misread feature, an ambiguous pair); after ``relocalize_after`` such scans in
         a row the robot is taken to have been moved and the observation estimate
         replaces the prediction.
         """
@@ -346,12 +346,12 @@ class DSlam:
             delta[2] = wrap_angle(delta[2])
             if delta @ np.linalg.solve(robot.cov + cov, delta) > LOCALIZATION_GATE:
                 robot.disagreements += 1
-                if robot.disagreements < self.config.relocalise_after:
-                    self.counts["localisation_rejected"] += 1
+                if robot.disagreements < self.config.relocalize_after:
+                    self.counts["localization_rejected"] += 1
                     return
                 robot.pose, robot.cov = estimate.pose, 0.5 * (cov + cov.T)
                 robot.disagreements = 0
-                self.counts["relocalised"] += 1
+                self.counts["relocalized"] += 1
                 return
         robot.pose, robot.cov, robot.omega = localize(robot.pose, robot.cov, estimate, self.config.ci_criterion)
         robot.localized = True

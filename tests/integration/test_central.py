@@ -77,7 +77,7 @@ def test_three_robots_one_map(router, processes, zsession, prefix):
 
 
 def test_robot_with_unknown_start_waits_for_mcl(router, processes, zsession, prefix):
-    """A robot announcing no start pose is kept out until an MclPose says it is localised; then it joins."""
+    """A robot announcing no start pose is kept out until an MclPose says it is localized; then it joins."""
     keys = Keys(prefix)
     stats = Collector(zsession, keys.stats("central"))
     processes.start("central", "central", "--association", "known", "--particles", "30", "--estimate-rate-hz", "4")
