@@ -33,7 +33,7 @@ S = TypeVar("S", bound=BaseSettings)
 ENV_PREFIX = "FLEETSLAM_"
 WORLDS = Literal["random", "paper000", "grid196", "cross", "arena", "office"]
 ESTIMATORS = Literal["odometry", "ekf", "fastslam", "dslam", "mcl"]
-ASSOCIATIONS = Literal["known", "nn", "mht", "greedy", "ihgr", "exact", "jcbb", "auto", "unknown"]
+ASSOCIATIONS = Literal["known", "nn", "mht", "greedy", "ihgr", "exact", "jcbb", "auto"]
 
 
 class ProcessSettings(BaseSettings):
