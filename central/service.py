@@ -34,7 +34,8 @@ from collections import defaultdict, deque
 import numpy as np
 import zenoh
 
-from central.fastslam import FastSlam, FastSlamConfig
+from central.fastslam.config import FastSlamConfig
+from central.fastslam.core import FastSlam
 from schemas.codec import decode, encode
 from schemas.config import CentralSettings, add_settings_arguments, settings_from_args
 from schemas.contract import OdomEvent

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from typing import Callable
 
-from central.fastslam import make_estimator as make_fastslam
+from central.fastslam.core import make_estimator as make_fastslam
 from schemas.contract import Estimator, RunOptions
 from schemas.messages import RobotInfo
 from services.baselines.dead_reckoning import make_estimator as make_dead_reckoning

@@ -29,7 +29,7 @@ from central.fastslam.landmarks import LandmarkMap
 from central.fastslam.robots import RobotState
 from robots.gaussian import sandwich, valid_cov2
 from robots.models import compose_jacobian, se2_compose, wrap_angle
-from schemas.contract import MapView, OdomEvent, ScanEvent
+from schemas.contract import MapView, OdomEvent, RunOptions, ScanEvent, build_config
 from schemas.messages import RobotInfo
 
 
@@ -237,3 +237,14 @@ def _scan_problem(ranges, bearings, ids, noise, stamp) -> str | None:
     if not valid_cov2(noise) or noise[0, 0] * noise[1, 1] - noise[0, 1] ** 2 <= 0:
         return "bad_scan_noise"
     return None
+
+
+def make_estimator(options: RunOptions, infos: list[RobotInfo]) -> FastSlam:
+    """FastSLAM with ``options.association`` (known | nn | mht), ``options.particles`` (None: the default) and
+    ``options.seed``; ``options.settings`` (``--set``) overrides any :class:`FastSlamConfig` field, e.g.
+    ``proposal=fastslam2``. A bad name or value raises :class:`schemas.contract.SettingsError` (one line)."""
+    base = {"association": options.association, "seed": options.seed}
+    if options.particles is not None:
+        base["particles"] = options.particles
+    config = build_config(FastSlamConfig, base, owner="fastslam")
+    return FastSlam(config.with_overrides(options.settings, owner="fastslam"), infos)

@@ -40,7 +40,7 @@ def test_help_lists_every_installed_command():
 
 
 def test_core_configurations_never_read_the_environment(monkeypatch):
-    from central.fastslam import FastSlamConfig
+    from central.fastslam.config import FastSlamConfig
     from schemas.config import CentralSettings, MclSettings
     from services.dslam.config import DslamConfig
     from services.mcl.config import MclConfig

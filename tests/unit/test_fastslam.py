@@ -10,7 +10,8 @@ import pytest
 from scipy.stats import chi2
 
 from benchmarks.support.paper001 import two_beacons
-from central.fastslam import FastSlam, FastSlamConfig, make_estimator
+from central.fastslam.config import FastSlamConfig
+from central.fastslam.core import FastSlam, make_estimator
 from central.fastslam.landmarks import LandmarkMap
 from robots.models import AckermannModel, UnicycleModel, integrate_controls, se2_accumulate, se2_compose, wrap_angle
 from robots.simulator import simulate
