@@ -201,11 +201,10 @@ def build_settings(settings_cls: type[S], **given: Any) -> S:
     try:
         return settings_cls(**given)
     except ValidationError as error:
-        first = error.errors()[0]
-        name = str(first["loc"][0]) if first["loc"] else "?"
-        origin = _flag_name(settings_cls, name) if name in given else f"{ENV_PREFIX}{name.upper()}"
-        raise SettingsError(f"{origin}: {describe_validation_error(error, 'the', sorted(settings_cls.model_fields))}"
-                            .replace("the setting ", "")) from None
+        name, problem = describe_validation_error(error)
+        field = name.split(".")[0]
+        origin = _flag_name(settings_cls, field) if field in given else f"{ENV_PREFIX}{field.upper()}"
+        raise SettingsError(f"{origin}: {problem}" if name else f"{settings_cls.__name__}: {problem}") from None
     except EnvironmentParseError as error:
         raise SettingsError(str(error).splitlines()[0]) from None
 

@@ -171,16 +171,12 @@ class CoreConfig(BaseModel):
         return build_config(type(self), {**self.model_dump(), **overrides}, owner, given=set(overrides))
 
 
-def describe_validation_error(error: ValidationError, owner: str, known: list[str]) -> str:
-    """One line for the first problem of a pydantic validation error: setting, value, what was expected."""
+def describe_validation_error(error: ValidationError) -> tuple[str, str]:
+    """(setting name, one line) for the first problem of a pydantic validation error: ``NAME=VALUE: what was
+    expected``; the name is empty for a check across several settings (the line is then its message)."""
     first = error.errors()[0]
     name = ".".join(str(part) for part in first["loc"])
-    if first["type"] == "extra_forbidden":
-        return f"unknown {owner} setting {name!r} (known: {', '.join(known)})"
-    if not name:  # a check across several settings
-        return f"{owner} settings: {first['msg']}"
-    value = first.get("input")
-    return f"{owner} setting {name}={value!r}: {first['msg']}"
+    return name, f"{name}={first.get('input')!r}: {first['msg']}" if name else first["msg"]
 
 
 def build_config(cls: type[C], values: dict[str, Any], owner: str | None = None, given: set[str] | None = None) -> C:
@@ -197,4 +193,5 @@ def build_config(cls: type[C], values: dict[str, Any], owner: str | None = None,
     try:
         return cls(**values)
     except ValidationError as error:
-        raise SettingsError(describe_validation_error(error, owner, known)) from None
+        name, problem = describe_validation_error(error)
+        raise SettingsError(f"{owner} setting {problem}" if name else f"{owner} settings: {problem}") from None

@@ -154,7 +154,7 @@ def run_demo(settings: DemoSettings, shutdown: Shutdown, console: Console) -> di
     out = Path(settings.out)
     out.mkdir(parents=True, exist_ok=True)
     fleet = Fleet(settings, out)
-    services = list(SERVICES)
+    services = SERVICES
     summary: dict = {"settings": settings.model_dump(mode="json"), "services": [s.name for s in services]}
     router = fleet.start("router", "router", "--listen", fleet.endpoint)
     try:

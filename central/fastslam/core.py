@@ -186,7 +186,7 @@ class FastSlam:
         its initial value)."""
         if self.config.association == "known":
             if not self.known_slots:
-                return MapView(np.zeros((0, 2)), np.zeros((0, 2, 2)), np.zeros(0, np.int64))
+                return MapView.empty(with_ids=True)
             ids = np.array(list(self.known_slots.keys()), np.int64)
             slots = np.array(list(self.known_slots.values()), np.int64)
             w = self.weights()

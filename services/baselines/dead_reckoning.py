@@ -96,7 +96,7 @@ class DeadReckoning:
     def landmark_map(self) -> MapView:
         ids = sorted(self._landmark_count)
         if not ids:
-            return MapView(np.zeros((0, 2)), np.zeros((0, 2, 2)), np.zeros(0, np.int64))
+            return MapView.empty(with_ids=True)
         counts = np.array([self._landmark_count[i] for i in ids], float)
         means = np.array([self._landmark_sum[i] for i in ids]) / counts[:, None]
         covs = np.array([self._landmark_cov_sum[i] for i in ids]) / counts[:, None, None]

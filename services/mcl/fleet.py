@@ -57,7 +57,6 @@ class MclFleet:
         self.use_start_pose = use_start_pose
         self.robots: dict[str, RobotState] = {}
         self.filters_built = 0
-        self.robot_restarts = 0
 
     # ------------------------------------------------------------ membership
 
@@ -70,12 +69,6 @@ class MclFleet:
 
     def remove_robot(self, rid: str) -> None:
         self.robots.pop(rid, None)
-
-    def restart_robot(self, rid: str) -> RobotState:
-        """Forget what the fleet knows about a robot and localize it from scratch (a new run of it)."""
-        self.robot_restarts += 1
-        self.add_robot(self.robots[rid].info)
-        return self.robots[rid]
 
     def set_map(self, landmarks: np.ndarray) -> None:
         """Use a (newer) map: robots waiting for one get their filter, the others keep their particles."""
