@@ -27,7 +27,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from central.fastslam import evidence, landmarks, resampling
-from central.fastslam.robots import RobotState
+from central.fastslam.lifecycle import RobotState
 from robots.gaussian import LOG_2PI, inv2, quad2
 from robots.models import wrap_angle
 

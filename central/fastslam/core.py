@@ -6,7 +6,7 @@ Robots' streams arrive in time order; a robot's controls are buffered and applie
 scan updates every particle. :class:`FastSlam` holds the state and orchestrates; the work is done by
 functions that take it explicitly, one module per concern:
 
-- :mod:`~central.fastslam.robots`: robots waiting, placed, sent back to wait, removed;
+- :mod:`~central.fastslam.lifecycle`: robots waiting, placed, sent back to wait, removed;
 - :mod:`~central.fastslam.motion`: buffering controls and applying them;
 - :mod:`~central.fastslam.proposal`: the FastSLAM 2.0 proposal (``proposal="fastslam2"``);
 - :mod:`~central.fastslam.association`: known / nn / mht association and the landmark updates;
@@ -23,10 +23,10 @@ from collections import Counter
 import numpy as np
 from scipy.stats import chi2
 
-from central.fastslam import association, motion, proposal, resampling, robot_detections, robots
+from central.fastslam import association, lifecycle, motion, proposal, resampling, robot_detections
 from central.fastslam.config import FastSlamConfig
 from central.fastslam.landmarks import LandmarkMap
-from central.fastslam.robots import RobotState
+from central.fastslam.lifecycle import RobotState
 from robots.gaussian import sandwich, valid_cov2
 from robots.models import compose_jacobian, se2_compose, wrap_angle
 from schemas.contract import MapView, OdomEvent, RunOptions, ScanEvent, build_config
@@ -73,31 +73,31 @@ class FastSlam:
     def add_robot(self, info: RobotInfo) -> bool:
         """Place a robot with a known start pose, make one without wait; True when it was placed now.
         A robot already known is left as it is (robots republish their RobotInfo)."""
-        return robots.add(self, info)
+        return lifecycle.add(self, info)
 
     def place_robot(self, robot_id: str, pose, cov, stamp: float | None = None) -> bool:
         """Place a waiting robot at ``pose`` ``(3,)``, spreading the particles by ``cov`` ``(3, 3)`` (the
         localization hook); ``stamp`` is the time the pose holds at. False (counted) if refused."""
-        return robots.place(self, robot_id, pose, cov, stamp)
+        return lifecycle.place(self, robot_id, pose, cov, stamp)
 
     def unplace(self, robot_id: str) -> RobotInfo | None:
         """Send a placed robot that has not moved yet back to wait; its RobotInfo, or None."""
-        return robots.unplace(self, robot_id)
+        return lifecycle.unplace(self, robot_id)
 
     def remove_robot(self, robot_id: str) -> RobotInfo | None:
         """Take a robot out, placed or waiting (the landmarks it mapped stay); its RobotInfo, or None."""
-        return robots.remove(self, robot_id)
+        return lifecycle.remove(self, robot_id)
 
     # ------------------------------------------------------------------ events
     def on_odometry(self, event: OdomEvent) -> bool:
         """Buffer one control; it is applied with the others at the robot's next scan (or every ``max_batch_s``)."""
-        robot = robots.placed(self, event.robot_id)
+        robot = lifecycle.placed(self, event.robot_id)
         return robot is not None and motion.take_control(self, robot, event)
 
     def on_scan(self, event: ScanEvent) -> bool:
         """Update every particle with one scan of one robot: motion (or the FastSLAM 2.0 proposal), landmark
         association and updates, robot detections, then resampling if the weights have degenerated."""
-        robot = robots.placed(self, event.robot_id)
+        robot = lifecycle.placed(self, event.robot_id)
         if robot is None:
             return False
         ranges, bearings = np.asarray(event.ranges, float).ravel(), np.asarray(event.bearings, float).ravel()

@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from central.fastslam.config import FastSlamConfig
-from central.fastslam.robots import RobotState
+from central.fastslam.lifecycle import RobotState
 from robots.gaussian import sqrt_psd, valid_cov2
 from robots.models import integrate_controls, se2_compose
 from schemas.contract import OdomEvent

@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from central.fastslam import association, motion
-from central.fastslam.robots import RobotState
+from central.fastslam.lifecycle import RobotState
 from robots.gaussian import LOG_2PI, sandwich, sandwich2, sqrt_psd
 from robots.models import compose_jacobian, se2_compose, wrap_angle
 

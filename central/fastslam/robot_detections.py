@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from central.fastslam import motion
-from central.fastslam.robots import RobotState
+from central.fastslam.lifecycle import RobotState
 from robots.gaussian import LOG_2PI, inv2, quad2, sandwich, sandwich2
 from robots.models import compose_jacobian, se2_compose
 from schemas.contract import ScanEvent

@@ -185,12 +185,16 @@ def test_poses_drawn_from_a_scan_include_the_true_pose():
 # ---------------------------------------------------------------- the filter
 
 
-def test_every_variant_runs_and_unknown_variant_is_refused():
-    rng = np.random.default_rng(6)
-    landmarks = rng.uniform(-8.0, 8.0, size=(40, 2))
+def random_scene(seed):
+    """(landmarks (40, 2), true pose, the scan from it out to 6 m) of a random world."""
+    landmarks = np.random.default_rng(seed).uniform(-8.0, 8.0, size=(40, 2))
     truth = np.array([0.0, 0.0, 0.3])
     z = RangeBearingSensor().observe(truth, landmarks)
-    z = z[z[:, 0] < 6.0]
+    return landmarks, truth, z[z[:, 0] < 6.0]
+
+
+def test_every_variant_runs_and_unknown_variant_is_refused():
+    landmarks, truth, z = random_scene(6)
     for variant in VARIANTS:
         mcl = MonteCarloLocalizer(landmarks, info(), MclConfig(variant=variant, particles=300, max_particles=2000))
         for _ in range(4):
@@ -234,11 +238,7 @@ def test_fleet_waits_for_a_map_then_localizes_restarts_and_answers_one_shot_quer
     from schemas.contract import OdomEvent, ScanEvent
     from services.mcl.fleet import MclFleet
 
-    rng = np.random.default_rng(7)
-    landmarks = rng.uniform(-8.0, 8.0, size=(40, 2))
-    truth = np.array([0.0, 0.0, 0.3])
-    z = RangeBearingSensor().observe(truth, landmarks)
-    z = z[z[:, 0] < 6.0]
+    landmarks, truth, z = random_scene(7)
     scan = ScanEvent("r1", 0, 0.1, z[:, 0], z[:, 1], None, R)
     fleet = MclFleet(MclConfig(variant="csrl", particles=300))
     fleet.add_robot(info())
