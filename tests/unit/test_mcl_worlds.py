@@ -8,9 +8,9 @@ import pytest
 from benchmarks.support.mcl_scenarios import kidnapped, symmetric_cross, trace_run
 from robots.simulator import simulate
 from schemas.contract import RunOptions, SettingsError
+from services.estimators import make_estimator
 from services.mcl.config import MclConfig
 from services.mcl.core import MonteCarloLocalizer
-from services.mcl.fleet import make_estimator
 
 
 @pytest.fixture(scope="module")
