@@ -9,7 +9,10 @@ filter (:class:`central.fastslam.FastSlam`):
 - Across robots, events wait in a :class:`~services.roster.ReorderBuffer` at
   most ``reorder_window_s`` (wall time) and are released in stamp order once
   every live robot's stream has passed their stamp.
-- A robot whose start pose is unknown waits (its events held by the roster,
+- When no robot has been placed ``anchor_after_s`` after the first robot without a start pose was
+  announced, that robot anchors the world frame at the origin (``anchor_first``; the offline runner anchors
+  the first robot to scan).
+- Any other robot whose start pose is unknown waits (its events held by the roster,
   at most ``waiting_messages``) until ``{prefix}/mcl/{rid}/pose`` (MclPose)
   says ``localized``; it enters at MCL's best pose and covariance, and its
   held events older than that pose are dropped (counted).
@@ -62,6 +65,7 @@ class CentralService(ServiceShell):
         self.compute_ms: deque[float] = deque(maxlen=5000)
         self.estimate_seq = 0
         self.last_stamp = 0.0
+        self.announced_waiting: dict[str, float] = {}  # robots announced without a pose: when (wall clock)
 
     # ------------------------------------------------------------ wiring
     def setup(self, session: zenoh.Session) -> None:
@@ -73,10 +77,26 @@ class CentralService(ServiceShell):
 
     # ------------------------------------------------------------ robots
     async def robot_announced(self, info: RobotInfo) -> None:
+        rid = info.robot_id
         if self.slam.add_robot(info):
-            await self.admit(info.robot_id)
+            await self.admit(rid)
         else:
-            log.info("robot %s waits for a pose from MCL", info.robot_id)
+            self.announced_waiting.setdefault(rid, time.monotonic())
+            log.info("robot %s waits for a pose from MCL", rid)
+
+    async def _anchor(self) -> None:
+        """With ``anchor_first``: when no robot has been placed ``anchor_after_s`` after the first robot without a
+        start pose was announced, that robot anchors the world frame at the origin (a robot with a start pose
+        announced meanwhile is placed instead, and the frame stays the one its start pose is given in)."""
+        if not self.settings.anchor_first or self.slam.robot_count:
+            return
+        waiting = [(t, rid) for rid, t in self.announced_waiting.items() if self.slam.is_waiting(rid)]
+        if not waiting or time.monotonic() - min(waiting)[0] < self.settings.anchor_after_s:
+            return
+        rid = min(waiting)[1]
+        if self.slam.place_robot(rid, np.zeros(3), np.zeros((3, 3))):
+            log.info("no robot has a start pose: robot %s anchors the world frame at the origin", rid)
+            await self.admit(rid)
 
     async def robot_event(self, event: StreamEvent) -> None:
         self.reorder.push(event)
@@ -86,6 +106,7 @@ class CentralService(ServiceShell):
         """It leaves the filter (the landmarks it mapped stay) and rejoins from its RobotInfo."""
         self.slam.remove_robot(robot_id)
         self.reorder.drop_robot(robot_id)
+        self.announced_waiting.pop(robot_id, None)
 
     def robot_joined_late(self, robot_id: str) -> None:
         """With ``late_join`` = ``wait`` it is taken out (or kept out) of the filter until MCL places it; with
@@ -180,6 +201,7 @@ class CentralService(ServiceShell):
             self.published += 1
 
     async def tick(self) -> None:
+        await self._anchor()
         self._release(flush=False)
         self._update_stats()
         if self.slam.robot_count:

@@ -33,7 +33,7 @@ S = TypeVar("S", bound=BaseSettings)
 ENV_PREFIX = "FLEETSLAM_"
 WORLDS = Literal["random", "paper000", "grid196", "cross", "arena", "office"]
 ESTIMATORS = Literal["odometry", "ekf", "fastslam", "dslam", "mcl"]
-ASSOCIATIONS = Literal["known", "nn", "mht", "greedy", "ihgr", "exact", "jcbb", "auto"]
+ASSOCIATIONS = Literal["known", "unknown", "shared", "nn", "mht", "greedy", "ihgr", "exact", "jcbb", "auto"]
 
 
 class ProcessSettings(BaseSettings):
@@ -245,8 +245,9 @@ class RunSettings(ProcessSettings):
     )
     estimator: ESTIMATORS = Field("odometry", description="estimator")
     association: ASSOCIATIONS = Field(
-        "known", description="data association: known (true ids), or a method the estimator offers "
-        "(fastslam: nn, mht; dslam and ekf: nn, greedy, ihgr, exact, jcbb, auto)")
+        "known", description="data association: known (true ids); unknown (each estimator's recommended method "
+        "without ids: fastslam shared, dslam auto, ekf jcbb); or a method the estimator offers "
+        "(fastslam: shared, nn, mht; dslam and ekf: nn, greedy, ihgr, exact, jcbb, auto)")
     particles: int | None = Field(
         None, ge=1, le=100_000, description="particles of particle-filter estimators (default: the estimator's own)")
     seed: int = Field(0, description="seed of every random draw (estimator, and the simulator for sim:)")
@@ -254,6 +255,10 @@ class RunSettings(ProcessSettings):
         None, description="comma-separated robot ids to use (default: all)", json_schema_extra={"cli": "--robots"}
     )
     duration: float | None = Field(None, gt=0, description="seconds of data from the start (default: all)")
+    start_poses: Literal["known", "first", "none"] | None = Field(
+        None, description="start poses the estimator is given: known (all the data has), first (the first robot's "
+        "only), none (the first robot to scan anchors the frame at the origin); robots without one are placed by "
+        "MCL against the map so far (default: known when the data has them, else none)")
     estimator_settings: str | None = Field(
         None, description="the estimator's own settings, comma-separated NAME=VALUE (e.g. max_obs_range=40 or "
         "proposal=fastslam2 for fastslam, confirm_hits=3 for dslam, variant=kld for mcl); unknown names and bad "
@@ -303,6 +308,11 @@ class CentralSettings(FleetSettings, FastSlamConfig):
     estimate_rate_hz: float = Field(2.0, gt=0, le=100, description="rate of the estimate publication on {prefix}/central/estimate")
     reorder_window_s: float = Field(0.1, ge=0, le=10, description="longest wall time a message waits for other robots' "
                                     "streams so that robots are processed in time order (0: as they come)")
+    anchor_first: bool = Field(
+        True, description="when no robot is placed anchor_after_s after the first robot without a start pose was "
+        "announced, it anchors the world frame at the origin (DESIGN §3); the others wait for MCL")
+    anchor_after_s: float = Field(2.0, ge=0, description="wall seconds a robot without a start pose waits before it "
+                                  "may anchor the frame (a robot with a start pose announced meanwhile comes first)")
     late_join: Literal["start_pose", "wait"] = Field(
         "start_pose", description="a robot whose first odometry was missed: keep its announced start pose, "
         "or wait for MCL to place it")

@@ -153,6 +153,7 @@ class RunOptions:
     seed: int = 0
     settings: dict[str, Any] = field(default_factory=dict)
     landmarks: np.ndarray | None = None
+    landmark_ids: np.ndarray | None = None  # ids of ``landmarks`` (L,), when the map has them
     truth: dict[str, tuple[np.ndarray, np.ndarray]] | None = None
 
 

@@ -7,6 +7,7 @@ out), so a reader and a tool can follow it to the code.
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Callable
 
 from central.fastslam.core import make_estimator as make_fastslam
@@ -28,10 +29,25 @@ ESTIMATORS: dict[str, Factory] = {
 }
 
 
+UNKNOWN_ASSOCIATION: dict[str, str] = {
+    "odometry": "unknown",
+    "ekf": "jcbb",
+    "fastslam": "shared",
+    "dslam": "auto",
+    "mcl": "unknown",
+}
+"""What ``--association unknown`` means for each estimator: its recommended method when scans carry no ids."""
+
+
+def resolve_association(estimator: str, association: str) -> str:
+    """The association an estimator runs: ``unknown`` becomes the estimator's recommended method without ids."""
+    return UNKNOWN_ASSOCIATION.get(estimator, association) if association == "unknown" else association
+
+
 def make_estimator(options: RunOptions, infos: list[RobotInfo]) -> Estimator:
     """Build the estimator ``options.estimator`` for the robots ``infos`` (ValueError naming the choices)."""
     try:
         factory = ESTIMATORS[options.estimator]
     except KeyError:
         raise ValueError(f"unknown estimator {options.estimator!r}; choose from {', '.join(ESTIMATORS)}") from None
-    return factory(options, infos)
+    return factory(replace(options, association=resolve_association(options.estimator, options.association)), infos)

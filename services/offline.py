@@ -18,6 +18,7 @@ import argparse
 import json
 import logging
 import time
+from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -60,17 +61,37 @@ def load(settings: RunSettings) -> Dataset:
                         duration=settings.duration or 60.0, rate=settings.sim_rate)
 
 
+def default_start_poses(dataset: Dataset, robots: list[str]) -> str:
+    """``known`` when every chosen robot of the data set has a start pose, else ``none``."""
+    return "known" if all(dataset.robots[rid].info.start_pose is not None for rid in robots) else "none"
+
+
 def run_estimator(dataset: Dataset, options: RunOptions, robots: list[str] | None = None,
-                  duration: float | None = None, sample_period_s: float = 0.1, progress: bool = False) -> OfflineRun:
-    """Drive the estimator ``options.estimator`` over the data set's events; sample its poses."""
+                  duration: float | None = None, sample_period_s: float = 0.1, progress: bool = False,
+                  start_poses: str | None = None) -> OfflineRun:
+    """Drive the estimator ``options.estimator`` over the data set's events; sample its poses.
+
+    ``start_poses`` (known | first | none; default :func:`default_start_poses`) withholds start poses; an
+    estimator that can take robots without one gets them placed by :class:`services.placement.FleetPlacer`.
+    """
     from services.estimators import make_estimator
     from services.evaluation.metrics import Trajectory, timing_stats
+    from services.mcl.config import MclConfig
+    from services.placement import FleetPlacer, withhold_start_poses
 
     chosen = robots or list(dataset.robots)
     missing = [rid for rid in chosen if rid not in dataset.robots]
     if missing:
         raise ValueError(f"robots {', '.join(missing)} are not in {dataset.name} (it has {', '.join(dataset.robots)})")
-    estimator = make_estimator(options, [dataset.robots[rid].info for rid in chosen])
+    mode = start_poses or default_start_poses(dataset, chosen)
+    infos = withhold_start_poses([dataset.robots[rid].info for rid in chosen], mode)
+    estimator = make_estimator(options, infos)
+    placer = None
+    if any(info.start_pose is None for info in infos) and hasattr(estimator, "place_robot"):
+        placer = FleetPlacer(estimator, infos, MclConfig(seed=options.seed),
+                             use_signatures=options.association == "known")
+    elif any(info.start_pose is None for info in infos) and options.estimator not in ("mcl", "odometry"):
+        log.warning("%s cannot place robots without a start pose: they stay out", options.estimator)
     samples: dict[str, tuple[list, list, list]] = {rid: ([], [], []) for rid in chosen}
     pose_stamp = {rid: dataset.robots[rid].start_stamp for rid in chosen}
     start = min(dataset.robots[rid].start_stamp for rid in chosen)
@@ -91,6 +112,7 @@ def run_estimator(dataset: Dataset, options: RunOptions, robots: list[str] | Non
             covs.append(np.asarray(cov, float))
 
     counts = {"odometry": 0, "scan": 0}
+    held: Counter = Counter()
     odom_s: list[float] = []
     scan_s: list[float] = []
     next_sample = start
@@ -103,7 +125,9 @@ def run_estimator(dataset: Dataset, options: RunOptions, robots: list[str] | Non
         next_refresh = wall0
         for event in dataset.events(duration, chosen):
             tick = time.perf_counter()
-            if isinstance(event, OdomEvent):
+            if placer is not None and placer.holds(event):
+                held[type(event).__name__] += 1
+            elif isinstance(event, OdomEvent):
                 estimator.on_odometry(event)
                 odom_s.append(time.perf_counter() - tick)
                 pose_stamp[event.robot_id] = event.stamp
@@ -122,7 +146,14 @@ def run_estimator(dataset: Dataset, options: RunOptions, robots: list[str] | Non
         sample()
     wall_s = time.perf_counter() - wall0
     view = estimator.landmark_map()
-    extra = estimator.extra_metrics() if hasattr(estimator, "extra_metrics") else {}
+    extra = dict(estimator.extra_metrics()) if hasattr(estimator, "extra_metrics") else {}
+    extra["start_poses"] = mode
+    if placer is not None:
+        extra["placement"] = placer.report(start)
+        extra["held_for_placement"] = {"odometry": held["OdomEvent"], "scan": held["ScanEvent"]}
+        for rid, record in extra["placement"].items():
+            if record["how"] is None:
+                log.warning("robot %s was never placed: %s", rid, record["reason"] or "it never scanned")
     trajectories = {rid: Trajectory.from_lists(*samples[rid]) for rid in chosen if samples[rid][0]}
     return OfflineRun(
         trajectories=trajectories, map_means=np.asarray(view.means, float).reshape(-1, 2),
@@ -159,20 +190,21 @@ def run_options(settings: RunSettings, dataset: Dataset) -> RunOptions:
                          seed=settings.seed, settings=parse_estimator_settings(settings.estimator_settings))
     if settings.estimator == "mcl":
         options.landmarks = dataset.landmarks
+        options.landmark_ids = dataset.landmark_ids
         options.truth = {rid: (log.truth_stamp, log.truth_pose) for rid, log in dataset.robots.items()}
     return options
 
 
 def run(settings: RunSettings, console: Console | None = None) -> dict:
     """Load, run, score; write the JSON and the report folder; return the results."""
-    from services.evaluation.metrics import Trajectory, score_estimates
+    from services.evaluation.metrics import Trajectory, fleet_alignment, score_estimates
     from services.evaluation.report import clean_json, write_report
 
     dataset = load(settings)
     robots = settings.robot_ids.split(",") if settings.robot_ids else None
     options = run_options(settings, dataset)
     result = run_estimator(dataset, options, robots, settings.duration, settings.sample_period_s,
-                           progress=settings.progress)
+                           progress=settings.progress, start_poses=settings.start_poses)
     chosen = robots or list(dataset.robots)
     truth = {rid: Trajectory(dataset.robots[rid].truth_stamp, dataset.robots[rid].truth_pose) for rid in chosen
              if dataset.robots[rid].truth_stamp.size}
@@ -195,6 +227,8 @@ def run(settings: RunSettings, console: Console | None = None) -> dict:
         "rpe": {rid: m["rpe"] for rid, m in detail.items() if "rpe" in m},
         "nees": {rid: m["nees"] for rid, m in detail.items() if "nees" in m},
         "map_rmse_m": summary["map_rmse_m"], "landmarks": summary["landmarks"],
+        "fleet_aligned": fleet_alignment(result.trajectories, truth, true_landmarks=dataset.landmarks,
+                                         map_means=result.map_means, map_cutoff=settings.map_cutoff_m),
         "timing": result.timing,
         "settings": settings.model_dump(mode="json"),
         "dataset_meta": _meta_counts(dataset.meta),
@@ -226,7 +260,20 @@ def print_results(output: dict, console: Console) -> None:
         table.add_row(rid, fmt(output["ate_rmse_m"].get(rid)), fmt(output["ate_aligned_rmse_m"].get(rid)),
                       fmt(output["heading_rmse_rad"].get(rid)))
     console.print(table)
-    marks = {k: "-" if v is None else v for k, v in output["landmarks"].items()}
+    for rid, record in (output.get("placement") or {}).items():
+        if record["how"] is None:
+            console.print(f"{rid}: not placed ({record['reason'] or 'it never scanned'}); "
+                          f"{record['scans_before']} scans and {record['odometry_before']} odometry messages held")
+        elif record["how"] != "start pose":
+            console.print(f"{rid}: placed by {record['how']} at {record['placed_s']:.1f} s "
+                          f"({record.get('placed_after_first_scan_s', 0.0):.1f} s after its first scan; "
+                          f"{record['scans_before']} scans held before)")
+    fleet = output.get("fleet_aligned") or {}
+    if fleet and output.get("start_poses") != "known":
+        errors = ", ".join(f"{rid} {fmt(v)}" for rid, v in fleet["ate_rmse_m"].items())
+        console.print(f"ATE after one SE(2) transform for the whole fleet: {errors} m")
+    marks = {k: "-" if v is None else v for k, v in (output["landmarks"] or {}).items()} or {
+        k: "-" for k in ("estimated", "matched", "missed", "spurious")}
     console.print(f"map RMSE {fmt(output['map_rmse_m'])} m; landmarks estimated {marks['estimated']}, matched "
                   f"{marks['matched']}, missed {marks['missed']}, spurious {marks['spurious']}"
                   + (f"; GPS RMSE (aligned) {fmt(output['gps_rmse_m'])} m" if output.get("gps_rmse_m") is not None else ""))

@@ -1,6 +1,8 @@
 """Data association per particle, and the landmark updates it leads to.
 
 - ``known``: landmark ids come with the scan; every particle updates the same landmarks.
+- ``shared``: the ids come from one association of the scan against the filter's marginal map
+  (:mod:`~central.fastslam.shared`), then as ``known``.
 - ``nn``: per particle, the maximum-likelihood landmark inside the χ² gate; a detection outside the wider
   new-landmark gate of every landmark starts a new one, one in between is ignored. Detections of one scan
   have sequential semantics (a detection sees the landmarks the earlier ones created or updated) but are
@@ -26,7 +28,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from central.fastslam import evidence, landmarks, resampling
+from central.fastslam import evidence, landmarks, resampling, shared
 from central.fastslam.lifecycle import RobotState
 from robots.gaussian import LOG_2PI, inv2, quad2
 from robots.models import wrap_angle
@@ -83,7 +85,7 @@ def create(slam: FastSlam, robot: RobotState, p: np.ndarray, z: np.ndarray, r: n
 # ------------------------------------------------------------------ known association
 def update_known(slam: FastSlam, robot: RobotState, z, r, ids, weigh: bool) -> None:
     """Update (or create) the landmarks the scan's ids name, in every particle; weigh the particles unless the
-    proposal already did."""
+    proposal already did (with shared association, only by confirmed landmarks)."""
     if ids is None:
         slam.counts["scans_without_ids"] += 1
         return
@@ -106,9 +108,10 @@ def update_known(slam: FastSlam, robot: RobotState, z, r, ids, weigh: bool) -> N
             p = np.repeat(np.arange(n), m)
             slot = np.tile(slots, n)
             terms = landmarks.predict(slam.map, robot.sensor, slam.pose[p, robot.index], p, slot, r)
+            counted = np.ones(m, bool) if slam.config.association == "known" else shared.confirmed(slam, idk[known])
             ll = update(slam, robot, p, np.tile(zk[known], (n, 1)), slot, terms)
-            if weigh:
-                slam.logw += ll.reshape(n, m).sum(1)
+            if weigh and counted.any():
+                slam.logw += ll.reshape(n, m)[:, counted].sum(1)
         if (~known).any():
             fresh_ids, fresh_z = idk[~known], zk[~known]
             slam.map.reserve(fresh_ids.size, compact=False)

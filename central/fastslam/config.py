@@ -16,14 +16,26 @@ class FastSlamConfig(CoreConfig):
     """Every knob of the centralised multi-robot FastSLAM filter, with the reason for its default."""
 
     particles: int = Field(100, ge=1, le=100_000, description="particles of the filter")
-    association: Literal["known", "nn", "mht"] = Field(
-        "nn", description="known (scan ids), nn (maximum likelihood, gated) or mht (paper 001's n+2 split)")
+    association: Literal["known", "shared", "nn", "mht"] = Field(
+        "shared", description="known (scan ids), shared (one JCBB assignment per scan on the marginal map, for "
+        "every particle), nn (per particle: maximum likelihood, gated) or mht (per particle: paper 001's n+2 split)")
     seed: int = Field(0, description="seed of every random draw of the filter")
     proposal: Literal["fastslam1", "fastslam2"] = Field(
         "fastslam1", description="fastslam1: sample from the motion model; fastslam2: fold the scan into the proposal")
     gate_probability: float = Field(0.99, gt=0.0, lt=1.0, description="χ²(2) gate for association: 9.21 (DESIGN §4)")
     new_landmark_probability: float = Field(
         0.999, gt=0.0, lt=1.0, description="nn: outside this χ²(2) region of every landmark a detection is new (13.8)")
+    shared_solver: Literal["jcbb", "exact"] = Field(
+        "jcbb", description="shared: joint compatibility (JCBB) or the optimal one-to-one assignment of gated pairs")
+    gate_pose_floor: tuple[float, float, float] = Field(
+        (0.3, 0.3, 0.1), description="shared: σ (m, m, rad) added to the robot's pose spread when gating")
+    gate_pose_growth: tuple[float, float, float] = Field(
+        (0.0, 0.0, 0.0), description="shared: σ (m, m, rad) per √s since the robot last matched a landmark")
+    ambiguity_margin: float = Field(
+        0.0, ge=0.0, description="shared: leave out a detection whose two best distinct landmarks differ by less than "
+        "this in d² (0: off)")
+    tentative_misses: int = Field(
+        3, ge=1, description="shared: a tentative landmark in view and not seen this many times is dropped")
     exclusive: bool = Field(True, description="one detection per landmark per scan (paper 001's NN does not assume it)")
     mht_prune: float = Field(0.3, gt=0.0, le=1.0,
                              description="mht: drop a child whose weight is below this fraction of its parent's best child")
@@ -57,8 +69,8 @@ class FastSlamConfig(CoreConfig):
     def _consistent(self) -> "FastSlamConfig":
         if self.new_landmark_probability < self.gate_probability:
             raise ValueError("new_landmark_probability must be at least gate_probability")
-        if min(self.pose_noise_per_s) < 0:
-            raise ValueError("pose_noise_per_s is three non-negative standard deviations")
+        if min(self.pose_noise_per_s + self.gate_pose_floor + self.gate_pose_growth) < 0:
+            raise ValueError("pose_noise_per_s, gate_pose_floor and gate_pose_growth are non-negative standard deviations")
         if not self.exist_min < self.exist_init <= self.exist_max:
             raise ValueError("existence scores: need exist_min < exist_init <= exist_max")
         return self

@@ -23,7 +23,7 @@ from collections import Counter
 import numpy as np
 from scipy.stats import chi2
 
-from central.fastslam import association, lifecycle, motion, proposal, resampling, robot_detections
+from central.fastslam import association, lifecycle, motion, proposal, resampling, robot_detections, shared
 from central.fastslam.config import FastSlamConfig
 from central.fastslam.landmarks import LandmarkMap
 from central.fastslam.lifecycle import RobotState
@@ -53,6 +53,8 @@ class FastSlam:
         self.robots: dict[str, RobotState] = {}
         self.waiting: dict[str, RobotInfo] = {}
         self.known_slots: dict[int, int] = {}
+        self.next_landmark_id = 0  # shared association: the id of the next new landmark
+        self.tentative_misses: dict[int, int] = {}  # shared association: misses of tentative landmarks
         self.rejected: Counter = Counter()
         self.counts: Counter = Counter()
         self.gate = float(chi2.ppf(config.gate_probability, 2))
@@ -122,11 +124,15 @@ class FastSlam:
         self.counts["scans"] += 1
         self.counts["detections"] += z.shape[0]
         weigh_updates = True
+        if self.config.association == "shared" and z.shape[0]:
+            if self.config.proposal == "fastslam1":
+                motion.flush(self, robot)
+            ids = shared.associate(self, robot, z, r)
         if self.config.proposal == "fastslam2" and z.shape[0]:
             weigh_updates = not proposal.propose(self, robot, z, r, ids)
         else:
             motion.flush(self, robot)
-        if self.config.association == "known":
+        if self.config.association in ("known", "shared"):
             association.update_known(self, robot, z, r, ids, weigh_updates)
         elif z.shape[0]:
             association.update_unknown(self, robot, z, r, ids, weigh_updates)
@@ -181,20 +187,16 @@ class FastSlam:
         return out
 
     def landmark_map(self) -> MapView:
-        """Known association: the weighted mixture per landmark; otherwise the best particle's confirmed landmarks
+        """Known and shared association: the weighted mixture per landmark (shared: the confirmed ones); otherwise
+        the best particle's confirmed landmarks
         (associated at least ``confirm_hits`` times, and either permanent or with an existence score at least
         its initial value)."""
-        if self.config.association == "known":
-            if not self.known_slots:
-                return MapView.empty(with_ids=True)
-            ids = np.array(list(self.known_slots.keys()), np.int64)
-            slots = np.array(list(self.known_slots.values()), np.int64)
-            w = self.weights()
-            mu, sig = self.map.mean[:, slots], self.map.cov[:, slots]
-            mean = np.einsum("p,pkj->kj", w, mu)
-            resid = mu - mean
-            cov = np.einsum("p,pkij->kij", w, sig) + np.einsum("p,pki,pkj->kij", w, resid, resid)
-            return MapView(mean, cov, ids)
+        if self.config.association in ("known", "shared"):
+            ids, slots, mean, cov = shared.marginal_map(self)
+            if self.config.association == "shared":
+                keep = self.map.hits[0, slots] >= self.config.confirm_hits
+                return MapView(mean[keep], cov[keep], None)
+            return MapView(mean, cov, ids) if ids.size else MapView.empty(with_ids=True)
         p = self.best_particle()
         hits = self.map.hits[p]
         settled = self.map.exist[p] >= self.config.exist_init

@@ -38,6 +38,7 @@ class RobotState:
     last_cov: np.ndarray | None = None
     last_odom_stamp: float = -np.inf
     last_scan_stamp: float = -np.inf
+    last_match_stamp: float | None = None  # shared association: the last scan with a detection matched
     checked_cov: object = None  # the control covariance last validated (by identity) and its scaled copy
     scaled_cov: np.ndarray | None = None
 

@@ -75,7 +75,7 @@ def matches(slam: FastSlam, robot: RobotState, z, r, ids) -> tuple[np.ndarray, n
     """(particle, detection, slot) of the detections that match an existing landmark at the current poses
     (at most one detection per landmark and particle)."""
     n = slam.pose.shape[0]
-    if slam.config.association == "known":
+    if slam.config.association in ("known", "shared"):
         if ids is None:
             return _no_matches()
         _, first = np.unique(ids, return_index=True)

@@ -303,3 +303,37 @@ def score_estimates(trajectories: dict[str, dict[str, Trajectory]], truth: dict[
         summary[name] = entry
         detail[name] = {"robots": robots, "map": map_detail}
     return {"summary": summary, "estimators": detail}, curves
+
+
+def fleet_alignment(trajectories: dict[str, Trajectory], truth: dict[str, Trajectory], max_gap_s: float = 1.0,
+                    true_landmarks: np.ndarray | None = None, map_means: np.ndarray | None = None,
+                    map_cutoff: float = 1.0) -> dict:
+    """Errors after one SE(2) transform for the whole fleet and its map, fitted to every robot's positions
+    jointly (never one transform per robot, which would hide a robot placed in the wrong place).
+
+    For runs whose world frame is not the truth's (robots placed without start poses). Returns the transform
+    (x, y, θ), each robot's ATE after it and, with a true map, the map error after it; empty without samples.
+    """
+    estimated, target, owner = [], [], []
+    for rid, path in trajectories.items():
+        if rid not in truth or len(path) == 0:
+            continue
+        at = interpolate_poses(truth[rid].stamps, truth[rid].poses, path.stamps, max_gap_s)
+        valid = np.all(np.isfinite(at[:, :2]), axis=-1)
+        estimated.append(path.poses[valid, :2])
+        target.append(at[valid, :2])
+        owner += [rid] * int(valid.sum())
+    if not owner:
+        return {}
+    source, goal, owner = np.concatenate(estimated), np.concatenate(target), np.array(owner)
+    transform = fit_se2(source, goal)
+    moved = transform_points(transform, source)
+    error = np.linalg.norm(moved - goal, axis=-1)
+    out = {"transform": transform.tolist(),
+           "ate_rmse_m": {rid: rmse(error[owner == rid]) for rid in sorted(set(owner.tolist()))}}
+    if true_landmarks is not None and len(true_landmarks) and map_means is not None:
+        aligned = transform_points(transform, np.asarray(map_means, float).reshape(-1, 2)) if len(map_means) else map_means
+        detail = map_error(aligned, true_landmarks, map_cutoff)
+        out["map_rmse_m"] = detail["rmse_m"]
+        out["landmarks"] = {k: detail[k] for k in ("estimated", "matched", "missed", "spurious")}
+    return out

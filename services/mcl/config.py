@@ -23,6 +23,7 @@ class MclConfig(CoreConfig):
     particles: int = Field(1000, ge=10, description="sample size of the fixed-size variants; initial size of the adaptive ones")
     min_particles: int = Field(100, ge=10, description="smallest sample size KLD-sampling may choose")
     max_particles: int = Field(5000, ge=10, description="largest sample size KLD-sampling may choose")
+    use_signatures: bool = Field(True, description="weigh detections that carry landmark ids against their own landmark")
     init: Literal["sensor", "uniform"] = Field("sensor", description="global initialisation: from the first scan and the map, or uniform")
     kld_epsilon: float = Field(0.05, gt=0, description="KLD-sampling error bound ε (eq. 2)")
     kld_delta: float = Field(0.01, gt=0, lt=1, description="KLD-sampling probability δ; the bound uses the normal quantile z_(1-δ)")

@@ -25,6 +25,11 @@ with the candidates' mean likelihood rather than its own, so the scan is not
 counted twice for it, and with a prior weight of ``reset_prior`` times a
 tracked particle's: a new hypothesis must explain the scans clearly better
 than the tracked ones before it becomes significant.
+
+Signatures: when the map has landmark ids and a scan's detections carry ids (``use_signatures``), each
+detection is weighed against its own landmark only and poses are drawn around it
+(:func:`~services.mcl.likelihood.signed_log_likelihood`); detections of landmarks not in the map are left
+out. A robot among distinguishable landmarks is then localized from a couple of detections, symmetry or not.
 """
 
 from __future__ import annotations
@@ -41,7 +46,9 @@ from schemas.messages import RobotInfo
 from services.mcl.clustering import Clusters, cluster_particles
 from services.mcl.config import MclConfig
 from services.mcl.kld import bin_keys, kld_prefix_size, kld_sample_size, support
-from services.mcl.likelihood import LandmarkMap, ScanModel, scan_log_likelihood
+from services.mcl.likelihood import (
+    LandmarkMap, ScanModel, poses_from_signatures, scan_log_likelihood, signed_log_likelihood,
+)
 from services.mcl.resampling import two_stage_resample
 from services.mcl.resetting import poses_from_scan, uniform_poses
 
@@ -79,7 +86,7 @@ class MonteCarloLocalizer:
     """Particle filter over one robot's pose (x, y, θ) on a fixed landmark map."""
 
     def __init__(self, landmarks: np.ndarray, info: RobotInfo, config: MclConfig,
-                 rng: np.random.Generator | None = None):
+                 rng: np.random.Generator | None = None, landmark_ids: np.ndarray | None = None):
         if config.variant not in VARIANTS:
             raise ValueError(f"unknown MCL variant {config.variant!r}; choose from {', '.join(VARIANTS)}")
         self.config = config
@@ -91,6 +98,9 @@ class MonteCarloLocalizer:
             config.view_margin_range, config.view_margin_bearing, config.match_sigmas,
         )
         self.map = LandmarkMap(landmarks, self.model, config.lookup_cell, config.match_candidates)
+        self.slot_of: dict[int, int] = {}
+        self._targets: np.ndarray | None = None  # landmarks of the current scan's signed detections
+        self._set_ids(landmark_ids)
         self.particles = np.zeros((0, 3))
         self.weights = np.zeros(0)
         self.size = config.particles  # N_old: the sample size the next resampling draws
@@ -118,9 +128,32 @@ class MonteCarloLocalizer:
     def localized(self) -> bool:
         return self._localized_run >= self.config.localized_scans
 
-    def set_map(self, landmarks: np.ndarray) -> None:
-        """Replace the map (a newer estimate of it); the particles stay."""
+    def set_map(self, landmarks: np.ndarray, landmark_ids: np.ndarray | None = None) -> None:
+        """Replace the map (a newer estimate of it, with its landmark ids if it has them); the particles stay."""
         self.map = LandmarkMap(landmarks, self.model, self.config.lookup_cell, self.config.match_candidates)
+        self._set_ids(landmark_ids)
+
+    def _set_ids(self, landmark_ids: np.ndarray | None) -> None:
+        if landmark_ids is None or not self.config.use_signatures:
+            self.slot_of = {}
+            return
+        ids = np.asarray(landmark_ids).reshape(-1)
+        if ids.size != self.map.count:
+            raise ValueError(f"{ids.size} landmark ids for {self.map.count} landmarks")
+        self.slot_of = {int(i): k for k, i in enumerate(ids.tolist())}
+
+    def _signed(self, observations: np.ndarray, ids) -> np.ndarray:
+        """The observations the scan is weighed by: with signatures (map and detections both with ids), those
+        of mapped landmarks, remembering their landmarks for this scan; otherwise all of them."""
+        z = np.asarray(observations, float).reshape(-1, 2)
+        self._targets = None
+        if not self.slot_of or ids is None:
+            return z
+        slots = np.array([self.slot_of.get(int(i), -1) for i in np.asarray(ids).reshape(-1)], np.int64)
+        if slots.size != z.shape[0] or not (slots >= 0).any():
+            return z if slots.size != z.shape[0] else z[:0]
+        self._targets = self.map.landmarks[slots[slots >= 0]]
+        return z[slots >= 0]
 
     def initialize_at(self, pose: np.ndarray, cov: np.ndarray | None = None, count: int | None = None) -> None:
         """Position tracking: particles drawn around a known pose."""
@@ -151,10 +184,14 @@ class MonteCarloLocalizer:
 
     def _scan_candidates(self, observations: np.ndarray, count: int) -> np.ndarray:
         cfg = self.config
+        if self._targets is not None:
+            return poses_from_signatures(observations, self._targets, self.model, count, self.rng)
         return poses_from_scan(observations, self.map, self.model, count, cfg.pair_sigmas, cfg.reset_jitter_xy,
                                cfg.reset_jitter_theta, cfg.map_margin, self.rng, cfg.reset_draws)
 
     def _likelihood(self, poses: np.ndarray, observations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        if self._targets is not None:
+            return signed_log_likelihood(poses, observations, self._targets, self.model)
         return scan_log_likelihood(poses, observations, self.map, self.model, self.config.chunk_particles)
 
     def _draw_from_scan(self, observations: np.ndarray, count: int) -> tuple[np.ndarray, float]:
@@ -184,10 +221,11 @@ class MonteCarloLocalizer:
 
     # ---------------------------------------------------------------- update
 
-    def update(self, observations: np.ndarray) -> UpdateReport:
-        """Run the variant's table on one scan ``(n, 2)`` of (range, bearing)."""
+    def update(self, observations: np.ndarray, ids=None) -> UpdateReport:
+        """Run the variant's table on one scan ``(n, 2)`` of (range, bearing), with its detections' landmark
+        ``ids`` when it has them (signatures)."""
         cfg = self.config
-        z = np.asarray(observations, float).reshape(-1, 2)
+        z = self._signed(observations, ids)
         fresh = not self.initialized
         if fresh:
             self.initialize_global(z)
@@ -226,9 +264,9 @@ class MonteCarloLocalizer:
                                         kidnapped, self.localized)
         return self.last_report
 
-    def weigh(self, observations: np.ndarray) -> None:
+    def weigh(self, observations: np.ndarray, ids=None) -> None:
         """Weigh the particles by one scan and cluster them, without resampling (one-shot localization)."""
-        z = np.asarray(observations, float).reshape(-1, 2)
+        z = self._signed(observations, ids)
         if not self.initialized:
             self.initialize_global(z)
         loglik, quality = self._likelihood(self.particles, z)

@@ -50,9 +50,11 @@ class MclFleet:
     """
 
     def __init__(self, config: MclConfig, landmarks: np.ndarray | None = None,
-                 truth: dict[str, tuple[np.ndarray, np.ndarray]] | None = None, use_start_pose: bool = True):
+                 truth: dict[str, tuple[np.ndarray, np.ndarray]] | None = None, use_start_pose: bool = True,
+                 landmark_ids: np.ndarray | None = None):
         self.config = config
         self.landmarks = None if landmarks is None else np.asarray(landmarks, float).reshape(-1, 2)
+        self.landmark_ids = None if landmark_ids is None else np.asarray(landmark_ids, np.int64).reshape(-1)
         self.truth = {rid: (np.asarray(s, float), np.asarray(p, float)) for rid, (s, p) in (truth or {}).items()}
         self.use_start_pose = use_start_pose
         self.robots: dict[str, RobotState] = {}
@@ -70,14 +72,16 @@ class MclFleet:
     def remove_robot(self, rid: str) -> None:
         self.robots.pop(rid, None)
 
-    def set_map(self, landmarks: np.ndarray) -> None:
-        """Use a (newer) map: robots waiting for one get their filter, the others keep their particles."""
+    def set_map(self, landmarks: np.ndarray, landmark_ids: np.ndarray | None = None) -> None:
+        """Use a (newer) map, with its landmark ids if it has them: robots waiting for one get their filter, the
+        others keep their particles."""
         self.landmarks = np.asarray(landmarks, float).reshape(-1, 2)
+        self.landmark_ids = None if landmark_ids is None else np.asarray(landmark_ids, np.int64).reshape(-1)
         for state in self.robots.values():
             if state.mcl is None:
                 state.mcl = self._build(state.info)
             else:
-                state.mcl.set_map(self.landmarks)
+                state.mcl.set_map(self.landmarks, self.landmark_ids)
 
     def _build(self, info: RobotInfo) -> MonteCarloLocalizer | None:
         if self.landmarks is None:
@@ -86,7 +90,7 @@ class MclFleet:
             info = info.model_copy(update={"start_pose": None, "start_pose_cov": None})
         rng = np.random.default_rng([self.config.seed, self.filters_built])
         self.filters_built += 1
-        return MonteCarloLocalizer(self.landmarks, info, self.config, rng)
+        return MonteCarloLocalizer(self.landmarks, info, self.config, rng, self.landmark_ids)
 
     # ---------------------------------------------------------------- events
 
@@ -101,7 +105,7 @@ class MclFleet:
         if state is None or state.mcl is None:
             return None
         mcl = state.mcl
-        report = mcl.update(event.observations)
+        report = mcl.update(event.observations, event.landmark_ids)
         state.scans += 1
         state.localized = report.localized
         if state.first_stamp is None:
@@ -204,7 +208,8 @@ def make_estimator(options: RunOptions, infos: list[RobotInfo]) -> MclFleet:
     """The offline MCL estimator: every robot localized from no pose against ``options.landmarks``.
 
     ``options.settings`` are :class:`MclConfig` settings (``--set variant=kld``); ``options.particles``, when
-    given, is the sample size; ``options.truth`` enables the convergence figures. SettingsError (a ValueError)
+    given, is the sample size; ``options.truth`` enables the convergence figures; with ``association`` known,
+    ``options.landmark_ids`` (the map's ids) let detections with ids act as signatures. SettingsError (a ValueError)
     on an unknown or bad setting, ValueError without a map.
     """
     if options.landmarks is None:
@@ -212,7 +217,8 @@ def make_estimator(options: RunOptions, infos: list[RobotInfo]) -> MclFleet:
     given = {"seed": options.seed, **({"particles": options.particles} if options.particles is not None else {}),
              **options.settings}
     config = MclConfig().with_overrides(given, owner="mcl")
-    fleet = MclFleet(config, options.landmarks, options.truth, use_start_pose=False)
+    ids = options.landmark_ids if options.association == "known" else None
+    fleet = MclFleet(config, options.landmarks, options.truth, use_start_pose=False, landmark_ids=ids)
     for info in infos:
         fleet.add_robot(info)
     return fleet

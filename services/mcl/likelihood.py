@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from robots.models import RangeBearingSensor, transform_points
+from robots.models import RangeBearingSensor, transform_points, wrap_angle
 from schemas.messages import SensorSpec
 
 FAR = 1e9  # position of the padding landmark that no query ever matches
@@ -288,3 +288,40 @@ def expected_visible(cos_t: np.ndarray, sin_t: np.ndarray, position: np.ndarray,
         along = cos_t[:, None] * dx + sin_t[:, None] * dy
         inside &= along >= np.sqrt(r2) * math.cos(half)
     return inside.sum(1)
+
+
+def signed_log_likelihood(poses: np.ndarray, observations: np.ndarray, targets: np.ndarray,
+                          model: ScanModel) -> tuple[np.ndarray, np.ndarray]:
+    """Log-likelihood ``(P,)`` and match quality ``(P,)`` of a scan whose detections carry landmark ids
+    (signatures): observation j is compared with its own landmark ``targets[j]`` only, with the same
+    Gaussian-plus-clutter-floor model as :func:`scan_log_likelihood` (no search for a best match, so a
+    symmetric map is no longer ambiguous)."""
+    poses = np.asarray(poses, float).reshape(-1, 3)
+    z = np.asarray(observations, float).reshape(-1, 2)
+    n = z.shape[0]
+    if n == 0:
+        return np.zeros(poses.shape[0]), np.ones(poses.shape[0])
+    predicted = model.sensor.observe(poses[:, None, :], targets[None, :, :])
+    nu = model.sensor.innovation(z[None], predicted)
+    m2 = np.einsum("pji,ik,pjk->pj", nu, np.linalg.inv(model.noise_cov), nu)
+    match = (1.0 - model.clutter_weight) * math.exp(model.log_gauss_norm)
+    loglik = np.log(match * np.exp(-0.5 * m2) + math.exp(model.log_floor)).sum(1)
+    return loglik, np.exp((loglik - n * model.log_peak) / n)
+
+
+def poses_from_signatures(observations: np.ndarray, targets: np.ndarray, model: ScanModel, count: int,
+                          rng: np.random.Generator) -> np.ndarray:
+    """``count`` poses ``(count, 3)`` that put one random observation of the scan on its own landmark: the
+    sensor on the circle of the measured range around the landmark, the heading from the measured bearing
+    (range and bearing jittered by their noise)."""
+    z = np.asarray(observations, float).reshape(-1, 2)
+    pick = rng.integers(z.shape[0], size=count)
+    sigma = np.sqrt(np.diag(model.noise_cov))
+    r = np.maximum(z[pick, 0] + rng.normal(0.0, sigma[0], count), 1e-3)
+    bearing = z[pick, 1] + rng.normal(0.0, sigma[1], count)
+    direction = rng.uniform(-math.pi, math.pi, count)  # world direction from the sensor to the landmark
+    sensor = targets[pick] - r[:, None] * np.stack([np.cos(direction), np.sin(direction)], -1)
+    theta = wrap_angle(direction - bearing)
+    a, b = model.sensor.offset
+    c, s = np.cos(theta), np.sin(theta)
+    return np.stack([sensor[:, 0] - (a * c - b * s), sensor[:, 1] - (a * s + b * c), theta], -1)

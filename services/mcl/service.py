@@ -131,7 +131,10 @@ class MclService(ServiceShell):
         if self.fleet.landmarks is not None and now - self.map_applied < self.settings.map_period_s:
             return
         self.map_applied = now
-        self.fleet.set_map(landmarks)
+        # ids are signatures only where they are the scans' own landmark ids: the central map's (it carries ids with
+        # known association) and the world truth's; D-SLAM numbers the features it discovers itself
+        ids = None if self.source == "dslam" else getattr(message, "landmark_ids", None)
+        self.fleet.set_map(landmarks, ids)
 
     # ------------------------------------------------------------------ robots
 

@@ -47,7 +47,7 @@ def test_core_configurations_never_read_the_environment(monkeypatch):
 
     for name, value in {"ASSOCIATION": "nn", "VARIANT": "kld", "PARTICLES": "7"}.items():
         monkeypatch.setenv(f"FLEETSLAM_{name}", value)
-    assert FastSlamConfig().particles == 100 and FastSlamConfig().association == "nn"
+    assert FastSlamConfig().particles == 100 and FastSlamConfig().association == "shared"
     assert MclConfig().variant == "cluster_kld_srl" and MclConfig().particles == 1000
     assert DslamConfig().association == "known"
     # only a process's settings class reads them, and composes its core's configuration from them

@@ -89,7 +89,7 @@ def quiet_world(name: str = "arena"):
     return dataclasses.replace(world, sensor=_sensor(6.0, 1.2, 1e-3, 1e-4, min_range=0.3), control_std=(1e-7, 1e-7))
 
 
-@pytest.mark.parametrize("association", ["known", "nn", "mht"])
+@pytest.mark.parametrize("association", ["known", "shared", "nn", "mht"])
 def test_noiseless_world_gives_the_true_map_and_path(association):
     data = simulate(quiet_world(), robots=2, seed=0, duration=20.0)
     infos = [log.info.model_copy(update={"start_pose_cov": np.zeros((3, 3))}) for log in data.robots.values()]
@@ -97,6 +97,9 @@ def test_noiseless_world_gives_the_true_map_and_path(association):
     feed(slam, data)
     estimate = slam.landmark_map()
     seen = {int(i) for log in data.robots.values() for i in log.det_id if i >= 0}
+    if association == "shared":  # a landmark seen fewer than confirm_hits times stays tentative
+        counts = np.bincount(np.concatenate([log.det_id for log in data.robots.values()]))
+        seen = {i for i in seen if counts[i] >= slam.config.confirm_hits}
     assert len(estimate.means) == len(seen)
     assert nearest(estimate.means, data.landmarks).max() < 0.01
     for rid, (pose, _) in slam.poses().items():
@@ -150,7 +153,7 @@ def test_mht_keeps_and_separates_two_close_beacons():
 
 
 @pytest.mark.parametrize("association", ["nn", "mht"])
-def test_clutter_born_landmarks_die(association):
+def test_clutter_born_landmarks_die_in_per_particle_association(association):
     """Clutter-born landmarks never reach the published map, and most die inside the filter too (those never seen
     again stay tentative)."""
     data = simulate("arena", robots=1, seed=3, duration=25.0, clutter_rate=1.5)
@@ -166,6 +169,54 @@ def test_clutter_born_landmarks_die(association):
     valid = slam.map.valid[best]
     survivors = int((nearest(slam.map.mean[best, valid], data.landmarks) > 0.5).sum())
     assert survivors < 0.15 * clutter, f"{survivors} clutter-born landmarks of {clutter} clutter detections survive"
+
+
+def test_shared_association_keeps_clutter_out_of_the_map_and_the_weights():
+    """Clutter starts tentative landmarks that never weigh particles, never reach the map and are dropped when
+    missed; the map holds the true landmarks and at most a few spurious ones."""
+    data = simulate("arena", robots=2, seed=3, duration=25.0, clutter_rate=1.5)
+    slam = FastSlam(FastSlamConfig(particles=20, association="shared", seed=0), [log.info for log in data.robots.values()])
+    feed(slam, data)
+    clutter = sum(int((log.det_id < 0).sum()) for log in data.robots.values())
+    assert clutter > 500
+    assert slam.counts["landmarks_dropped_tentative"] + slam.counts["detections_ignored"] > 0.8 * clutter
+    means = slam.landmark_map().means
+    true_seen = {int(i) for log in data.robots.values() for i in log.det_id if i >= 0}
+    assert len(means) >= 0.9 * len(true_seen)
+    assert int((nearest(means, data.landmarks) > 0.5).sum()) <= 2, "clutter reached the map"
+    for rid, (pose, _) in slam.poses().items():
+        assert np.hypot(*(pose[:2] - data.robots[rid].truth_pose[-1, :2])) < 0.5
+
+
+def test_shared_association_tentative_landmarks_do_not_weigh_particles():
+    """A detection that starts or updates a tentative landmark leaves the weights as they were."""
+    data = simulate("arena", robots=1, seed=0, duration=3.0)
+    slam = FastSlam(FastSlamConfig(particles=30, association="shared", confirm_hits=1000, seed=0), [data.robots["r1"].info])
+    feed(slam, data)
+    assert slam.counts["detections_matched"] > 10
+    assert np.ptp(slam.logw) == 0.0 and slam.counts.get("resamples", 0) == 0
+    assert len(slam.landmark_map().means) == 0
+    weighed = FastSlam(FastSlamConfig(particles=30, association="shared", confirm_hits=1, seed=0), [data.robots["r1"].info])
+    feed(weighed, data)
+    assert np.ptp(weighed.logw) > 0.0 or weighed.counts["resamples"] > 0
+
+
+@pytest.mark.parametrize("solver", ["jcbb", "exact"])
+def test_shared_association_survives_drift_beyond_the_particle_cloud(solver):
+    """Odometry far worse than its model (every particle off by more than its gate): per-particle nn starts
+    duplicates, shared association re-finds the mapped landmarks."""
+    world = dataclasses.replace(make_world("arena", 0), control_std=(0.03, 0.15))
+    data = simulate(world, robots=1, seed=2, duration=60.0)
+    log = data.robots["r1"]
+    log.odom_cov = log.odom_cov / 100.0  # the model believes the odometry 10× more precise than it is
+    counts = {}
+    for association in ("nn", "shared"):
+        slam = FastSlam(FastSlamConfig(particles=30, association=association, shared_solver=solver, seed=0), [log.info])
+        feed(slam, data)
+        counts[association] = len(slam.landmark_map().means)
+    true_seen = len({int(i) for i in log.det_id if i >= 0})
+    assert counts["shared"] <= true_seen + 2
+    assert counts["nn"] > true_seen + 4
 
 
 def test_bad_input_is_counted_and_never_corrupts_the_state():

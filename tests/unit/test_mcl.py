@@ -10,6 +10,8 @@ import pytest
 
 from robots.gaussian import systematic_resample
 from robots.models import RangeBearingSensor, wrap_angle
+from robots.simulator import simulate
+from schemas.contract import OdomEvent
 from schemas.messages import RobotInfo, SensorSpec
 from services.mcl.clustering import cluster_particles
 from services.mcl.config import MclConfig
@@ -263,3 +265,32 @@ def test_fleet_waits_for_a_map_then_localizes_restarts_and_answers_one_shot_quer
     assert tracked.robots["r1"].mcl.initialized
     fleet.remove_robot("r1")
     assert "r1" not in fleet and fleet.landmark_map().means.shape == (0, 2)
+
+
+def test_signatures_localize_in_a_symmetric_world_within_a_few_scans():
+    """Detections with landmark ids are weighed against their own landmark: a robot in a symmetric world (where
+    the unsigned likelihood holds several hypotheses) is localized, at the true pose, within a few scans."""
+    data = simulate("grid196", robots=1, seed=4, duration=20.0)
+    log = data.robots["r1"]
+    info = log.info.model_copy(update={"start_pose": None, "start_pose_cov": None})
+    results = {}
+    for signatures in (True, False):
+        config = MclConfig(particles=500, seed=0, use_signatures=signatures)
+        mcl = MonteCarloLocalizer(data.landmarks, info, config, np.random.default_rng(0), data.landmark_ids)
+        scans = 0
+        for event in data.events():
+            if isinstance(event, OdomEvent):
+                mcl.predict(event.control, event.dt, event.control_cov)
+                continue
+            if not len(event.ranges):
+                continue
+            report = mcl.update(event.observations, event.landmark_ids)
+            scans += 1
+            if report.localized or scans >= 10:
+                break
+        best = mcl.best()[0]
+        truth = log.truth_at(np.array([event.stamp]))[0]
+        results[signatures] = (mcl.localized, float(np.hypot(*(best[:2] - truth[:2]))), scans)
+    localized, error, scans = results[True]
+    assert localized and error < 0.3 and scans <= 6, results
+    assert not (results[False][0] and results[False][1] < 0.3 and results[False][2] <= scans), results

@@ -13,7 +13,7 @@ from schemas.config import RunSettings
 from services import estimators as registry
 from services.cli import main as cli_main
 from schemas.contract import MapView, RunOptions
-from services.estimators import make_estimator
+from services.estimators import make_estimator, resolve_association
 from services.baselines.dead_reckoning import DeadReckoning
 from services.offline import run, run_estimator
 
@@ -180,3 +180,13 @@ def test_unknown_estimator_settings_are_refused_with_the_known_names(estimator, 
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "Traceback" not in err[0], err
     assert err[0].startswith("fleetslam run: error: unknown ") and "no_such_setting" in err[0] and "(known: " in err[0]
+
+
+@pytest.mark.parametrize("estimator, expected", [("fastslam", "shared"), ("dslam", "auto"), ("ekf", "jcbb")])
+def test_unknown_association_names_each_estimators_recommended_method(estimator, expected):
+    """``--association unknown`` reaches every estimator as its own recommended method without ids."""
+    data = simulate("arena", robots=1, seed=0, duration=2.0)
+    built = make_estimator(RunOptions(estimator=estimator, association="unknown"), [data.robots["r1"].info])
+    method = built.method if hasattr(built, "method") else built.config.association
+    assert method == expected
+    assert resolve_association(estimator, "nn") == "nn"

@@ -1,0 +1,90 @@
+"""What each step of unknown association buys on real data, over seeds (median and worst, never the best).
+
+Steps (FastSLAM, 100 particles, scans' ids ignored):
+
+- ``nn``: per-particle maximum likelihood, the former default;
+- ``shared-exact-no-tentative``: one optimal one-to-one assignment per scan on the filter's marginal map for
+  every particle, new landmarks weigh at once (``confirm_hits=1``);
+- ``shared-exact``: ... and new landmarks stay tentative (no weight, not mapped) until seen 3 times;
+- ``shared-jcbb``: ... with joint compatibility (JCBB) instead: ``--association unknown``, the default.
+
+Data: MR.CLAM 6 (five robots in one filter), Victoria Park (GPS), ACFR car park (GPS and surveyed beacons).
+Per run: every robot's ATE (raw: the start poses are given), GPS RMSE, map RMSE and landmarks mapped,
+matched within 1 m, spurious; per step the median and the worst over the seeds.
+
+    .venv/bin/python benchmarks/association_ablation.py [--steps nn,shared-jcbb] [--seeds 10]
+        [--data mrclam:,victoria-park:,car-park:] [--jobs 2] [--out FILE]
+"""
+
+from __future__ import annotations
+
+import argparse
+from concurrent.futures import ProcessPoolExecutor
+
+import numpy as np
+
+from report import emit
+from robots.loaders import load_dataset
+from schemas.contract import RunOptions
+from support.fastslam_experiments import run_and_score
+
+STEPS: dict[str, tuple[str, dict]] = {
+    "nn": ("nn", {}),
+    "shared-exact-no-tentative": ("shared", {"shared_solver": "exact", "confirm_hits": 1}),
+    "shared-exact": ("shared", {"shared_solver": "exact"}),
+    "shared-jcbb": ("unknown", {}),
+}
+
+
+def one_run(spec: str, step: str, seed: int, particles: int) -> dict:
+    association, settings = STEPS[step]
+    dataset = load_dataset(spec)
+    run = run_and_score(dataset, RunOptions("fastslam", association, particles, seed, dict(settings)))
+    ate = [v for v in run["ate_rmse_m"].values() if v is not None]
+    gps = [v for v in run.get("gps_rmse_m", {}).values() if v is not None]
+    marks = run.get("landmarks") or {}
+    return {"data": spec, "step": step, "seed": seed, "wall_s": run["wall_s"],
+            "ate_robot_median_m": float(np.median(ate)) if ate else None, "ate_robot_worst_m": max(ate, default=None),
+            "ate_rmse_m": run["ate_rmse_m"], "gps_rmse_m": float(np.mean(gps)) if gps else None,
+            "map_rmse_m": run.get("map_rmse_m"), "landmarks_mapped": run["landmarks_mapped"],
+            "landmarks_true": None if dataset.landmarks is None else int(len(dataset.landmarks)),
+            "matched": marks.get("matched"), "spurious": marks.get("spurious")}
+
+
+def summarise(runs: list[dict]) -> dict:
+    """Median and worst over the seeds of every figure (worst: the largest, for errors and counts alike)."""
+    out: dict = {"seeds": len(runs)}
+    for key in ("ate_robot_median_m", "ate_robot_worst_m", "gps_rmse_m", "map_rmse_m", "landmarks_mapped",
+                "spurious", "matched", "wall_s"):
+        values = [r[key] for r in runs if r[key] is not None]
+        if values:
+            out[key] = {"median": round(float(np.median(values)), 3), "worst": round(float(max(values)), 3),
+                        "min": round(float(min(values)), 3)}
+    return out
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--data", default="mrclam:,victoria-park:,car-park:", help="data set specs, comma-separated")
+    parser.add_argument("--steps", default=",".join(STEPS), help=f"comma-separated, of: {', '.join(STEPS)}")
+    parser.add_argument("--seeds", type=int, default=10, help="seeds 0..N-1")
+    parser.add_argument("--particles", type=int, default=100)
+    parser.add_argument("--jobs", type=int, default=2, help="runs in parallel (processes)")
+    parser.add_argument("--out")
+    args = parser.parse_args()
+    steps = args.steps.split(",")
+    unknown = [s for s in steps if s not in STEPS]
+    if unknown:
+        parser.error(f"unknown steps {unknown}; choose from {', '.join(STEPS)}")
+    jobs = [(spec, step, seed) for spec in args.data.split(",") for step in steps for seed in range(args.seeds)]
+    with ProcessPoolExecutor(max_workers=args.jobs) as pool:
+        runs = list(pool.map(one_run, *zip(*jobs), [args.particles] * len(jobs)))
+    report: dict = {"settings": vars(args), "runs": runs, "summary": {}}
+    for spec in args.data.split(","):
+        report["summary"][spec] = {step: summarise([r for r in runs if r["data"] == spec and r["step"] == step])
+                                   for step in steps}
+    emit(report, args.out)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,170 @@
+"""Shared association: one assignment per scan for every particle, against the filter's marginal map.
+
+Per-particle nearest neighbour (``nn``, ``mht``) fails on real data when the particle cloud is narrower than
+the true pose error: every particle is off, every particle calls the detection new, and the map fills with
+duplicates (MR.CLAM 6 without barcodes: over 200 landmarks for 15). Here the scan is associated once, as an
+EKF-SLAM would (Neira and Tardós, "Data association in stochastic mapping using the joint compatibility
+test"): against the particle-weighted mean and covariance of every landmark, from the robot's mean pose
+with a covariance that is the cloud's spread plus a floor (``gate_pose_floor``) and a growth with the time
+since the robot last matched a landmark (``gate_pose_growth``, dead reckoning is worse than its model). A
+pose error shifts every prediction of a scan together, which joint compatibility (JCBB) accounts for;
+``exact`` is the optimal one-to-one assignment of individually gated pairs (mutual exclusion). The chosen
+landmark ids are then updated in every particle as with known ids, so particles whose pose disagrees lose
+weight instead of escaping into a landmark of their own.
+
+Unmatched detections outside the new-landmark gate of every landmark start a landmark, the others are
+ignored (outliers). New landmarks are tentative (Wang, Huang and Dissanayake, "Implementation issues and
+experimental evaluation of D-SLAM", §3.1: confirmed and tentative lists): they neither weigh particles nor
+appear in the map until associated ``confirm_hits`` times, and a tentative landmark in view but not seen
+``tentative_misses`` times is dropped.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from central.fastslam import motion, resampling
+from central.fastslam.lifecycle import RobotState
+from robots.gaussian import inv2, quad2, sandwich, sandwich2
+from robots.models import compose_jacobian, se2_compose, wrap_angle
+from services.association.solvers import solve_exact, solve_jcbb
+
+if TYPE_CHECKING:
+    from central.fastslam.core import FastSlam
+
+
+def marginal_map(slam: FastSlam) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(ids, slots, means ``(K, 2)``, covariances ``(K, 2, 2)``) of every landmark with an id (known or shared
+    association), mixed over the particles: the weighted mean, and the weighted covariances plus the spread of
+    the means."""
+    if not slam.known_slots:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros((0, 2, 2))
+    ids = np.fromiter(slam.known_slots.keys(), np.int64, len(slam.known_slots))
+    slots = np.fromiter(slam.known_slots.values(), np.int64, len(slam.known_slots))
+    w = resampling.weights(slam.logw)
+    mu, sig = slam.map.mean[:, slots], slam.map.cov[:, slots]
+    mean = np.einsum("p,pkj->kj", w, mu)
+    resid = mu - mean
+    cov = np.einsum("p,pkij->kij", w, sig) + np.einsum("p,pki,pkj->kij", w, resid, resid)
+    return ids, slots, mean, cov
+
+
+def pose_belief(slam: FastSlam, robot: RobotState) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The robot's weighted mean pose, its spread over the particles, and the extra variance the association
+    assumes against drift: ``gate_pose_floor``² plus ``gate_pose_growth``² per second since its last match (at
+    most 120 s)."""
+    w = resampling.weights(slam.logw)
+    own = slam.pose[:, robot.index]
+    theta = np.arctan2(w @ np.sin(own[:, 2]), w @ np.cos(own[:, 2]))
+    mean = np.array([w @ own[:, 0], w @ own[:, 1], theta])
+    resid = own - mean
+    resid[:, 2] = wrap_angle(resid[:, 2])
+    cov = np.einsum("p,pi,pj->ij", w, resid, resid)
+    pending = motion.pending_motion(robot, slam.config)  # FastSLAM 2.0 associates before it moves the particles
+    if pending is not None:
+        jac = compose_jacobian(mean[2])
+        mean = se2_compose(mean, pending[0])
+        cov = cov + jac @ pending[1] @ jac.T
+    blind = 0.0 if robot.last_match_stamp is None else min(max(robot.last_scan_stamp - robot.last_match_stamp, 0.0), 120.0)
+    extra = np.square(slam.config.gate_pose_floor) + np.square(slam.config.gate_pose_growth) * blind
+    return mean, cov, np.diag(extra)
+
+
+def associate(slam: FastSlam, robot: RobotState, z: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """Landmark id of each detection ``(m, 2)``: an existing one, a new one (tentative), or −1 (ignored)."""
+    m = z.shape[0]
+    ids = np.full(m, -1, np.int64)
+    fresh = np.ones(m, bool)
+    known, slots, mean, cov = marginal_map(slam)
+    if known.size:
+        pose, spread, drift = pose_belief(slam, robot)
+        position, _ = robot.sensor.sensor_position(pose)
+        reach = robot.info.sensor.max_range + 3.0 * float(np.sqrt(r[0, 0])) + 2.0
+        near = np.flatnonzero(np.hypot(*(mean - position).T) < reach)
+        if near.size:
+            zhat = robot.sensor.observe(pose, mean[near])
+            h_x, h_m = robot.sensor.jacobians(np.broadcast_to(pose, (near.size, 3)), mean[near])
+            own = sandwich2(h_m, cov[near])
+            # tentative landmarks were seen from about the present drift: they are gated without it, so clutter
+            # does not confirm them by falling into a gate widened for old landmarks
+            tentative = slam.map.hits[0, slots[near]] < slam.config.confirm_hits
+            s = own + sandwich(h_x, spread) + r + np.where(tentative[:, None, None], 0.0, sandwich(h_x, drift))
+            nu = z[:, None, :] - zhat[None]
+            nu[..., 1] = wrap_angle(nu[..., 1])
+            d2 = quad2(nu, inv2(s)[0][None])
+            gated = d2 < slam.gate
+            ambiguous = _ambiguous(slam, d2, gated, zhat, r)
+            gated[ambiguous] = False
+            slam.counts["detections_ambiguous"] += int(ambiguous.sum())
+            rows, cols = _solve(slam, nu, gated, d2, h_x, own, spread + drift, r)
+            ids[rows] = known[near[cols]]
+            fresh = (ids < 0) & (d2.min(1) > slam.new_gate) & ~ambiguous
+            slam.counts["detections_ignored"] += int(((ids < 0) & ~fresh).sum())
+            _age_tentative(slam, robot, known[near], slots[near], zhat, set(ids[rows].tolist()))
+    if rows_matched := int((ids >= 0).sum()):
+        robot.last_match_stamp = robot.last_scan_stamp
+        slam.counts["detections_matched"] += rows_matched
+    ids[fresh] = slam.next_landmark_id + np.arange(int(fresh.sum()))
+    slam.next_landmark_id += int(fresh.sum())
+    return ids
+
+
+def _ambiguous(slam: FastSlam, d2: np.ndarray, gated: np.ndarray, zhat: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """Detections whose two best gated landmarks are distinct landmarks (predicted detections farther apart than
+    the sensor's new-landmark gate) and nearly as likely (d² within ``ambiguity_margin``): left out rather than
+    risk a wrong association, which every particle would share."""
+    margin = slam.config.ambiguity_margin
+    if margin <= 0 or gated.shape[1] < 2:
+        return np.zeros(gated.shape[0], bool)
+    order = np.argsort(np.where(gated, d2, np.inf), axis=1)[:, :2]
+    rows = np.arange(gated.shape[0])
+    first, second = order[:, 0], order[:, 1]
+    both = gated[rows, first] & gated[rows, second]
+    close = d2[rows, second] - d2[rows, first] < margin
+    apart = zhat[first] - zhat[second]
+    apart[:, 1] = wrap_angle(apart[:, 1])
+    distinct = quad2(apart, inv2(2.0 * r)[0]) > slam.new_gate
+    return both & close & distinct
+
+
+def _solve(slam: FastSlam, nu, gated, d2, h_x, own, pose_cov, r) -> tuple[np.ndarray, np.ndarray]:
+    """(detection, candidate) pairs by JCBB (joint compatibility, the pose error shared by the whole scan) or by
+    the optimal one-to-one assignment of individually gated pairs."""
+    if not gated.any():
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    if slam.config.shared_solver == "exact":
+        return solve_exact(np.where(gated, d2 - slam.gate, np.inf))
+    joint = np.einsum("aij,jk,blk->abil", h_x, pose_cov, h_x)
+    joint[np.arange(own.shape[0]), np.arange(own.shape[0])] += own
+    result = solve_jcbb(nu, gated, d2, joint, r, slam.config.gate_probability)
+    slam.counts["jcbb_truncated"] += int(result.truncated)
+    return result.rows, result.cols
+
+
+def _age_tentative(slam: FastSlam, robot: RobotState, ids: np.ndarray, slots: np.ndarray, zhat: np.ndarray,
+                   seen: set) -> None:
+    """Count a miss for each tentative landmark inside the sensor's view and not seen; drop those missed
+    ``tentative_misses`` times."""
+    spec = robot.info.sensor
+    inside = (zhat[:, 0] < spec.max_range) & (zhat[:, 0] > spec.min_range) & (np.abs(zhat[:, 1]) < 0.5 * spec.fov)
+    hits = slam.map.hits[0, slots]
+    for lid, slot in zip(ids[inside & (hits < slam.config.confirm_hits)].tolist(),
+                         slots[inside & (hits < slam.config.confirm_hits)].tolist()):
+        if lid in seen:
+            continue
+        misses = slam.tentative_misses.get(lid, 0) + 1
+        if misses < slam.config.tentative_misses:
+            slam.tentative_misses[lid] = misses
+            continue
+        slam.tentative_misses.pop(lid, None)
+        del slam.known_slots[lid]
+        slam.map.valid[:, slot] = False
+        slam.counts["landmarks_dropped_tentative"] += 1
+
+
+def confirmed(slam: FastSlam, ids: np.ndarray) -> np.ndarray:
+    """Which of the landmark ``ids`` (already in the map) are confirmed: associated ``confirm_hits`` times."""
+    slots = np.array([slam.known_slots[int(i)] for i in ids], np.int64)
+    return slam.map.hits[0, slots] >= slam.config.confirm_hits if slots.size else np.zeros(0, bool)

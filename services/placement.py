@@ -1,0 +1,157 @@
+"""Fleet placement without start poses, offline: who anchors the frame, and where the others join.
+
+``fleetslam run --start-poses known|first|none`` decides which robots keep the start pose of the data
+(:func:`withhold_start_poses`). An estimator that can take robots without a pose (it offers ``is_waiting``,
+``place_robot``, ``landmark_map`` and ``robot_count``: the central FastSLAM) then gets them placed by a
+:class:`FleetPlacer` that sits between the data and the estimator, as the MCL service does live:
+
+- while no robot is placed, the first robot to scan anchors the world frame: it is placed at the origin
+  (DESIGN §3: the world frame is the first robot's start pose unless a start pose is given);
+- every other robot without a pose is localized globally by Monte Carlo localization
+  (:class:`services.mcl.core.MonteCarloLocalizer`) against the estimator's map so far, with landmark ids
+  as signatures when the map and the scans have them; once localized it joins the estimator at the
+  localized pose and covariance. Its odometry and scans until then feed the localizer only; they are
+  counted, never silently dropped.
+
+Each robot's :class:`Placement` says when and how it was placed, or why not.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+from schemas.contract import Event, OdomEvent, ScanEvent
+from schemas.messages import RobotInfo
+from services.mcl.config import MclConfig
+from services.mcl.core import MonteCarloLocalizer
+
+START_POSES = ("known", "first", "none")
+
+
+def withhold_start_poses(infos: list[RobotInfo], mode: str) -> list[RobotInfo]:
+    """The robots' infos under ``mode``: ``known`` as they are, ``first`` only the first robot's start pose,
+    ``none`` no start pose at all."""
+    if mode not in START_POSES:
+        raise ValueError(f"start poses must be one of {', '.join(START_POSES)}, not {mode!r}")
+    keep = {"known": len(infos), "first": 1, "none": 0}[mode]
+    return [info if k < keep else info.model_copy(update={"start_pose": None, "start_pose_cov": None})
+            for k, info in enumerate(infos)]
+
+
+@dataclass
+class Placement:
+    """How one robot entered the estimator (``how``: start pose, anchor, mcl), or why it has not."""
+
+    robot_id: str
+    how: str | None = None
+    placed_stamp: float | None = None
+    first_scan_stamp: float | None = None
+    scans_before: int = 0  # scans that went to the localizer before the robot was placed
+    odometry_before: int = 0
+    mcl_updates: int = 0
+    reason: str | None = None  # why the robot is not placed (at the end)
+
+    def report(self, start: float) -> dict:
+        """The JSON form, stamps made relative to the run's ``start``, and the delay from the first scan."""
+        out = asdict(self)
+        placed, first = out.pop("placed_stamp"), out.pop("first_scan_stamp")
+        out["placed_s"] = None if placed is None else round(placed - start, 3)
+        out["first_scan_s"] = None if first is None else round(first - start, 3)
+        if self.placed_stamp is not None and self.first_scan_stamp is not None:
+            out["placed_after_first_scan_s"] = round(self.placed_stamp - self.first_scan_stamp, 3)
+        return out
+
+
+class FleetPlacer:
+    """Hold back the events of robots the estimator has not placed, anchor the first, localize the others."""
+
+    def __init__(self, estimator, infos: list[RobotInfo], config: MclConfig, use_signatures: bool,
+                 map_refresh_s: float = 5.0, min_landmarks: int = 3):
+        self.estimator = estimator
+        self.config = config
+        self.use_signatures = use_signatures
+        self.map_refresh_s = map_refresh_s
+        self.min_landmarks = min_landmarks
+        self.infos = {info.robot_id: info for info in infos}
+        self.filters: dict[str, MonteCarloLocalizer] = {}
+        self.built = 0
+        self.map_stamp = -np.inf
+        self.map: tuple[np.ndarray, np.ndarray | None] | None = None
+        self.map_version = 0
+        self.filter_map: dict[str, int] = {}  # the map version each robot's localizer uses
+        self.placements = {info.robot_id: Placement(info.robot_id) for info in infos}
+        for info in infos:
+            if estimator.has_robot(info.robot_id):
+                self.placements[info.robot_id].how = "start pose"
+
+    def holds(self, event: Event) -> bool:
+        """Take the event if its robot waits for a pose (True); False: the estimator should have it."""
+        rid = event.robot_id
+        if rid not in self.placements or not self.estimator.is_waiting(rid):
+            return False
+        record = self.placements[rid]
+        if isinstance(event, OdomEvent):
+            record.odometry_before += 1
+            if rid in self.filters:
+                self.filters[rid].predict(event.control, event.dt, event.control_cov)
+            return True
+        if not isinstance(event, ScanEvent):
+            return True
+        if record.first_scan_stamp is None:
+            record.first_scan_stamp = event.stamp
+        if self.estimator.robot_count == 0:
+            return self._place(record, np.zeros(3), np.zeros((3, 3)), event.stamp, "anchor")
+        self._refresh_map(event.stamp)
+        if self.map is None:
+            return self._hold(record, f"the map has fewer than {self.min_landmarks} landmarks")
+        mcl = self.filters.get(rid)
+        if mcl is None:
+            info = self.infos[rid]
+            mcl = MonteCarloLocalizer(self.map[0], info, self.config, np.random.default_rng([self.config.seed, self.built]),
+                                      self.map[1])
+            self.built += 1
+            self.filters[rid] = mcl
+        elif self.filter_map[rid] != self.map_version:
+            mcl.set_map(*self.map)
+        self.filter_map[rid] = self.map_version
+        report = mcl.update(event.observations, event.landmark_ids if self.use_signatures else None)
+        record.mcl_updates += 1
+        if not report.localized:
+            return self._hold(record, "not localized against the map yet")
+        pose, cov = mcl.best()
+        return self._place(record, pose, cov, event.stamp, "mcl")
+
+    @staticmethod
+    def _hold(record: Placement, reason: str) -> bool:
+        """Keep a scan from the estimator (counted), saying why the robot is not placed yet."""
+        record.scans_before += 1
+        record.reason = reason
+        return True
+
+    def _place(self, record: Placement, pose, cov, stamp: float, how: str) -> bool:
+        """Place the robot; its scan then goes to the estimator too (False), unless the estimator refused it."""
+        if not self.estimator.place_robot(record.robot_id, pose, cov, stamp=stamp):
+            return self._hold(record, f"the estimator refused the {how} pose")
+        record.how, record.placed_stamp, record.reason = how, stamp, None
+        self.filters.pop(record.robot_id, None)
+        return False
+
+    def _refresh_map(self, stamp: float) -> None:
+        """The estimator's map, taken again every ``map_refresh_s`` of data time (None: too few landmarks)."""
+        if stamp - self.map_stamp < self.map_refresh_s:
+            return
+        view = self.estimator.landmark_map()
+        means = np.asarray(view.means, float).reshape(-1, 2)
+        self.map_stamp = stamp
+        if len(means) < self.min_landmarks:
+            self.map = None
+            return
+        ids = None if view.ids is None or not self.use_signatures else np.asarray(view.ids, np.int64)
+        self.map = (means, ids)
+        self.map_version += 1
+
+    def report(self, start: float) -> dict:
+        """Per robot: how and when it was placed, or why not."""
+        return {rid: record.report(start) for rid, record in self.placements.items()}

@@ -1,0 +1,55 @@
+"""Fleet placement offline: start poses withheld, the first robot anchors the frame, MCL places the others."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from robots.simulator import simulate
+from schemas.contract import RunOptions
+from services.evaluation.metrics import Trajectory, fleet_alignment
+from services.offline import run_estimator
+from services.placement import withhold_start_poses
+
+
+def test_withholding_start_poses_keeps_only_what_the_mode_says():
+    infos = [log.info for log in simulate("arena", robots=3, seed=0, duration=1.0).robots.values()]
+    assert [i.start_pose is not None for i in withhold_start_poses(infos, "known")] == [True, True, True]
+    assert [i.start_pose is not None for i in withhold_start_poses(infos, "first")] == [True, False, False]
+    assert [i.start_pose is not None for i in withhold_start_poses(infos, "none")] == [False, False, False]
+    with pytest.raises(ValueError, match="known, first, none"):
+        withhold_start_poses(infos, "some")
+
+
+@pytest.mark.parametrize("association, world, seed", [
+    ("known", "arena", 1),  # landmark ids as signatures: the symmetric arena is no obstacle
+    ("shared", "random", 3),  # without ids MCL needs a map without symmetries (in the arena it places robots wrongly)
+])
+def test_robots_without_start_poses_are_anchored_and_placed_and_the_fleet_lines_up(association, world, seed):
+    data = simulate(world, robots=3, seed=seed, duration=40.0)
+    run = run_estimator(data, RunOptions("fastslam", association, 50, 0), start_poses="none")
+    placement = run.extra["placement"]
+    assert sorted(record["how"] for record in placement.values()) == ["anchor", "mcl", "mcl"], placement
+    assert sum(record["scans_before"] for record in placement.values()) == run.extra["held_for_placement"]["scan"] > 0
+    truth = {rid: Trajectory(log.truth_stamp, log.truth_pose) for rid, log in data.robots.items()}
+    fleet = fleet_alignment(run.trajectories, truth, true_landmarks=data.landmarks, map_means=run.map_means)
+    assert max(fleet["ate_rmse_m"].values()) < 0.5, fleet
+    assert fleet["map_rmse_m"] < 0.3 and fleet["landmarks"]["spurious"] <= 2, fleet
+    raw = max(np.sqrt(np.mean(np.sum((t.poses[:, :2] - data.robots[rid].truth_at(t.stamps)[:, :2]) ** 2, 1)))
+              for rid, t in run.trajectories.items())
+    assert raw > 1.0, "the anchor's frame is not the truth's: only the fleet alignment lines them up"
+
+
+def test_a_robot_that_is_never_placed_is_reported_with_the_reason():
+    data = simulate("arena", robots=2, seed=1, duration=20.0)
+    blind = data.robots["r2"]
+    data.robots["r2"] = dataclasses.replace(blind, scan_offsets=np.zeros_like(blind.scan_offsets),
+                                            det_range=blind.det_range[:0], det_bearing=blind.det_bearing[:0],
+                                            det_id=blind.det_id[:0])
+    run = run_estimator(data, RunOptions("fastslam", "known", 30, 0), start_poses="none")
+    record = run.extra["placement"]["r2"]
+    assert record["how"] is None and record["reason"] == "not localized against the map yet"
+    assert record["scans_before"] == len(blind.scan_stamp) and record["odometry_before"] == len(blind.odom_stamp)
+    assert "r2" not in run.trajectories or len(run.trajectories["r2"]) == 0
