@@ -10,7 +10,8 @@ Steps (FastSLAM, 100 particles, scans' ids ignored):
 
 Data: MR.CLAM 6 (five robots in one filter), Victoria Park (GPS), ACFR car park (GPS and surveyed beacons).
 Per run: every robot's ATE (raw: the start poses are given), GPS RMSE, map RMSE and landmarks mapped,
-matched within 1 m, spurious; per step the median and the worst over the seeds.
+matched within 1 m, spurious, and the surveyed landmarks the truth passes within sensor range of, mapped
+within 0.3 m after the map's rigid fit to the survey; per step the median and the worst over the seeds.
 
     .venv/bin/python benchmarks/association_ablation.py [--steps nn,shared-jcbb] [--seeds 10]
         [--data mrclam:,victoria-park:,car-park:] [--jobs 2] [--out FILE]
@@ -26,7 +27,7 @@ import numpy as np
 from report import emit
 from robots.loaders import load_dataset
 from schemas.contract import RunOptions
-from support.fastslam_experiments import run_and_score
+from support.fastslam_experiments import aligned_map_error, run_and_score
 
 STEPS: dict[str, tuple[str, dict]] = {
     "nn": ("nn", {}),
@@ -43,7 +44,8 @@ def one_run(spec: str, step: str, seed: int, particles: int) -> dict:
     ate = [v for v in run["ate_rmse_m"].values() if v is not None]
     gps = [v for v in run.get("gps_rmse_m", {}).values() if v is not None]
     marks = run.get("landmarks") or {}
-    return {"data": spec, "step": step, "seed": seed, "wall_s": run["wall_s"],
+    beacons = passed_beacons(dataset, run["map_means"])
+    return beacons | {"data": spec, "step": step, "seed": seed, "wall_s": run["wall_s"],
             "ate_robot_median_m": float(np.median(ate)) if ate else None, "ate_robot_worst_m": max(ate, default=None),
             "ate_rmse_m": run["ate_rmse_m"], "gps_rmse_m": float(np.mean(gps)) if gps else None,
             "map_rmse_m": run.get("map_rmse_m"), "landmarks_mapped": run["landmarks_mapped"],
@@ -51,12 +53,29 @@ def one_run(spec: str, step: str, seed: int, particles: int) -> dict:
             "matched": marks.get("matched"), "spurious": marks.get("spurious")}
 
 
+def passed_beacons(dataset, means: np.ndarray, within: float = 0.3) -> dict:
+    """Surveyed landmarks some robot's true track passes within sensor range of, and how many of them the map
+    holds within ``within`` m after the rigid fit of the map to the survey (the survey's frame is not the
+    filter's); empty without a surveyed map or a track."""
+    if dataset.landmarks is None or not len(means):
+        return {}
+    tracks = [log.truth_pose[np.all(np.isfinite(log.truth_pose[:, :2]), 1), :2] for log in dataset.robots.values()]
+    reach = max(log.info.sensor.max_range for log in dataset.robots.values())
+    track = np.concatenate(tracks)
+    if not len(track):
+        return {}
+    passed = np.array([np.min(np.hypot(*(track - b).T)) <= reach for b in dataset.landmarks])
+    _, aligned = aligned_map_error(means, dataset.landmarks)
+    nearest = np.linalg.norm(aligned[:, None] - dataset.landmarks[None], axis=-1).min(0)
+    return {"beacons_passed": int(passed.sum()), "beacons_mapped_within_0_3m": int((passed & (nearest <= within)).sum())}
+
+
 def summarise(runs: list[dict]) -> dict:
     """Median and worst over the seeds of every figure (worst: the largest, for errors and counts alike)."""
     out: dict = {"seeds": len(runs)}
     for key in ("ate_robot_median_m", "ate_robot_worst_m", "gps_rmse_m", "map_rmse_m", "landmarks_mapped",
-                "spurious", "matched", "wall_s"):
-        values = [r[key] for r in runs if r[key] is not None]
+                "spurious", "matched", "beacons_passed", "beacons_mapped_within_0_3m", "wall_s"):
+        values = [r[key] for r in runs if r.get(key) is not None]
         if values:
             out[key] = {"median": round(float(np.median(values)), 3), "worst": round(float(max(values)), 3),
                         "min": round(float(min(values)), 3)}
