@@ -307,20 +307,22 @@ def score_estimates(trajectories: dict[str, dict[str, Trajectory]], truth: dict[
 
 def fleet_alignment(trajectories: dict[str, Trajectory], truth: dict[str, Trajectory], max_gap_s: float = 1.0,
                     true_landmarks: np.ndarray | None = None, map_means: np.ndarray | None = None,
-                    map_cutoff: float = 1.0) -> dict:
+                    map_cutoff: float = 1.0, truth_offset=(0.0, 0.0)) -> dict:
     """Errors after one SE(2) transform for the whole fleet and its map, fitted to every robot's positions
     jointly (never one transform per robot, which would hide a robot placed in the wrong place).
 
     For runs whose world frame is not the truth's (robots placed without start poses). Returns the transform
     (x, y, θ), each robot's ATE after it and, with a true map, the map error after it; empty without samples.
+    ``truth_offset``: the body-frame point the truth gives the position of (a GPS antenna).
     """
+    offset = np.asarray(truth_offset, float)
     estimated, target, owner = [], [], []
     for rid, path in trajectories.items():
         if rid not in truth or len(path) == 0:
             continue
         at = interpolate_poses(truth[rid].stamps, truth[rid].poses, path.stamps, max_gap_s)
         valid = np.all(np.isfinite(at[:, :2]), axis=-1)
-        estimated.append(path.poses[valid, :2])
+        estimated.append(transform_points(path.poses[valid], offset) if np.any(offset) else path.poses[valid, :2])
         target.append(at[valid, :2])
         owner += [rid] * int(valid.sum())
     if not owner:

@@ -11,6 +11,7 @@ from services.evaluation.metrics import (
     Trajectory,
     association_accuracy,
     ate,
+    fleet_alignment,
     interpolate_poses,
     map_error,
     nees,
@@ -160,3 +161,26 @@ def test_score_estimates_summarises_every_estimator():
     assert metrics["summary"]["a"]["landmarks"] == {"estimated": 2, "matched": 2, "missed": 0, "spurious": 0}
     assert metrics["summary"]["b"]["landmarks"]["missed"] == 2
     assert curves["a"]["r1"]["position_error_m"] == pytest.approx(np.ones(11))
+
+
+def test_fleet_alignment_uses_one_transform_for_every_robot_and_the_antenna_point():
+    """Two robots in a frame rotated and shifted from the truth's: one SE(2) lines both up (errors ~0); moving
+    one robot alone shows as its error, not hidden by a transform of its own."""
+    rng = np.random.default_rng(0)
+    stamps = np.arange(0.0, 20.0, 0.1)
+    frame = np.array([3.0, -2.0, 0.7])
+    offset = (0.5, 0.2)
+    truth, estimated = {}, {}
+    for rid in ("r1", "r2"):
+        poses = np.column_stack([np.cumsum(rng.normal(0.1, 0.02, stamps.size)), np.cumsum(rng.normal(0, 0.05, stamps.size)),
+                                 np.cumsum(rng.normal(0, 0.02, stamps.size))])
+        antenna = transform_points(poses, np.array(offset))
+        world = transform_points(frame, antenna)
+        truth[rid] = Trajectory(stamps, np.column_stack([world, np.full(stamps.size, np.nan)]))
+        estimated[rid] = Trajectory(stamps, poses)
+    fit = fleet_alignment(estimated, truth, truth_offset=offset)
+    np.testing.assert_allclose(fit["transform"], frame, atol=1e-6)
+    assert max(fit["ate_rmse_m"].values()) < 1e-6
+    shifted = dict(estimated, r2=Trajectory(stamps, estimated["r2"].poses + np.array([2.0, 0.0, 0.0])))
+    errors = fleet_alignment(shifted, truth, truth_offset=offset)["ate_rmse_m"]
+    assert errors["r2"] > 0.5 and errors["r1"] > 0.5
