@@ -7,8 +7,8 @@
 
 - while no robot is placed, the first robot to scan anchors the world frame: it is placed at the origin
   (DESIGN §3: the world frame is the first robot's start pose unless a start pose is given);
-- every other robot without a pose is localized globally by Monte Carlo localization
-  (:class:`services.mcl.core.MonteCarloLocalizer`) against the estimator's map so far, with landmark ids
+- every other robot without a pose is localized globally by Monte Carlo localization (one filter per robot
+  in a :class:`services.mcl.fleet.MclFleet`, the table the MCL service and estimator use) against the estimator's map so far, with landmark ids
   as signatures when the map and the scans have them; once localized it joins the estimator at the
   localized pose and covariance. Its odometry and scans until then feed the localizer only; they are
   counted, never silently dropped.
@@ -25,7 +25,7 @@ import numpy as np
 from schemas.contract import Event, OdomEvent, ScanEvent
 from schemas.messages import RobotInfo
 from services.mcl.config import MclConfig
-from services.mcl.core import MonteCarloLocalizer
+from services.mcl.fleet import MclFleet
 
 START_POSES = ("known", "first", "none")
 
@@ -70,17 +70,13 @@ class FleetPlacer:
     def __init__(self, estimator, infos: list[RobotInfo], config: MclConfig, use_signatures: bool,
                  map_refresh_s: float = 5.0, min_landmarks: int = 3):
         self.estimator = estimator
-        self.config = config
         self.use_signatures = use_signatures
         self.map_refresh_s = map_refresh_s
         self.min_landmarks = min_landmarks
         self.infos = {info.robot_id: info for info in infos}
-        self.filters: dict[str, MonteCarloLocalizer] = {}
-        self.built = 0
+        self.localizers = MclFleet(config, use_start_pose=False)  # a robot joins it at its first scan with a map
         self.map_stamp = -np.inf
-        self.map: tuple[np.ndarray, np.ndarray | None] | None = None
-        self.map_version = 0
-        self.filter_map: dict[str, int] = {}  # the map version each robot's localizer uses
+        self.map_ready = False
         self.placements = {info.robot_id: Placement(info.robot_id) for info in infos}
         for info in infos:
             if estimator.has_robot(info.robot_id):
@@ -94,8 +90,7 @@ class FleetPlacer:
         record = self.placements[rid]
         if isinstance(event, OdomEvent):
             record.odometry_before += 1
-            if rid in self.filters:
-                self.filters[rid].predict(event.control, event.dt, event.control_cov)
+            self.localizers.on_odometry(event)
             return True
         if not isinstance(event, ScanEvent):
             return True
@@ -104,23 +99,15 @@ class FleetPlacer:
         if self.estimator.robot_count == 0:
             return self._place(record, np.zeros(3), np.zeros((3, 3)), event.stamp, "anchor")
         self._refresh_map(event.stamp)
-        if self.map is None:
+        if not self.map_ready:
             return self._hold(record, f"the map has fewer than {self.min_landmarks} landmarks")
-        mcl = self.filters.get(rid)
-        if mcl is None:
-            info = self.infos[rid]
-            mcl = MonteCarloLocalizer(self.map[0], info, self.config, np.random.default_rng([self.config.seed, self.built]),
-                                      self.map[1])
-            self.built += 1
-            self.filters[rid] = mcl
-        elif self.filter_map[rid] != self.map_version:
-            mcl.set_map(*self.map)
-        self.filter_map[rid] = self.map_version
-        report = mcl.update(event.observations, event.landmark_ids if self.use_signatures else None)
+        if rid not in self.localizers:
+            self.localizers.add_robot(self.infos[rid])
+        report = self.localizers.on_scan(event)
         record.mcl_updates += 1
         if not report.localized:
             return self._hold(record, "not localized against the map yet")
-        pose, cov = mcl.best()
+        pose, cov = self.localizers.robots[rid].mcl.best()
         return self._place(record, pose, cov, event.stamp, "mcl")
 
     @staticmethod
@@ -135,7 +122,7 @@ class FleetPlacer:
         if not self.estimator.place_robot(record.robot_id, pose, cov, stamp=stamp):
             return self._hold(record, f"the estimator refused the {how} pose")
         record.how, record.placed_stamp, record.reason = how, stamp, None
-        self.filters.pop(record.robot_id, None)
+        self.localizers.remove_robot(record.robot_id)
         return False
 
     def _refresh_map(self, stamp: float) -> None:
@@ -145,12 +132,9 @@ class FleetPlacer:
         view = self.estimator.landmark_map()
         means = np.asarray(view.means, float).reshape(-1, 2)
         self.map_stamp = stamp
-        if len(means) < self.min_landmarks:
-            self.map = None
-            return
-        ids = None if view.ids is None or not self.use_signatures else np.asarray(view.ids, np.int64)
-        self.map = (means, ids)
-        self.map_version += 1
+        self.map_ready = len(means) >= self.min_landmarks
+        if self.map_ready:
+            self.localizers.set_map(means, None if view.ids is None or not self.use_signatures else view.ids)
 
     def report(self, start: float) -> dict:
         """Per robot: how and when it was placed, or why not."""
