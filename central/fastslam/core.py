@@ -178,11 +178,8 @@ class FastSlam:
             if pending is not None:
                 extra = np.einsum("p,pij->ij", w, sandwich(compose_jacobian(pose[:, 2]), pending[1]))
                 pose = se2_compose(pose, pending[0])
-            theta = np.arctan2(w @ np.sin(pose[:, 2]), w @ np.cos(pose[:, 2]))
-            mean = np.array([w @ pose[:, 0], w @ pose[:, 1], theta])
-            resid = pose - mean
-            resid[:, 2] = wrap_angle(resid[:, 2])
-            cov = np.einsum("p,pi,pj->ij", w, resid, resid) + extra
+            mean, cov = resampling.weighted_pose(pose, w)
+            cov = cov + extra
             out[rid] = (mean, 0.5 * (cov + cov.T))
         return out
 

@@ -1,4 +1,5 @@
-"""Particle weights: normalised weights, effective sample size, systematic resampling and the best particle."""
+"""Particle weights: normalised weights, effective sample size, systematic resampling, the best particle and the
+weighted mean pose."""
 
 from __future__ import annotations
 
@@ -7,6 +8,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from robots.gaussian import systematic_resample
+from robots.models import wrap_angle
 
 if TYPE_CHECKING:
     from central.fastslam.association import ScanState
@@ -20,6 +22,16 @@ def weights(logw: np.ndarray) -> np.ndarray:
         return np.full(logw.size, 1.0 / logw.size)
     w = np.where(finite, np.exp(logw - logw[finite].max()), 0.0)
     return w / w.sum()
+
+
+def weighted_pose(poses: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(mean, covariance) of particle poses ``(P, 3)`` with weights ``w``: circular mean heading, residual
+    headings wrapped."""
+    theta = np.arctan2(w @ np.sin(poses[:, 2]), w @ np.cos(poses[:, 2]))
+    mean = np.array([w @ poses[:, 0], w @ poses[:, 1], theta])
+    resid = poses - mean
+    resid[:, 2] = wrap_angle(resid[:, 2])
+    return mean, np.einsum("p,pi,pj->ij", w, resid, resid)
 
 
 def effective_particles(logw: np.ndarray) -> float:

@@ -55,13 +55,7 @@ def pose_belief(slam: FastSlam, robot: RobotState) -> tuple[np.ndarray, np.ndarr
     """The robot's weighted mean pose, its spread over the particles, and the extra variance the association
     assumes against drift: ``gate_pose_floor``² plus ``gate_pose_growth``² per second since its last match (at
     most 120 s)."""
-    w = resampling.weights(slam.logw)
-    own = slam.pose[:, robot.index]
-    theta = np.arctan2(w @ np.sin(own[:, 2]), w @ np.cos(own[:, 2]))
-    mean = np.array([w @ own[:, 0], w @ own[:, 1], theta])
-    resid = own - mean
-    resid[:, 2] = wrap_angle(resid[:, 2])
-    cov = np.einsum("p,pi,pj->ij", w, resid, resid)
+    mean, cov = resampling.weighted_pose(slam.pose[:, robot.index], resampling.weights(slam.logw))
     pending = motion.pending_motion(robot, slam.config)  # FastSLAM 2.0 associates before it moves the particles
     if pending is not None:
         jac = compose_jacobian(mean[2])
