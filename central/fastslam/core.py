@@ -124,14 +124,15 @@ class FastSlam:
         self.counts["scans"] += 1
         self.counts["detections"] += z.shape[0]
         weigh_updates = True
-        if self.config.association == "shared" and z.shape[0]:
-            if self.config.proposal == "fastslam1":
-                motion.flush(self, robot)
-            ids = shared.associate(self, robot, z, r)
+        associate = self.config.association == "shared" and z.shape[0]
         if self.config.proposal == "fastslam2" and z.shape[0]:
+            if associate:  # before the proposal moves the particles, from the predicted pose
+                ids = shared.associate(self, robot, z, r)
             weigh_updates = not proposal.propose(self, robot, z, r, ids)
         else:
             motion.flush(self, robot)
+            if associate:
+                ids = shared.associate(self, robot, z, r)
         if self.config.association in ("known", "shared"):
             association.update_known(self, robot, z, r, ids, weigh_updates)
         elif z.shape[0]:

@@ -150,10 +150,12 @@ class MonteCarloLocalizer:
         if not self.slot_of or ids is None:
             return z
         slots = np.array([self.slot_of.get(int(i), -1) for i in np.asarray(ids).reshape(-1)], np.int64)
-        if slots.size != z.shape[0] or not (slots >= 0).any():
-            return z if slots.size != z.shape[0] else z[:0]
-        self._targets = self.map.landmarks[slots[slots >= 0]]
-        return z[slots >= 0]
+        if slots.size != z.shape[0]:
+            return z  # ids that do not match the detections: no signatures
+        mapped = slots >= 0
+        if mapped.any():
+            self._targets = self.map.landmarks[slots[mapped]]
+        return z[mapped]
 
     def initialize_at(self, pose: np.ndarray, cov: np.ndarray | None = None, count: int | None = None) -> None:
         """Position tracking: particles drawn around a known pose."""
