@@ -1,0 +1,95 @@
+"""Fleet placement without start poses, and MCL with signatures, on MR.CLAM over seeds (median and worst).
+
+Cases (FastSLAM, 100 particles, unless said):
+
+- ``known-known``: barcodes, every start pose given (the reference);
+- ``known-none``: barcodes, no start pose: the first robot to scan anchors the frame, MCL with signatures
+  places the others;
+- ``known-first``: barcodes, only the first robot's start pose;
+- ``unknown-none``: barcodes ignored (``--association unknown``), no start pose;
+- ``mcl-signatures``: MCL alone against the surveyed map, every robot from no pose, barcodes as signatures.
+
+Per run: every robot's ATE after one SE(2) transform for the whole fleet (raw for ``mcl-signatures``: its
+frame is the survey's), and for placement cases the delay from each robot's first scan to its placement
+(the anchor: 0); for ``mcl-signatures`` the time to first localized. Per case: median and worst over seeds of
+the worst robot's ATE and of the longest delay.
+
+    .venv/bin/python benchmarks/placement_seeds.py [--cases known-none,unknown-none] [--seeds 10] [--jobs 2]
+        [--data mrclam:] [--out FILE]
+"""
+
+from __future__ import annotations
+
+import argparse
+from concurrent.futures import ProcessPoolExecutor
+
+import numpy as np
+
+from report import emit
+from robots.loaders import load_dataset
+from schemas.contract import RunOptions
+from services.evaluation.metrics import Trajectory, fleet_alignment
+from services.offline import run_estimator
+
+CASES: dict[str, tuple[str, str, str]] = {  # estimator, association, start poses
+    "known-known": ("fastslam", "known", "known"),
+    "known-none": ("fastslam", "known", "none"),
+    "known-first": ("fastslam", "known", "first"),
+    "unknown-none": ("fastslam", "unknown", "none"),
+    "mcl-signatures": ("mcl", "known", "none"),
+}
+
+
+def one_run(spec: str, case: str, seed: int) -> dict:
+    estimator, association, start_poses = CASES[case]
+    dataset = load_dataset(spec)
+    options = RunOptions(estimator, association, None, seed)
+    if estimator == "mcl":
+        options.landmarks, options.landmark_ids = dataset.landmarks, dataset.landmark_ids
+    run = run_estimator(dataset, options, start_poses=start_poses)
+    truth = {rid: Trajectory(log.truth_stamp, log.truth_pose) for rid, log in dataset.robots.items()}
+    if estimator == "mcl":
+        errors = {}
+        for rid, path in run.trajectories.items():
+            at = dataset.robots[rid].truth_at(path.stamps)
+            valid = np.all(np.isfinite(at[:, :2]), 1)
+            errors[rid] = float(np.sqrt(np.mean(np.sum((path.poses[valid, :2] - at[valid, :2]) ** 2, 1))))
+        delays = {rid: robot["localized_s"] for rid, robot in run.extra["mcl"]["robots"].items()}
+    else:
+        errors = fleet_alignment(run.trajectories, truth)["ate_rmse_m"]
+        delays = {rid: record.get("placed_after_first_scan_s", 0.0 if record["how"] == "start pose" else None)
+                  for rid, record in run.extra.get("placement", {}).items()} or {rid: 0.0 for rid in dataset.robots}
+    return {"case": case, "seed": seed, "ate_m": errors, "delay_s": delays,
+            "worst_robot_ate_m": max(errors.values()), "longest_delay_s": max(
+                (d for d in delays.values() if d is not None), default=None),
+            "unplaced": sorted(rid for rid, d in delays.items() if d is None)}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--data", default="mrclam:", help="data set spec (needs robot truth)")
+    parser.add_argument("--cases", default=",".join(CASES), help=f"comma-separated, of: {', '.join(CASES)}")
+    parser.add_argument("--seeds", type=int, default=10, help="seeds 0..N-1")
+    parser.add_argument("--jobs", type=int, default=2, help="runs in parallel (processes)")
+    parser.add_argument("--out")
+    args = parser.parse_args()
+    cases = args.cases.split(",")
+    unknown = [c for c in cases if c not in CASES]
+    if unknown:
+        parser.error(f"unknown cases {unknown}; choose from {', '.join(CASES)}")
+    jobs = [(args.data, case, seed) for case in cases for seed in range(args.seeds)]
+    with ProcessPoolExecutor(max_workers=args.jobs) as pool:
+        runs = list(pool.map(one_run, *zip(*jobs)))
+    summary = {}
+    for case in cases:
+        mine = [r for r in runs if r["case"] == case]
+        summary[case] = {"seeds": len(mine), "never_placed_or_localized": sum(bool(r["unplaced"]) for r in mine)}
+        for key in ("worst_robot_ate_m", "longest_delay_s"):
+            values = [r[key] for r in mine if r[key] is not None]
+            if values:
+                summary[case][key] = {"median": round(float(np.median(values)), 3), "worst": round(float(max(values)), 3)}
+    emit({"settings": vars(args), "runs": runs, "summary": summary}, args.out)
+
+
+if __name__ == "__main__":
+    main()
