@@ -1,9 +1,11 @@
 """The numeric helpers every filter shares: closed-form Gaussian algebra on stacks of 2-vectors and 2×2
-matrices, a PSD square root, and systematic resampling. One copy, imported by FastSLAM, D-SLAM and MCL."""
+matrices, a PSD square root, systematic resampling and the EKF-SLAM state operations (predict, update, augment). One copy, imported by FastSLAM, D-SLAM and MCL."""
 
 from __future__ import annotations
 
 import numpy as np
+
+from robots.models import wrap_angle
 
 LOG_2PI = float(np.log(2.0 * np.pi))
 
@@ -76,3 +78,37 @@ def systematic_resample(weights: np.ndarray, count: int, rng: np.random.Generato
     cdf[-1] = 1.0
     points = (rng.random() + np.arange(count)) / count
     return np.minimum(np.searchsorted(cdf, points, side="right"), weights.size - 1)
+
+
+def ekf_predict_pose(x: np.ndarray, P: np.ndarray, model, control, control_cov, dt: float) -> None:
+    """EKF-SLAM prediction in place: the pose x[:3] moves by one control of ``model``; the landmarks stay."""
+    f_pose, f_control = model.jacobians(x[:3], control, dt)
+    x[:3] = model.step(x[:3], control, dt)
+    P[:3, :] = f_pose @ P[:3, :]
+    P[:, :3] = P[:, :3] @ f_pose.T
+    P[:3, :3] += f_control @ np.asarray(control_cov, float) @ f_control.T
+
+
+def ekf_update(x: np.ndarray, P: np.ndarray, nu: np.ndarray, h: np.ndarray, r: np.ndarray,
+               angle_index: int = 2) -> tuple[np.ndarray, np.ndarray]:
+    """One batch EKF update in Joseph form: (x, P) after innovations ``nu`` with Jacobian ``h`` and noise ``r``."""
+    ph = P @ h.T
+    gain = np.linalg.solve(h @ ph + r, ph.T).T
+    x = x + gain @ nu
+    x[angle_index] = wrap_angle(x[angle_index])
+    i_kh = np.eye(x.shape[0]) - gain @ h
+    P = i_kh @ P @ i_kh.T + gain @ r @ gain.T
+    return x, 0.5 * (P + P.T)
+
+
+def ekf_augment(x: np.ndarray, P: np.ndarray, sensor, z: np.ndarray, noise: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(x, P) grown by the landmark seen as ``z`` from the pose x[:3], with its cross-covariance to the state."""
+    g_pose, g_z = sensor.inverse_jacobians(x[:3], z)
+    cross = g_pose @ P[:3, :]
+    d = x.shape[0]
+    grown = np.zeros((d + 2, d + 2))
+    grown[:d, :d] = P
+    grown[d:, :d] = cross
+    grown[:d, d:] = cross.T
+    grown[d:, d:] = g_pose @ P[:3, :3] @ g_pose.T + g_z @ noise @ g_z.T
+    return np.concatenate([x, sensor.inverse(x[:3], z)]), grown

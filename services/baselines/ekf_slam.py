@@ -24,7 +24,8 @@ import logging
 import numpy as np
 from pydantic import Field
 
-from robots.models import robot_models, wrap_angle
+from robots.gaussian import ekf_augment, ekf_predict_pose, ekf_update
+from robots.models import robot_models
 from schemas.association import CLUTTER, NEW, AssociationRequest
 from schemas.contract import CoreConfig, MapView, OdomEvent, RunOptions, ScanEvent, SettingsError, build_config
 from schemas.messages import RobotInfo
@@ -86,12 +87,7 @@ class EkfSlam:
     def on_odometry(self, event: OdomEvent) -> None:
         if event.robot_id != self.info.robot_id:
             return
-        pose = self.x[:3]
-        f_pose, f_control = self.motion.jacobians(pose, event.control, event.dt)
-        self.x[:3] = self.motion.step(pose, event.control, event.dt)
-        self.P[:3, :] = f_pose @ self.P[:3, :]
-        self.P[:, :3] = self.P[:, :3] @ f_pose.T
-        self.P[:3, :3] += f_control @ event.control_cov @ f_control.T
+        ekf_predict_pose(self.x, self.P, self.motion, event.control, event.control_cov, event.dt)
 
     def on_scan(self, event: ScanEvent) -> None:
         z = event.observations
@@ -228,34 +224,12 @@ class EkfSlam:
                 self.rejected += 1
 
     def _update(self, nu: np.ndarray, h: np.ndarray, noise: np.ndarray) -> None:
-        """One batch EKF update with the stacked innovations ``nu`` and Jacobian rows ``h`` (Joseph form)."""
-        k = nu.shape[0] // 2
-        r = np.zeros((k, 2, k, 2))
-        r[np.arange(k), :, np.arange(k), :] = noise
-        r = r.reshape(2 * k, 2 * k)
-        ph = self.P @ h.T
-        gain = np.linalg.solve(h @ ph + r, ph.T).T
-        self.x = self.x + gain @ nu
-        self.x[2] = wrap_angle(self.x[2])
-        i_kh = np.eye(self.x.shape[0]) - gain @ h
-        self.P = i_kh @ self.P @ i_kh.T + gain @ r @ gain.T
-        self.P = 0.5 * (self.P + self.P.T)
+        """One batch EKF update with the stacked innovations ``nu`` and Jacobian rows ``h``."""
+        self.x, self.P = ekf_update(self.x, self.P, nu, h, np.kron(np.eye(nu.shape[0] // 2), noise))
 
     def _add_landmark(self, z: np.ndarray, noise: np.ndarray, origin: int) -> None:
         """Augment the state with the landmark seen as ``z`` (its covariance from the pose and the noise)."""
-        pose = self.x[:3]
-        g_pose, g_z = self.sensor.inverse_jacobians(pose, z)
-        landmark = self.sensor.inverse(pose, z)
-        cross = g_pose @ self.P[:3, :]
-        block = g_pose @ self.P[:3, :3] @ g_pose.T + g_z @ noise @ g_z.T
-        d = self.x.shape[0]
-        grown = np.zeros((d + 2, d + 2))
-        grown[:d, :d] = self.P
-        grown[d:, :d] = cross
-        grown[:d, d:] = cross.T
-        grown[d:, d:] = block
-        self.x = np.concatenate([self.x, landmark])
-        self.P = grown
+        self.x, self.P = ekf_augment(self.x, self.P, self.sensor, z, noise)
         self.origin.append(origin)
 
 

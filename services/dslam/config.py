@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import Field
+from pydantic import Field, NonNegativeFloat
 
 from schemas.contract import CoreConfig
 
@@ -19,10 +19,20 @@ class DslamConfig(CoreConfig):
     )
     gate_probability: float = Field(0.99, gt=0, lt=1, description="chi-square gate of the association")
     new_feature_gate_probability: float = Field(0.9999, gt=0, lt=1, description="a measurement starts a feature only outside this gate of every landmark")
+    gate_pose_floor: tuple[NonNegativeFloat, NonNegativeFloat, NonNegativeFloat] = Field(
+        (0.3, 0.3, 0.05), description="σ (m, m, rad) added to the robot's pose covariance when associating without "
+        "ids: CI-localised poses are tighter than real detections' tails (0.05 rad: at the car park's 30 m range 0.1 "
+        "would span two beacons)")
     new_feature_density: float = Field(1e-3, gt=0, description="expected new features per m·rad of measurement space")
     candidate_margin: float = Field(1.0, ge=0, description="landmarks up to max range + this (m) are association candidates")
     confirm_hits: int = Field(2, ge=1, description="sightings before a tentative feature enters the map (association methods; known ids map at once)")
     tentative_misses: int = Field(3, ge=1, description="scans in view without a sighting before a tentative feature is dropped")
+    local_map_max_std: float = Field(
+        0.5, ge=0, description="scans with fewer than two mapped features are collected into a local map (EKF in the "
+        "robot's frame) until it holds two mapped features, or is given up when the robot's position std in it "
+        "exceeds this (m); 0: one scan at a time, as in the paper",
+    )
+    local_map_max_features: int = Field(40, ge=2, description="a local map with more features than this is given up")
     min_reference_distance: float = Field(0.3, gt=0, description="smallest distance (m) between the two reference features of z_map")
     bootstrap_std: float = Field(
         0.1, ge=0, description="a robot that moved before seeing two mapped features maps raw observations from its "

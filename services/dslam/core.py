@@ -46,6 +46,7 @@ from schemas.contract import MapView, OdomEvent, RunOptions, ScanEvent, Settings
 from schemas.messages import RobotInfo
 from services.dslam.config import DslamConfig
 from services.dslam.information_filter import InformationMap
+from services.dslam.local_map import LocalMap
 from services.dslam.localization import localize, observation_estimate, pose_from_points, predict
 from services.dslam.recast import scan_points
 
@@ -88,6 +89,7 @@ class RobotState:
     streams: set = field(default_factory=set)
     localized: bool = False
     disagreements: int = 0
+    local: LocalMap | None = None  # scans collected since the last z_map (local_map_max_std > 0)
 
     def __post_init__(self) -> None:
         self.model, self.sensor = robot_models(self.info)
@@ -193,6 +195,8 @@ class DSlam:
             return
         if np.any(np.asarray(event.control) != 0.0):
             robot.moved = True
+        if robot.local is not None:
+            robot.local.predict(robot.model, event.control, event.control_cov, event.dt)
         if robot.pose is None:
             return
         robot.pose, robot.cov = predict(robot.pose, robot.cov, robot.model, event.control, event.control_cov, event.dt)
@@ -230,7 +234,10 @@ class DSlam:
         confirmed = self._bookkeep(robot, obs, noise, kinds, refs, phase_one)
         mapped = np.flatnonzero(kinds == MAPPED)
         if phase_one:
+            robot.local = None
             self._map_phase_one(robot, obs, noise, kinds, refs, confirmed)
+        elif self.config.local_map_max_std > 0:
+            self._map_local(robot, obs, noise, kinds, refs)
         else:
             self._map_phase_two(obs, noise, kinds, refs, mapped, confirmed)
         self.map.recover()
@@ -309,7 +316,7 @@ class DSlam:
         request = AssociationRequest(
             measurements=obs.reshape(-1, 2), noise=noise, landmarks=landmarks.reshape(-1, 2),
             landmark_covs=0.5 * (landmark_covs + np.swapaxes(landmark_covs, 1, 2)), pose=robot.pose,
-            pose_cov=0.5 * (robot.cov + robot.cov.T), sensor_offset=np.asarray(spec.offset, float),
+            pose_cov=0.5 * (robot.cov + robot.cov.T) + np.diag(np.square(s.gate_pose_floor)), sensor_offset=np.asarray(spec.offset, float),
             gate_probability=s.gate_probability, new_feature_gate_probability=s.new_feature_gate_probability,
             clutter_density=max(spec.clutter_rate / area, 1e-9), new_feature_density=s.new_feature_density,
             detection_probability=min(max(spec.detection_probability, 1e-3), 1 - 1e-3),
@@ -464,6 +471,57 @@ class DSlam:
         kinds[confirmed] = MAPPED
         self._record("recast", chain, z_map, r_map)
         self.counts["phase_two_updates"] += 1
+
+    def _map_local(self, robot: RobotState, obs, noise, kinds, refs) -> None:
+        """Phase II over a local map (:mod:`services.dslam.local_map`): this scan joins the robot's local map,
+        whose points give z_map once two mapped features are among them.
+
+        The local map is applied (and started afresh) when it holds two mapped
+        features and either this scan saw two, or a confirmed new feature waits,
+        or the robot's pose in it has become half as uncertain as allowed, or
+        it is full; it is given up (counted) past ``local_map_max_std`` or
+        ``local_map_max_features`` without two mapped features.
+        Tentative features not yet confirmed are left out (marginalised).
+        """
+        s = self.config
+        keys = np.full(obs.shape[0], -1, np.int64)
+        for k in np.flatnonzero(kinds == MAPPED).tolist():
+            keys[k] = self.ids[int(refs[k])]
+        tentative = kinds == TENTATIVE
+        keys[tentative] = refs[tentative]
+        if robot.local is None:
+            robot.local = LocalMap(robot.sensor)
+        local = robot.local
+        local.observe(obs, noise, keys)
+        need = 1 if s.association == "known" else s.confirm_hits
+        mapped_keys = [key for key in local.keys if key in self.index_of]
+        new_keys = [key for key in local.keys if key in self.tentative and self.tentative[key].hits >= need]
+        std = local.position_std()
+        linked = np.sum(kinds == MAPPED) >= 2 or new_keys or std > 0.5 * s.local_map_max_std
+        if len(mapped_keys) >= 2 and (linked or local.size >= s.local_map_max_features):
+            robot.local = None
+            self._apply_local(local, mapped_keys, new_keys)
+        elif std > s.local_map_max_std or local.size > s.local_map_max_features:
+            robot.local = None
+            self.counts["local_maps_given_up"] += 1
+            if mapped_keys or new_keys:
+                self.counts["scans_too_few_mapped"] += local.scans
+
+    def _apply_local(self, local: LocalMap, mapped_keys: list[int], new_keys: list[int]) -> None:
+        """z_map of a local map's mapped and confirmed features: update the map, add the new ones."""
+        points, cov = local.points(mapped_keys + new_keys)
+        m = len(mapped_keys)
+        done = self.map.update_points(points, cov, np.arange(m), [self.index_of[key] for key in mapped_keys],
+                                      np.arange(m, m + len(new_keys)), self.config.min_reference_distance,
+                                      self.config.map_gate_probability)
+        if done is None:
+            self.counts["z_map_refused"] += 1
+            return
+        added, chain, z_map, r_map = done
+        self._register(new_keys, added)
+        self._record("recast", chain, z_map, r_map)
+        self.counts["phase_two_updates"] += 1
+        self.counts["local_map_scans"] += local.scans
 
     def _record(self, kind: str, index, z, cov) -> None:
         if self.measurements is not None:

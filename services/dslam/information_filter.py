@@ -32,7 +32,7 @@ import scipy.sparse.linalg
 from scipy.stats import chi2
 
 from robots.gaussian import inv2
-from services.dslam.recast import choose_reference, initialise, innovation, map_measurement, recast, scan_points
+from services.dslam.recast import choose_reference, initialise, innovation, map_measurement, recast_points, scan_points
 
 
 @lru_cache(maxsize=256)
@@ -496,17 +496,35 @@ class InformationMap:
         R_map) or None when fewer than two mapped landmarks (far enough apart) are
         seen, or when z_map fails the χ² test at ``gate_probability``.
         """
+        points, covs = scan_points(observations, noise)
+        m = points.shape[0]
+        joint = np.zeros((m, 2, m, 2))
+        joint[np.arange(m), :, np.arange(m), :] = covs
+        return self.update_points(points, joint.reshape(2 * m, 2 * m), mapped, index, new, min_reference_distance,
+                                  gate_probability)
+
+    def update_points(self, points: np.ndarray, cov: np.ndarray, mapped: np.ndarray, index: np.ndarray,
+                      new: np.ndarray, min_reference_distance: float = 0.0,
+                      gate_probability: float | None = None) -> tuple[np.ndarray, ...] | None:
+        """Phase II with points (m, 2) in any robot-attached frame and their joint covariance (2m, 2m).
+
+        As :meth:`update_scan` (which calls it with one scan's points): the rows
+        ``mapped`` are landmarks ``index``, the rows ``new`` features to add.
+        """
         mapped, index, new = (np.asarray(a, np.int64) for a in (mapped, index, new))
         if mapped.size < 2:
             return None
-        points, _ = scan_points(observations, noise)
-        first, second = choose_reference(points, mapped)
+        points = np.asarray(points, float)
+        cov = np.asarray(cov, float)
+        spread = np.einsum("kaka->k", cov.reshape(points.shape[0], 2, points.shape[0], 2))
+        first, second = choose_reference(points, mapped, spread)
         if np.linalg.norm(points[first] - points[second]) < min_reference_distance:
             return None
         where = dict(zip(mapped.tolist(), index.tolist()))
         others = [k for k in mapped.tolist() if k not in (first, second)]
         order = np.array([first, second, *others, *new.tolist()], np.int64)
-        z_map, r_map = recast(observations[order], noise)
+        rows = np.stack([2 * order, 2 * order + 1], -1).ravel()
+        z_map, r_map = recast_points(points[order], cov[np.ix_(rows, rows)])
         old = np.array([where[first], where[second], *[where[k] for k in others]], np.int64)
         positions = np.zeros((0, 2))
         if new.size:

@@ -89,8 +89,22 @@ def recast(observations: np.ndarray, noise: np.ndarray) -> tuple[np.ndarray, np.
     points and C_i the covariance of point i, all at the measured values.
     """
     points, point_covs = scan_points(observations, noise)
+    m = points.shape[0]
+    joint = np.zeros((m, 2, m, 2))
+    joint[np.arange(m), :, np.arange(m), :] = point_covs
+    return recast_points(points, joint.reshape(2 * m, 2 * m))
+
+
+def recast_points(points: np.ndarray, cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(z_map, R_map) of points (m, 2) ordered [f1, f2, others...] with joint covariance ``cov`` (2m, 2m).
+
+    The points may come from one scan (independent) or from a local map built
+    over several scans (correlated through the robot's motion): z_map is
+    invariant under shift and rotation, so any frame will do.
+    """
     z, jac = map_measurement(points)
-    r_map = np.einsum("kia,iab,lib->kl", jac, point_covs, jac)
+    jac = jac.reshape(jac.shape[0], -1)
+    r_map = jac @ np.asarray(cov, float) @ jac.T
     return z, 0.5 * (r_map + r_map.T)
 
 
@@ -102,12 +116,13 @@ def innovation(z: np.ndarray, predicted: np.ndarray) -> np.ndarray:
     return nu
 
 
-def choose_reference(points: np.ndarray, candidates: np.ndarray) -> tuple[int, int]:
+def choose_reference(points: np.ndarray, candidates: np.ndarray, spread: np.ndarray | None = None) -> tuple[int, int]:
     """The best-conditioned reference pair among ``candidates`` (indices into ``points``).
 
     The angle noise of every α_i12 contains the direction noise of the base
     f1→f2, which falls as 1/d_12: take the candidate pair farthest apart, and as
-    anchor f1 the one nearer the sensor (its point is the less noisy one).
+    anchor f1 the less noisy one: smaller ``spread`` (e.g. covariance trace per
+    point), by default the one nearer the sensor (points in the sensor frame).
     """
     candidates = np.asarray(candidates, int)
     if candidates.shape[0] < 2:
@@ -116,7 +131,8 @@ def choose_reference(points: np.ndarray, candidates: np.ndarray) -> tuple[int, i
     gaps = np.linalg.norm(p[:, None, :] - p[None, :, :], axis=-1)
     a, b = np.unravel_index(int(np.argmax(gaps)), gaps.shape)
     first, second = int(candidates[a]), int(candidates[b])
-    if np.linalg.norm(points[second]) < np.linalg.norm(points[first]):
+    spread = np.linalg.norm(points, axis=1) if spread is None else np.asarray(spread, float)
+    if spread[second] < spread[first]:
         first, second = second, first
     return first, second
 
