@@ -20,6 +20,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from robots.models import wrap_angle
+from services.mcl import kernels
 
 
 @dataclass
@@ -42,8 +43,10 @@ class Clusters:
         return keep[:max_count]
 
 
-def grid_labels(poses: np.ndarray, cell_xy: float, cell_theta: float, merge_xy: float, merge_theta: float) -> np.ndarray:
-    """Cluster label ``(P,)`` of each pose: occupied grid cells, fused with close neighbours."""
+def grid_labels(poses: np.ndarray, cell_xy: float, cell_theta: float, merge_xy: float, merge_theta: float,
+                compiled: bool = True) -> np.ndarray:
+    """Cluster label ``(P,)`` of each pose: occupied grid cells, fused with close neighbours (``compiled``: by
+    the numba kernel :func:`services.mcl.kernels.merge_cells_kernel`; False: this scipy reference)."""
     poses = np.asarray(poses, float)
     if poses.shape[0] == 0:
         return np.zeros(0, np.int64)
@@ -60,10 +63,12 @@ def grid_labels(poses: np.ndarray, cell_xy: float, cell_theta: float, merge_xy: 
     count = np.bincount(cell_of, minlength=m)
     mean_xy = np.stack([np.bincount(cell_of, poses[:, k], m) for k in (0, 1)], -1) / count[:, None]
     mean_theta = np.arctan2(np.bincount(cell_of, np.sin(poses[:, 2]), m), np.bincount(cell_of, np.cos(poses[:, 2]), m))
-    cx, rest = np.divmod(cells, ny * turns)
-    cy, ct = np.divmod(rest, turns)
     theta_steps = (-1, 0, 1) if turns > 2 else ((0, 1) if turns == 2 else (0,))
     steps = np.array([d for d in itertools.product((-1, 0, 1), (-1, 0, 1), theta_steps) if any(d)])  # (S, 3)
+    if compiled and kernels.AVAILABLE:
+        return kernels.merge_cells_kernel(cells, ny, turns, steps, mean_xy, mean_theta, merge_xy, merge_theta)[cell_of]
+    cx, rest = np.divmod(cells, ny * turns)
+    cy, ct = np.divmod(rest, turns)
     neighbour = ((cx[:, None] + steps[:, 0]) * ny + (cy[:, None] + steps[:, 1])) * turns
     neighbour += np.mod(ct[:, None] + steps[:, 2], turns)
     pos = np.minimum(np.searchsorted(cells, neighbour), m - 1)
@@ -114,7 +119,8 @@ def cluster_statistics(poses: np.ndarray, weights: np.ndarray, labels: np.ndarra
                     quality=mean_quality[order])
 
 
-def cluster_particles(poses, weights, quality, cell_xy, cell_theta, merge_xy, merge_theta, prune: float) -> Clusters:
+def cluster_particles(poses, weights, quality, cell_xy, cell_theta, merge_xy, merge_theta, prune: float,
+                      compiled: bool = True) -> Clusters:
     """Grid clustering of the particles that carry weight, then the statistics of each cluster.
 
     Particles lighter than ``prune`` times the heaviest one join no cluster, so
@@ -124,5 +130,5 @@ def cluster_particles(poses, weights, quality, cell_xy, cell_theta, merge_xy, me
     weights = np.asarray(weights, float)
     labels = np.full(weights.shape, -1, np.int64)
     active = weights >= prune * weights.max() if weights.size else np.zeros(0, bool)
-    labels[active] = grid_labels(np.asarray(poses)[active], cell_xy, cell_theta, merge_xy, merge_theta)
+    labels[active] = grid_labels(np.asarray(poses)[active], cell_xy, cell_theta, merge_xy, merge_theta, compiled)
     return cluster_statistics(poses, weights, labels, quality)

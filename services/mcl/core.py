@@ -194,7 +194,8 @@ class MonteCarloLocalizer:
     def _likelihood(self, poses: np.ndarray, observations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         if self._targets is not None:
             return signed_log_likelihood(poses, observations, self._targets, self.model)
-        return scan_log_likelihood(poses, observations, self.map, self.model, self.config.chunk_particles)
+        return scan_log_likelihood(poses, observations, self.map, self.model, self.config.chunk_particles,
+                                   self.config.compiled)
 
     def _draw_from_scan(self, observations: np.ndarray, count: int) -> tuple[np.ndarray, float]:
         """``count`` poses drawn from p(y | x) over the map, and the log of the candidates' mean likelihood."""
@@ -284,7 +285,7 @@ class MonteCarloLocalizer:
     def _recluster(self, quality: np.ndarray) -> None:
         cfg = self.config
         self.clusters = cluster_particles(self.particles, self.weights, quality, cfg.cluster_cell_xy, cfg.cluster_cell_theta,
-                                          cfg.cluster_merge_xy, cfg.cluster_merge_theta, cfg.cluster_prune)
+                                          cfg.cluster_merge_xy, cfg.cluster_merge_theta, cfg.cluster_prune, cfg.compiled)
         self.significant = self.clusters.significant(cfg.cluster_min_weight, cfg.cluster_min_quality, cfg.max_hypotheses)
 
     def _best_quality(self) -> float:

@@ -29,6 +29,7 @@ from scipy.spatial import cKDTree
 
 from robots.models import RangeBearingSensor, transform_points, wrap_angle
 from schemas.messages import SensorSpec
+from services.mcl import kernels
 
 FAR = 1e9  # position of the padding landmark that no query ever matches
 
@@ -177,7 +178,7 @@ def landmark_pairs(landmarks: np.ndarray, max_distance: float) -> tuple[np.ndarr
 
 
 def scan_log_likelihood(poses: np.ndarray, observations: np.ndarray, lmap: LandmarkMap, model: ScanModel,
-                        chunk: int = 400) -> tuple[np.ndarray, np.ndarray]:
+                        chunk: int = 400, compiled: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """Log-likelihood ``(P,)`` of one scan ``(n, 2)`` for each pose ``(P, 3)``, and its match quality ``(P,)``.
 
     The observed points are computed once in the robot frame (q_j, with the
@@ -194,12 +195,17 @@ def scan_log_likelihood(poses: np.ndarray, observations: np.ndarray, lmap: Landm
     1 for a scan that matches the map exactly, near ε/(V·p_peak) when nothing
     matches. Sensor resetting (eq. 1) and the kidnap detector compare it with
     their thresholds, independently of the number of observations.
+
+    ``compiled`` runs the numba kernel of :mod:`services.mcl.kernels` (double precision, one pass per
+    particle); False, this numpy reference.
     """
     poses = np.asarray(poses, float).reshape(-1, 3)
     z = np.asarray(observations, float).reshape(-1, 2)
     count, n = poses.shape[0], z.shape[0]
     loglik = np.empty(count)
-    if n and lmap.count:
+    if n and lmap.count and compiled and kernels.AVAILABLE:
+        loglik = _compiled_log_likelihood(poses, z, lmap, model)
+    elif n and lmap.count:
         scan = _ScanTerms.build(z, model)
         for start in range(0, count, chunk):
             part = slice(start, start + chunk)
@@ -238,6 +244,23 @@ class _ScanTerms:
             match_scale=(1.0 - model.clutter_weight) * math.exp(model.log_gauss_norm),
             floor=math.exp(model.log_floor),
         )
+
+
+def _compiled_log_likelihood(poses: np.ndarray, z: np.ndarray, lmap: LandmarkMap, model: ScanModel) -> np.ndarray:
+    """:func:`scan_log_likelihood` by the numba kernel, with the same model and candidate grids."""
+    match, view = lmap.match_index, lmap.view_index
+    a, b = model.sensor.offset
+    half = 0.5 * model.fov - model.margin_bearing
+    return kernels.scan_log_likelihood_kernel(
+        np.ascontiguousarray(poses), model.sensor.inverse(np.zeros(3), z), np.maximum(z[:, 0], 1e-6), z[:, 1].copy(),
+        np.cos(z[:, 1]), np.sin(z[:, 1]), np.linalg.inv(model.noise_cov),
+        (1.0 - model.clutter_weight) * math.exp(model.log_gauss_norm), math.exp(model.log_floor), lmap.padded,
+        match.table, match.origin, match.cell, match.shape[0], match.shape[1],
+        view.table, view.origin, view.cell, view.shape[0], view.shape[1],
+        float(a), float(b), model.gate, model.max_range - model.margin_range, model.min_range + model.margin_range,
+        half, model.full_circle, model.max_range - model.margin_range, model.min_range + model.margin_range,
+        math.cos(max(half, 0.0)), math.log(model.miss_probability),
+    )
 
 
 def _chunk_log_likelihood(poses: np.ndarray, scan: _ScanTerms, lmap: LandmarkMap, model: ScanModel) -> np.ndarray:

@@ -1,0 +1,169 @@
+"""Compiled (numba) kernels of MCL: the scan likelihood (:mod:`services.mcl.likelihood` keeps the numpy
+reference) and the merging of grid cells into clusters (:mod:`services.mcl.clustering` keeps the scipy one).
+
+One loop per particle does what the vectorised reference does with (P, n, K)
+temporaries: the observed points carried to the world, the best of the
+candidate landmarks of each point's grid cell by the ray-frame innovation,
+the Gaussian-plus-clutter-floor log-likelihood, and the negative information
+(landmarks predicted well inside the view that no observation matched). It
+computes in double precision (the reference in single), so the two agree to
+rounding except where a point sits on a gate or view boundary.
+
+The cell merging is a union-find over each occupied cell's 26 neighbours,
+found by binary search in the sorted cell keys, instead of a sparse graph.
+
+Compiled on first use and cached on disk (``cache=True``); :func:`warm_up`
+compiles it ahead of the first scan, as the MCL service does before it
+subscribes.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+
+try:
+    import numba
+except ImportError:  # pragma: no cover - numba is a declared dependency; this keeps the reference usable
+    numba = None
+
+AVAILABLE = numba is not None
+
+
+def _njit(function):
+    return numba.njit(cache=True, nogil=True)(function) if AVAILABLE else function
+
+
+@_njit
+def _cell_row(x: float, y: float, origin: np.ndarray, cell: float, nx: int, ny: int) -> int:
+    """Row of a :class:`services.mcl.likelihood.CellIndex` table for a point (clipped onto the grid)."""
+    ix = int((x - origin[0]) * (1.0 / cell))
+    iy = int((y - origin[1]) * (1.0 / cell))
+    ix = min(max(ix, 0), nx - 1)
+    iy = min(max(iy, 0), ny - 1)
+    return ix * ny + iy
+
+
+@_njit
+def scan_log_likelihood_kernel(poses, body, ranges, bearings, ux, uy, info, match_scale, floor, padded,
+                               match_table, match_origin, match_cell, match_nx, match_ny,
+                               view_table, view_origin, view_cell, view_nx, view_ny,
+                               offset_a, offset_b, gate, inner_far, inner_near, inner_half, full_circle,
+                               view_far, view_near, view_cos_half, log_miss):
+    """Log-likelihood ``(P,)`` of one scan for each pose: the kernel of
+    :func:`services.mcl.likelihood._chunk_log_likelihood` (same model, same candidates)."""
+    count = poses.shape[0]
+    n = body.shape[0]
+    out = np.empty(count)
+    matched = np.empty(n, np.int64)
+    for p in range(count):
+        x, y, theta = poses[p, 0], poses[p, 1], poses[p, 2]
+        c, s = math.cos(theta), math.sin(theta)
+        loglik = 0.0
+        distinct = 0
+        for j in range(n):
+            ex = x + c * body[j, 0] - s * body[j, 1]
+            ey = y + s * body[j, 0] + c * body[j, 1]
+            row = _cell_row(ex, ey, match_origin, match_cell, match_nx, match_ny)
+            best, best_m2, best_radial, best_across = -1, np.inf, 0.0, 0.0
+            for k in range(match_table.shape[1]):
+                landmark = match_table[row, k]
+                dx = padded[landmark, 0] - ex
+                dy = padded[landmark, 1] - ey
+                bx = c * dx + s * dy
+                by = c * dy - s * dx
+                radial = bx * ux[j] + by * uy[j]
+                across = (by * ux[j] - bx * uy[j]) / ranges[j]
+                m2 = info[0, 0] * radial * radial + 2.0 * info[0, 1] * radial * across + info[1, 1] * across * across
+                if m2 < best_m2:
+                    best, best_m2, best_radial, best_across = landmark, m2, radial, across
+            loglik += math.log(match_scale * math.exp(-0.5 * best_m2) + floor)
+            r = ranges[j] + best_radial
+            phi = bearings[j] + best_across
+            inside = inner_near <= r <= inner_far and (full_circle or abs(phi) <= inner_half)
+            if best_m2 <= gate and inside:
+                seen = False
+                for i in range(distinct):
+                    if matched[i] == best:
+                        seen = True
+                        break
+                if not seen:
+                    matched[distinct] = best
+                    distinct += 1
+        px = x + offset_a * c - offset_b * s
+        py = y + offset_a * s + offset_b * c
+        row = _cell_row(px, py, view_origin, view_cell, view_nx, view_ny)
+        visible = 0
+        for k in range(view_table.shape[1]):
+            landmark = view_table[row, k]
+            dx = padded[landmark, 0] - px
+            dy = padded[landmark, 1] - py
+            r2 = dx * dx + dy * dy
+            if r2 <= view_far * view_far and r2 >= view_near * view_near:
+                if full_circle or c * dx + s * dy >= math.sqrt(r2) * view_cos_half:
+                    visible += 1
+        out[p] = loglik + max(visible - distinct, 0) * log_miss
+    return out
+
+
+@_njit
+def _root(parent, i):
+    while parent[i] != i:
+        parent[i] = parent[parent[i]]
+        i = parent[i]
+    return i
+
+
+@_njit
+def merge_cells_kernel(cells, ny, turns, steps, mean_xy, mean_theta, merge_xy, merge_theta):
+    """Component ``(m,)`` of each occupied grid cell (``cells`` sorted keys (ix·ny + iy)·turns + it): a cell
+    joins each neighbour (``steps`` (S, 3) offsets, heading wrapping round) whose mean pose is within
+    ``merge_xy`` and ``merge_theta``; components numbered by their smallest cell, as
+    ``scipy.sparse.csgraph.connected_components`` numbers them. The kernel of
+    :func:`services.mcl.clustering.grid_labels`."""
+    m = cells.shape[0]
+    parent = np.arange(m)
+    for a in range(m):
+        cx = cells[a] // (ny * turns)
+        rest = cells[a] - cx * ny * turns
+        cy = rest // turns
+        ct = rest - cy * turns
+        for k in range(steps.shape[0]):
+            key = ((cx + steps[k, 0]) * ny + (cy + steps[k, 1])) * turns + (ct + steps[k, 2]) % turns
+            b = np.searchsorted(cells, key)
+            if b >= m or cells[b] != key:
+                continue
+            dx = mean_xy[a, 0] - mean_xy[b, 0]
+            dy = mean_xy[a, 1] - mean_xy[b, 1]
+            dt = mean_theta[a] - mean_theta[b]
+            dt = dt - 2.0 * math.pi * math.floor((dt + math.pi) / (2.0 * math.pi))
+            if math.sqrt(dx * dx + dy * dy) <= merge_xy and abs(dt) <= merge_theta:
+                ra, rb = _root(parent, a), _root(parent, b)
+                if ra != rb:
+                    parent[max(ra, rb)] = min(ra, rb)
+    component = np.empty(m, np.int64)
+    label = np.full(m, -1, np.int64)
+    count = 0
+    for a in range(m):
+        r = _root(parent, a)
+        if label[r] < 0:
+            label[r] = count
+            count += 1
+        component[a] = label[r]
+    return component
+
+
+def warm_up() -> float:
+    """Compile (or load from the cache) every kernel on tiny inputs; returns the seconds it took."""
+    started = time.perf_counter()
+    if AVAILABLE:
+        table = np.zeros((1, 1), np.int64)
+        one = np.ones(1)
+        scan_log_likelihood_kernel(np.zeros((1, 3)), np.ones((1, 2)), one, one, one, one, np.eye(2), 1.0, 0.1,
+                                   np.zeros((1, 2)), table, np.zeros(2), 1.0, 1, 1, table, np.zeros(2), 1.0, 1, 1,
+                                   0.0, 0.0, 9.0, 5.0, 0.0, 1.0, False, 5.0, 0.0, 0.5, -1.0)
+        merge_cells_kernel(np.array([0, 1], np.int64), 3, 8, np.array([[0, 0, 1]], np.int64), np.zeros((2, 2)),
+                           np.zeros(2), 1.0, 1.0)
+    return time.perf_counter() - started
