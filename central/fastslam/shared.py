@@ -35,19 +35,30 @@ if TYPE_CHECKING:
     from central.fastslam.core import FastSlam
 
 
-def marginal_map(slam: FastSlam) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def marginal_map(slam: FastSlam, near: tuple[np.ndarray, float] | None = None
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(ids, slots, means ``(K, 2)``, covariances ``(K, 2, 2)``) of every landmark with an id (known or shared
     association), mixed over the particles: the weighted mean, and the weighted covariances plus the spread of
-    the means."""
+    the means. ``near`` = (point, radius): only the landmarks whose mean lies within ``radius`` of ``point``
+    (the association needs those alone; the covariances are the costly part)."""
     if not slam.known_slots:
         return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros((0, 2, 2))
     ids = np.fromiter(slam.known_slots.keys(), np.int64, len(slam.known_slots))
     slots = np.fromiter(slam.known_slots.values(), np.int64, len(slam.known_slots))
     w = resampling.weights(slam.logw)
-    mu, sig = slam.map.mean[:, slots], slam.map.cov[:, slots]
-    mean = np.einsum("p,pkj->kj", w, mu)
-    resid = mu - mean
-    cov = np.einsum("p,pkij->kij", w, sig) + np.einsum("p,pki,pkj->kij", w, resid, resid)
+    mean = np.tensordot(w, slam.map.mean, axes=1)[slots]  # every slot at once: no gather of (P, K, 2)
+    if near is not None:
+        keep = np.hypot(*(mean - near[0]).T) < near[1]
+        ids, slots, mean = ids[keep], slots[keep], mean[keep]
+    resid = slam.map.mean[:, slots] - mean
+    cov = np.tensordot(w, slam.map.cov[:, slots], axes=1)
+    spread_xx = np.tensordot(w, resid[..., 0] * resid[..., 0], axes=1)
+    spread_xy = np.tensordot(w, resid[..., 0] * resid[..., 1], axes=1)
+    spread_yy = np.tensordot(w, resid[..., 1] * resid[..., 1], axes=1)
+    cov[:, 0, 0] += spread_xx
+    cov[:, 0, 1] += spread_xy
+    cov[:, 1, 0] += spread_xy
+    cov[:, 1, 1] += spread_yy
     return ids, slots, mean, cov
 
 
@@ -71,32 +82,30 @@ def associate(slam: FastSlam, robot: RobotState, z: np.ndarray, r: np.ndarray) -
     m = z.shape[0]
     ids = np.full(m, -1, np.int64)
     fresh = np.ones(m, bool)
-    known, slots, mean, cov = marginal_map(slam)
+    pose, spread, drift = pose_belief(slam, robot)
+    position, _ = robot.sensor.sensor_position(pose)
+    reach = robot.info.sensor.max_range + 3.0 * float(np.sqrt(r[0, 0])) + 2.0
+    known, slots, mean, cov = marginal_map(slam, (position, reach))
     if known.size:
-        pose, spread, drift = pose_belief(slam, robot)
-        position, _ = robot.sensor.sensor_position(pose)
-        reach = robot.info.sensor.max_range + 3.0 * float(np.sqrt(r[0, 0])) + 2.0
-        near = np.flatnonzero(np.hypot(*(mean - position).T) < reach)
-        if near.size:
-            zhat = robot.sensor.observe(pose, mean[near])
-            h_x, h_m = robot.sensor.jacobians(np.broadcast_to(pose, (near.size, 3)), mean[near])
-            own = sandwich2(h_m, cov[near])
-            # tentative landmarks were seen from about the present drift: they are gated without it, so clutter
-            # does not confirm them by falling into a gate widened for old landmarks
-            tentative = slam.map.hits[0, slots[near]] < slam.config.confirm_hits
-            s = own + sandwich(h_x, spread) + r + np.where(tentative[:, None, None], 0.0, sandwich(h_x, drift))
-            nu = z[:, None, :] - zhat[None]
-            nu[..., 1] = wrap_angle(nu[..., 1])
-            d2 = quad2(nu, inv2(s)[0][None])
-            gated = d2 < slam.gate
-            ambiguous = _ambiguous(slam, d2, gated, zhat, r)
-            gated[ambiguous] = False
-            slam.counts["detections_ambiguous"] += int(ambiguous.sum())
-            rows, cols = _solve(slam, nu, gated, d2, h_x, own, spread + drift, r)
-            ids[rows] = known[near[cols]]
-            fresh = (ids < 0) & (d2.min(1) > slam.new_gate) & ~ambiguous
-            slam.counts["detections_ignored"] += int(((ids < 0) & ~fresh).sum())
-            _age_tentative(slam, robot, known[near], slots[near], zhat, set(ids[rows].tolist()))
+        zhat = robot.sensor.observe(pose, mean)
+        h_x, h_m = robot.sensor.jacobians(np.broadcast_to(pose, (known.size, 3)), mean)
+        own = sandwich2(h_m, cov)
+        # tentative landmarks were seen from about the present drift: they are gated without it, so clutter
+        # does not confirm them by falling into a gate widened for old landmarks
+        tentative = slam.map.hits[0, slots] < slam.config.confirm_hits
+        s = own + sandwich(h_x, spread) + r + np.where(tentative[:, None, None], 0.0, sandwich(h_x, drift))
+        nu = z[:, None, :] - zhat[None]
+        nu[..., 1] = wrap_angle(nu[..., 1])
+        d2 = quad2(nu, inv2(s)[0][None])
+        gated = d2 < slam.gate
+        ambiguous = _ambiguous(slam, d2, gated, zhat, r)
+        gated[ambiguous] = False
+        slam.counts["detections_ambiguous"] += int(ambiguous.sum())
+        rows, cols = _solve(slam, nu, gated, d2, h_x, own, spread + drift, r)
+        ids[rows] = known[cols]
+        fresh = (ids < 0) & (d2.min(1) > slam.new_gate) & ~ambiguous
+        slam.counts["detections_ignored"] += int(((ids < 0) & ~fresh).sum())
+        _age_tentative(slam, robot, known, slots, zhat, set(ids[rows].tolist()))
     if rows_matched := int((ids >= 0).sum()):
         robot.last_match_stamp = robot.last_scan_stamp
         slam.counts["detections_matched"] += rows_matched
@@ -130,7 +139,7 @@ def _solve(slam: FastSlam, nu, gated, d2, h_x, own, pose_cov, r) -> tuple[np.nda
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
     if slam.config.shared_solver == "exact":
         return solve_exact(np.where(gated, d2 - slam.gate, np.inf))
-    joint = np.einsum("aij,jk,blk->abil", h_x, pose_cov, h_x)
+    joint = np.tensordot(h_x @ pose_cov, h_x, axes=([2], [2])).transpose(0, 2, 1, 3)  # H_a P H_bᵀ (a, b, 2, 2)
     joint[np.arange(own.shape[0]), np.arange(own.shape[0])] += own
     result = solve_jcbb(nu, gated, d2, joint, r, slam.config.gate_probability)
     slam.counts["jcbb_truncated"] += int(result.truncated)

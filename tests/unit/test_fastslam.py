@@ -11,6 +11,7 @@ from scipy.stats import chi2
 
 from benchmarks.support.paper001 import two_beacons
 from central.fastslam.config import FastSlamConfig
+from central.fastslam import resampling, shared
 from central.fastslam.core import FastSlam, make_estimator
 from central.fastslam.landmarks import LandmarkMap
 from robots.models import AckermannModel, UnicycleModel, integrate_controls, se2_accumulate, se2_compose, wrap_angle
@@ -186,6 +187,26 @@ def test_shared_association_keeps_clutter_out_of_the_map_and_the_weights():
     assert int((nearest(means, data.landmarks) > 0.5).sum()) <= 2, "clutter reached the map"
     for rid, (pose, _) in slam.poses().items():
         assert np.hypot(*(pose[:2] - data.robots[rid].truth_pose[-1, :2])) < 0.5
+
+
+def test_marginal_map_near_a_point_is_the_full_marginal_cut_to_a_disc():
+    """The association asks for the landmarks near the robot only: the same means and covariances as the whole
+    marginal map, for exactly the landmarks whose mean lies within the radius."""
+    data = simulate("arena", robots=2, seed=1, duration=10.0)
+    slam = FastSlam(FastSlamConfig(particles=20, association="shared", seed=0), [log.info for log in data.robots.values()])
+    feed(slam, data)
+    ids, _, means, covs = shared.marginal_map(slam)
+    point, radius = means[0] + 0.3, 4.0
+    near_ids, _, near_means, near_covs = shared.marginal_map(slam, (point, radius))
+    inside = np.hypot(*(means - point).T) < radius
+    assert 0 < inside.sum() < len(ids)
+    np.testing.assert_array_equal(near_ids, ids[inside])
+    np.testing.assert_allclose(near_means, means[inside], atol=1e-12)
+    np.testing.assert_allclose(near_covs, covs[inside], atol=1e-12)
+    w, slots = resampling.weights(slam.logw), [slam.known_slots[int(i)] for i in near_ids]
+    spread = np.einsum("p,pki,pkj->kij", w, *[slam.map.mean[:, slots] - near_means] * 2)
+    own = np.einsum("p,pkij->kij", w, slam.map.cov[:, slots])
+    np.testing.assert_allclose(near_covs, own + spread, atol=1e-12)  # mixture: mean covariance + spread of means
 
 
 def test_shared_association_tentative_landmarks_do_not_weigh_particles():
