@@ -33,6 +33,7 @@ class RobotState:
     dts: list = field(default_factory=list)
     covs: list = field(default_factory=list)
     pending_s: float = 0.0
+    pending_memo: tuple | None = None  # ((controls buffered, pending_s), (Δ̄, Σ_Δ)): one integration per buffer state
     pose_time: float | None = None  # the time the particles' pose (with the buffered controls) holds at
     last_control: np.ndarray | None = None
     last_cov: np.ndarray | None = None

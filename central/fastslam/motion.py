@@ -67,17 +67,25 @@ def buffer(robot: RobotState, control: np.ndarray, span: float, cov: np.ndarray)
 
 
 def pending_motion(robot: RobotState, config: FastSlamConfig) -> tuple[np.ndarray, np.ndarray] | None:
-    """(Δ̄, Σ_Δ) of the buffered controls in the robot's frame at their start, or None if nothing is buffered."""
+    """(Δ̄, Σ_Δ) of the buffered controls in the robot's frame at their start, or None if nothing is buffered.
+
+    Controls are only ever appended between two :func:`clear`, so the count and the buffered time name the
+    buffer: the association, the prediction and the pose report of one scan share one integration. The
+    arrays returned are shared: callers must not change them in place."""
     if not robot.controls:
         return None
+    key = (len(robot.controls), robot.pending_s)
+    if robot.pending_memo is not None and robot.pending_memo[0] == key:
+        return robot.pending_memo[1]
     delta, cov = integrate_controls(robot.model, np.array(robot.controls), np.array(robot.dts), np.array(robot.covs))
     cov = cov + np.diag(np.square(config.pose_noise_per_s)) * robot.pending_s
+    robot.pending_memo = (key, (delta, cov))
     return delta, cov
 
 
 def clear(robot: RobotState) -> None:
     """Forget the buffered controls (they have been applied)."""
-    robot.controls, robot.dts, robot.covs, robot.pending_s = [], [], [], 0.0
+    robot.controls, robot.dts, robot.covs, robot.pending_s, robot.pending_memo = [], [], [], 0.0, None
 
 
 def flush(slam: FastSlam, robot: RobotState) -> None:
