@@ -18,7 +18,7 @@ COPY services ./services
 # no service waits for the compiler at start.
 RUN pip install . \
     && useradd --create-home --uid 10001 --shell /usr/sbin/nologin fleetslam \
-    && cd / && python -c "from services.mcl import kernels; print(f'kernels compiled in {kernels.warm_up():.1f} s')" \
+    && cd / && python -c "from services import compiled; print(f'kernels compiled in {compiled.warm_up():.1f} s')" \
     && mkdir -p /reports /data \
     && chown -R fleetslam /reports /opt/numba-cache
 

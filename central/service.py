@@ -53,6 +53,7 @@ class CentralService(ServiceShell):
     """Order every robot's events, feed the filter, publish estimates and answer state queries."""
 
     name = "central"
+    uses_kernels = True
 
     def __init__(self, settings: CentralSettings, instance: str | None = None):
         super().__init__(settings, instance)

@@ -38,6 +38,7 @@ from schemas.config import FleetSettings
 from schemas.keys import Keys
 from schemas.messages import Odometry, RobotInfo, Scan, ServiceStats
 from schemas.transport import ConnectError, StreamPublisher, open_session
+from services import compiled
 from services.roster import Roster, StreamEvent
 
 ROBOT_TAGS = frozenset({"alive", "gone", "info", "odom", "scan"})
@@ -50,6 +51,7 @@ class ServiceShell:
 
     name = "service"
     tick_period_s: float | None = None
+    uses_kernels = False  # warm the numba kernels (services.compiled) up before the first subscription
 
     def __init__(self, settings: FleetSettings, instance: str | None = None):
         self.settings = settings
@@ -329,6 +331,11 @@ class ServiceShell:
         self._queue = asyncio.Queue()
         self._stop = asyncio.Event()
         previous_handlers = self._install_signal_handlers()
+        if self.uses_kernels:
+            warm_up_s = await asyncio.to_thread(compiled.warm_up)
+            self.extra["kernel_warm_up_s"] = warm_up_s
+            log.info("%s: kernels ready in %.2f s (%s)", self.name, warm_up_s,
+                     "numba" if compiled.AVAILABLE else "numpy references: numba is not installed")
         self.session = await asyncio.to_thread(open_session, self.settings)
         tasks: list[asyncio.Task] = []
         try:

@@ -30,6 +30,8 @@ from scipy import sparse
 from scipy.optimize import linear_sum_assignment, linprog
 from scipy.stats import chi2
 
+from services.association import kernels
+
 Pairs = tuple[np.ndarray, np.ndarray]
 LpSolver = Callable[[np.ndarray, np.ndarray, np.ndarray, int, int], tuple[np.ndarray, float]]
 
@@ -235,6 +237,7 @@ def solve_jcbb(
     noise: np.ndarray,
     probability: float,
     max_nodes: int = 20_000,
+    compiled: bool = True,
 ) -> JcbbResult:
     """Joint compatibility branch and bound (Neira & Tardós 2001).
 
@@ -247,6 +250,9 @@ def solve_jcbb(
     Schur complement per new pair). Measurements are visited
     fewest candidates first; a branch stops once it cannot beat the best
     pairings found. ``max_nodes`` bounds the search (``truncated`` then).
+
+    ``compiled`` runs the same search in the numba kernel of :mod:`services.association.kernels`; False,
+    this recursive reference.
     """
     m_count = innovations.shape[0]
     candidates = [np.flatnonzero(gated[m])[np.argsort(nis[m, gated[m]], kind="stable")] for m in range(m_count)]
@@ -254,6 +260,15 @@ def solve_jcbb(
     if not order:
         return JcbbResult(_EMPTY, _EMPTY, 0.0, False, 0)
     bounds = [gate_value(probability, 2 * k) for k in range(1, len(order) + 1)]
+    if compiled and kernels.AVAILABLE:
+        table = np.zeros((m_count, max(len(c) for c in candidates)), np.int64)
+        for m, c in enumerate(candidates):
+            table[m, :c.size] = c
+        rows, cols, count, d2, truncated, nodes = kernels.jcbb_kernel(
+            np.ascontiguousarray(innovations, float), np.ascontiguousarray(joint_blocks, float),
+            np.asarray(noise, float), table, np.array([c.size for c in candidates], np.int64),
+            np.asarray(order, np.int64), np.asarray(bounds, float), max_nodes)
+        return JcbbResult(rows, cols, float(d2) if count else 0.0, bool(truncated), int(nodes))
     best = {"pairs": [], "d2": np.inf}
     nodes = 0
     truncated = False

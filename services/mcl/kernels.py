@@ -24,19 +24,10 @@ import time
 
 import numpy as np
 
-try:
-    import numba
-except ImportError:  # pragma: no cover - numba is a declared dependency; this keeps the reference usable
-    numba = None
-
-AVAILABLE = numba is not None
+from services.compiled import AVAILABLE, njit
 
 
-def _njit(function):
-    return numba.njit(cache=True, nogil=True)(function) if AVAILABLE else function
-
-
-@_njit
+@njit
 def _cell_row(x: float, y: float, origin: np.ndarray, cell: float, nx: int, ny: int) -> int:
     """Row of a :class:`services.mcl.likelihood.CellIndex` table for a point (clipped onto the grid)."""
     ix = int((x - origin[0]) * (1.0 / cell))
@@ -46,7 +37,7 @@ def _cell_row(x: float, y: float, origin: np.ndarray, cell: float, nx: int, ny: 
     return ix * ny + iy
 
 
-@_njit
+@njit
 def scan_log_likelihood_kernel(poses, body, ranges, bearings, ux, uy, info, match_scale, floor, padded,
                                match_table, match_origin, match_cell, match_nx, match_ny,
                                view_table, view_origin, view_cell, view_nx, view_ny,
@@ -108,7 +99,7 @@ def scan_log_likelihood_kernel(poses, body, ranges, bearings, ux, uy, info, matc
     return out
 
 
-@_njit
+@njit
 def _root(parent, i):
     while parent[i] != i:
         parent[i] = parent[parent[i]]
@@ -116,7 +107,7 @@ def _root(parent, i):
     return i
 
 
-@_njit
+@njit
 def merge_cells_kernel(cells, ny, turns, steps, mean_xy, mean_theta, merge_xy, merge_theta):
     """Component ``(m,)`` of each occupied grid cell (``cells`` sorted keys (ix·ny + iy)·turns + it): a cell
     joins each neighbour (``steps`` (S, 3) offsets, heading wrapping round) whose mean pose is within

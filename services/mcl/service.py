@@ -41,7 +41,6 @@ from schemas.messages import Estimate, MapEstimate, MclPose, PoseHypothesis, Rob
 from schemas.transport import StreamPublisher
 from services.mcl.config import MclConfig
 from services.mcl.core import MonteCarloLocalizer
-from services.mcl import kernels
 from services.mcl.fleet import MclFleet, RobotState
 from services.runtime import ServiceShell
 
@@ -81,6 +80,7 @@ class MclService(ServiceShell):
     """Localizes robots with unknown start poses against the chosen map; answers localization queries."""
 
     name = "mcl"
+    uses_kernels = True
 
     def __init__(self, settings: MclSettings, instance: str | None = None):
         super().__init__(settings, instance)
@@ -226,12 +226,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def main(args: argparse.Namespace) -> int:
     settings = settings_from_args(MclSettings, args)
-    compile_s = kernels.warm_up()  # before any subscription: the first scan never waits for the compiler
-    log.info("likelihood kernel ready in %.2f s (%s)", compile_s, "numba" if kernels.AVAILABLE else "numpy reference")
     try:
         service = MclService(settings)
     except (OSError, ValueError) as exc:
         log.error("cannot load the map: %s", exc)
         return 2
-    service.extra["kernel_warm_up_s"] = compile_s
     return service.serve()

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
+from robots.models import RangeBearingSensor
 from schemas.association import CLUTTER, NEW, AssociationReply, AssociationRequest
 from schemas.codec import decode, encode
 from services.association import solvers
@@ -197,8 +198,9 @@ def brute_force_jcbb(problem, probability):
     return best
 
 
+@pytest.mark.parametrize("compiled", [True, False], ids=["kernel", "reference"])
 @pytest.mark.parametrize("seed", range(4))
-def test_jcbb_equals_brute_force_joint_compatibility(seed):
+def test_jcbb_equals_brute_force_joint_compatibility(seed, compiled):
     rng = np.random.default_rng(300 + seed)
     checked = 0
     for _ in range(15):
@@ -211,7 +213,7 @@ def test_jcbb_equals_brute_force_joint_compatibility(seed):
         )
         problem = build_problem(request)
         result = solvers.solve_jcbb(problem.innovations, problem.gated, problem.nis, problem.joint_blocks,
-                                    problem.noise, request.gate_probability)
+                                    problem.noise, request.gate_probability, compiled=compiled)
         pairs, d2 = brute_force_jcbb(problem, request.gate_probability)
         assert len(result.rows) == len(pairs)
         if pairs:
@@ -220,6 +222,36 @@ def test_jcbb_equals_brute_force_joint_compatibility(seed):
             found = list(zip(result.rows.tolist(), result.cols.tolist()))
             assert result.joint_nis == pytest.approx(joint_nis(found, problem.innovations, problem.joint_blocks, problem.noise), rel=1e-6)
     assert checked > 5
+
+
+@pytest.mark.parametrize("max_nodes", [20_000, 40])
+@pytest.mark.parametrize("seed", range(3))
+def test_jcbb_kernel_searches_the_tree_like_the_reference(seed, max_nodes):
+    """Same pairings, same joint NIS, same node count, same truncation, on scans large enough to branch."""
+    rng = np.random.default_rng(500 + seed)
+    nodes, truncated = [], []
+    for _ in range(10):
+        n = int(rng.integers(6, 14))
+        landmarks = rng.uniform([1.0, -1.5], [5.0, 1.5], size=(n, 2))
+        seen = landmarks[rng.random(n) < 0.8]
+        z = RangeBearingSensor().observe(np.array([0.05, -0.03, 0.02]), seen) + rng.normal(0.0, [0.05, 0.02], seen.shape)
+        request = AssociationRequest(
+            measurements=np.vstack([z, [[rng.uniform(1.0, 5.0), rng.uniform(-0.6, 0.6)]]]), noise=R * 4,
+            landmarks=landmarks, landmark_covs=np.tile(np.eye(2) * 0.01, (n, 1, 1)), pose=np.zeros(3),
+            pose_cov=np.diag([0.05, 0.05, 0.01]),
+        )
+        problem = build_problem(request)
+        args = (problem.innovations, problem.gated, problem.nis, problem.joint_blocks, problem.noise,
+                request.gate_probability, max_nodes)
+        kernel, reference = solvers.solve_jcbb(*args, compiled=True), solvers.solve_jcbb(*args, compiled=False)
+        np.testing.assert_array_equal(kernel.rows, reference.rows)
+        np.testing.assert_array_equal(kernel.cols, reference.cols)
+        assert (kernel.nodes, kernel.truncated) == (reference.nodes, reference.truncated)
+        assert kernel.joint_nis == pytest.approx(reference.joint_nis, rel=1e-9, abs=1e-12)
+        nodes.append(reference.nodes)
+        truncated.append(reference.truncated)
+    assert max(nodes) > 40  # trees that branch
+    assert any(truncated) == (max_nodes == 40)  # and the bound on the search, when it bites
 
 
 # --- the core: gating, costs, components, edge cases -------------------------------------------------
