@@ -114,6 +114,9 @@ def update_known(slam: FastSlam, robot: RobotState, z, r, ids, weigh: bool) -> N
                 slam.logw += ll.reshape(n, m)[:, counted].sum(1)
         if (~known).any():
             fresh_ids, fresh_z = idk[~known], zk[~known]
+            if int(slam.map.used[0]) + fresh_ids.size > slam.map.capacity:  # full: free the dropped slots first
+                new_of = slam.map.compact_aligned()
+                slam.known_slots = {lid: int(new_of[slot]) for lid, slot in slam.known_slots.items()}
             slam.map.reserve(fresh_ids.size, compact=False)
             base = int(slam.map.used[0])
             for j, lid in enumerate(fresh_ids):

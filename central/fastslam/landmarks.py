@@ -2,8 +2,10 @@
 
 Slot ``s`` of particle ``p`` holds a landmark iff ``valid[p, s]``. New
 landmarks of a particle go after its high-water mark ``used[p]``; deleted ones
-leave holes that :meth:`LandmarkMap.compact` squeezes out when room runs short,
-and the capacity doubles when that is not enough (amortised O(1) growth).
+leave holes that :meth:`LandmarkMap.compact` squeezes out when room runs short
+(:meth:`LandmarkMap.compact_aligned` when every particle keeps a landmark id in
+one slot: known and shared association), and the capacity doubles when that is
+not enough (amortised O(1) growth).
 Resampling is a gather along the particle axis. The functions after the class
 are the EKF of a landmark seen from a pose: predicted detection, update, creation.
 """
@@ -18,6 +20,8 @@ from robots.models import RangeBearingSensor
 
 class LandmarkMap:
     """Means ``(P, C, 2)``, covariances ``(P, C, 2, 2)``, existence scores, hit counts, labels, valid mask."""
+
+    EMPTY = {"mean": 0.0, "cov": 0.0, "exist": 0.0, "hits": 0, "label": -1, "valid": False}  # a free slot
 
     def __init__(self, particles: int, capacity: int = 16):
         self.mean = np.zeros((particles, capacity, 2))
@@ -64,10 +68,10 @@ class LandmarkMap:
 
     def _grow(self, capacity: int) -> None:
         extra = capacity - self.capacity
-        pad = lambda a, fill: np.concatenate([a, np.full((a.shape[0], extra) + a.shape[2:], fill, a.dtype)], 1)  # noqa: E731
-        self.mean, self.cov = pad(self.mean, 0.0), pad(self.cov, 0.0)
-        self.exist, self.hits = pad(self.exist, 0.0), pad(self.hits, 0)
-        self.label, self.valid = pad(self.label, -1), pad(self.valid, False)
+        for name, empty in self.EMPTY.items():
+            array = getattr(self, name)
+            setattr(self, name, np.concatenate([array, np.full((array.shape[0], extra) + array.shape[2:], empty,
+                                                               array.dtype)], 1))
 
     def compact(self) -> None:
         """Move every particle's valid slots to the front, keeping their order."""
@@ -77,10 +81,36 @@ class LandmarkMap:
         self.hits, self.label, self.valid = take(self.hits), take(self.label), take(self.valid)
         self.used = self.valid.sum(1).astype(np.int64)
 
+    def compact_aligned(self) -> np.ndarray:
+        """Squeeze out the slots no particle holds, by the same move in every particle (known or shared
+        association: a landmark id has one slot in all particles). Returns the new slot of each old slot
+        (−1: freed); the capacity stays."""
+        keep = np.flatnonzero(self.valid[:, : int(self.used.max(initial=0))].any(0))
+        new_of = np.full(self.capacity, -1, np.int64)
+        new_of[keep] = np.arange(keep.size)
+        for name, empty in self.EMPTY.items():
+            array = getattr(self, name)
+            out = np.empty_like(array)
+            out[:, : keep.size] = array[:, keep]
+            out[:, keep.size:] = empty
+            setattr(self, name, out)
+        self.used[:] = keep.size
+        return new_of
+
     def select(self, index: np.ndarray) -> None:
-        """Keep particles ``index`` (with repetition): the gather of resampling and of MHT splitting."""
-        self.mean, self.cov, self.exist = self.mean[index], self.cov[index], self.exist[index]
-        self.hits, self.label, self.valid = self.hits[index], self.label[index], self.valid[index]
+        """Keep particles ``index`` (with repetition): the gather of resampling and of MHT splitting.
+
+        Only the slots below the highest high-water mark are copied; the rest of the capacity is free in every
+        particle and is reset to the empty-slot values (whatever stale data it held is never read: a slot is
+        written whole when a landmark is appended to it)."""
+        top = int(self.used.max(initial=0))
+
+        for name, empty in self.EMPTY.items():
+            array = getattr(self, name)
+            out = np.empty((len(index),) + array.shape[1:], array.dtype)
+            out[:, :top] = array[index, :top]
+            out[:, top:] = empty
+            setattr(self, name, out)
         self.used = self.used[index]
 
     def append(self, particle: np.ndarray, mean: np.ndarray, cov: np.ndarray, exist: float, label: np.ndarray) -> np.ndarray:

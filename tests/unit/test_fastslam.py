@@ -84,6 +84,41 @@ def test_landmark_map_appends_compacts_and_grows():
     assert lm.counts().tolist() == [1, 1, 1] and lm.label[:, 0].tolist() == [9, 9, 8]
 
 
+def test_aligned_compaction_frees_dropped_slots_in_every_particle_alike():
+    lm = LandmarkMap(2, capacity=4)
+    lm.reserve(4, compact=False)
+    for particle in (0, 1):
+        lm.append(np.full(4, particle), np.arange(8.0).reshape(4, 2) + particle, np.tile(np.eye(2), (4, 1, 1)), 1.0,
+                  np.array([10, 11, 12, 13]))
+    lm.valid[:, [0, 2]] = False  # two landmarks dropped from every particle
+    lm.select(np.array([1, 0]))  # resampling moves the particles, not the slots
+    new_of = lm.compact_aligned()
+    assert new_of.tolist() == [-1, 0, -1, 1] and lm.used.tolist() == [2, 2] and lm.capacity == 4
+    assert lm.label[:, :2].tolist() == [[11, 13], [11, 13]] and not lm.valid[:, 2:].any()
+    np.testing.assert_allclose(lm.mean[0, :2], [[3.0, 4.0], [7.0, 8.0]])  # particle 1's means, now first
+
+
+def test_shared_association_keeps_the_map_compact_as_tentative_landmarks_die(monkeypatch):
+    """Clutter makes and drops many tentative landmarks: their slots are reused, every id keeps its landmark,
+    and the estimate is the one the filter gives without compaction (which only saves memory and copies)."""
+    data = simulate("arena", robots=1, seed=5, duration=40.0, clutter_rate=3.0)
+
+    def run() -> FastSlam:
+        slam = FastSlam(FastSlamConfig(particles=10, association="shared", seed=0), [log.info for log in data.robots.values()])
+        feed(slam, data)
+        return slam
+
+    slam = run()
+    assert slam.counts["landmarks_dropped_tentative"] > 4 * slam.map.capacity  # slots reused many times over
+    assert sorted(slam.known_slots.values()) == np.flatnonzero(slam.map.valid[0]).tolist()
+    assert slam.map.label[0, list(slam.known_slots.values())].tolist() == list(slam.known_slots.keys())
+    monkeypatch.setattr(LandmarkMap, "compact_aligned", lambda self: np.arange(self.capacity))
+    sprawling = run()
+    assert sprawling.map.capacity > 4 * slam.map.capacity
+    np.testing.assert_allclose(slam.landmark_map().means, sprawling.landmark_map().means, atol=1e-9)
+    np.testing.assert_allclose(slam.poses()["r1"][0], sprawling.poses()["r1"][0], atol=1e-9)
+
+
 def quiet_world(name: str = "arena"):
     """A world whose noise is negligible next to its sensor's stated accuracy."""
     world = make_world(name, 0)
