@@ -32,48 +32,15 @@ import argparse
 import json
 import math
 import time
-from pathlib import Path
 
 import numpy as np
 import scipy.linalg
 
-from schemas.contract import OdomEvent, ScanEvent
-from robots.models import RangeBearingSensor, UnicycleModel, in_field_of_view
-from schemas.messages import RobotInfo, SensorSpec
 from services.dslam.config import DslamConfig
 from services.dslam.core import DSlam
 from services.dslam.information_filter import InformationMap
 from report import emit
-
-SPACING, RANGE, FOV = 3.0, 5.0, math.pi
-NOISE = np.diag([0.05**2, math.radians(1.0) ** 2])
-CONTROL_COV = np.diag([0.01**2, math.radians(0.5) ** 2])
-
-
-class GridWorld:
-    """N features on a square grid; which ones a pose can see, in O(1) per scan."""
-
-    def __init__(self, n: int):
-        self.n = n
-        self.side = math.ceil(math.sqrt(n))
-        axis = SPACING / 2 + SPACING * np.arange(self.side)
-        gx, gy = np.meshgrid(axis, axis)
-        self.landmarks = np.stack([gx.ravel(), gy.ravel()], -1)[:n]
-        self.width = self.side * SPACING
-        self.sensor = RangeBearingSensor()
-
-    def scan(self, pose: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-        reach = int(math.ceil(RANGE / SPACING)) + 1
-        ci, cj = int(pose[0] // SPACING), int(pose[1] // SPACING)
-        ii = np.arange(max(0, ci - reach), min(self.side, ci + reach + 1))
-        jj = np.arange(max(0, cj - reach), min(self.side, cj + reach + 1))
-        ids = (jj[:, None] * self.side + ii[None, :]).ravel()
-        ids = ids[ids < self.n]
-        z = self.sensor.observe(pose, self.landmarks[ids])
-        seen = in_field_of_view(z, RANGE, FOV)
-        z = z[seen] + rng.standard_normal((int(seen.sum()), 2)) @ np.linalg.cholesky(NOISE).T
-        return z, ids[seen]
-
+from support.grid_world import FOV, NOISE, RANGE, SCANS_PER_LAP, SPACING, GridWorld, exponent, rss_mb
 
 def lawnmower(width: float, lane: float = 6.0, step: float = 1.0) -> np.ndarray:
     poses = []
@@ -122,36 +89,17 @@ def build(world: GridWorld, rng: np.random.Generator):
                          "final_sparse_solve_s": time.perf_counter() - final}
 
 
-def drive(world: GridWorld, dslam: DSlam, rng: np.random.Generator, scans: int, per_lap: int) -> tuple[np.ndarray, np.ndarray]:
-    """A circle of radius 4 m around the world's centre; returns seconds per scan and columns solved per scan."""
-    radius, step = 4.0, 0.2
-    centre = np.array([world.width / 2, world.width / 2])
-    model = UnicycleModel()
-    pose = np.array([centre[0], centre[1] - radius, 0.0])
-    dt, v = 0.5, step / 0.5
-    w = v / radius
+def drive(world: GridWorld, dslam: DSlam, rng: np.random.Generator, scans: int) -> tuple[np.ndarray, np.ndarray]:
+    """The circle of radius 4 m around the world's centre; returns seconds per scan and columns solved per scan."""
     seconds, solves = [], []
-    seq = 0
-    for k in range(scans):
-        noisy = np.array([v, w]) + rng.standard_normal(2) * np.sqrt(np.diag(CONTROL_COV))
-        dslam.on_odometry(OdomEvent("r1", seq, k * dt + dt, dt, noisy, CONTROL_COV))
-        pose = model.step(pose, np.array([v, w]), dt)
-        z, ids = world.scan(pose, rng)
-        event = ScanEvent("r1", seq, k * dt + dt, z[:, 0].copy(), z[:, 1].copy(), ids.astype(np.int64), NOISE)
+    for odometry, scan, _ in world.circle(rng, scans):
+        dslam.on_odometry(odometry)
         before = dslam.map.column_solves
         tick = time.perf_counter()
-        dslam.on_scan(event)
+        dslam.on_scan(scan)
         seconds.append(time.perf_counter() - tick)
         solves.append(dslam.map.column_solves - before)
-        seq += 1
     return np.array(seconds), np.array(solves)
-
-
-def rss_mb() -> float:
-    for line in Path("/proc/self/status").read_text().splitlines():
-        if line.startswith("VmRSS:"):
-            return int(line.split()[1]) / 1024.0
-    return float("nan")
 
 
 def one_size(n: int, seed: int, scans: int, cache: int) -> dict:
@@ -163,11 +111,9 @@ def one_size(n: int, seed: int, scans: int, cache: int) -> dict:
         keys[index] = key
     dslam = DSlam(DslamConfig(association="known", column_cache=cache))
     dslam.adopt(m, keys)
-    sensor = SensorSpec(max_range=RANGE, fov=FOV, noise_cov=NOISE)
-    dslam.add_robot(RobotInfo(robot_id="r1", stamp=0.0, motion_model="unicycle", sensor=sensor, start_pose=None,
-                              odom_rate_hz=2.0, scan_rate_hz=2.0))
-    per_lap = int(round(2 * math.pi * 4.0 / 0.2))
-    seconds, solves = drive(world, dslam, rng, scans, per_lap)
+    dslam.add_robot(world.robot_info(None))
+    per_lap = SCANS_PER_LAP
+    seconds, solves = drive(world, dslam, rng, scans)
     steady = seconds[per_lap:]
     first = seconds[:per_lap][solves[:per_lap] > 0]
     error = dslam.map.means - world.landmarks[np.asarray(dslam.ids)]
@@ -183,13 +129,6 @@ def one_size(n: int, seed: int, scans: int, cache: int) -> dict:
         "map_rmse_m": float(np.sqrt(np.mean(np.sum(error**2, axis=1)))),
         "robot_placed": bool(dslam.counts["robots_placed"]),
     }
-
-
-def exponent(sizes, values) -> float | None:
-    sizes, values = np.asarray(sizes, float), np.asarray(values, float)
-    if sizes.size < 2 or np.any(values <= 0):
-        return None
-    return float(np.polyfit(np.log(sizes), np.log(values), 1)[0])
 
 
 def main() -> None:
