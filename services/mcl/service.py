@@ -124,6 +124,8 @@ class MclService(ServiceShell):
 
     def _on_map(self, payload: bytes) -> None:
         message = decode(payload, MAP_MESSAGES[self.source])
+        if self.source == "central":
+            self._release_anchored({robot.robot_id for robot in message.robots})
         landmarks = np.asarray(message.landmarks, float).reshape(-1, 2)
         now = time.monotonic()
         if landmarks.shape[0] == 0:
@@ -136,6 +138,16 @@ class MclService(ServiceShell):
         # known association) and the world truth's; D-SLAM numbers the features it discovers itself
         ids = None if self.source == "dslam" else getattr(message, "landmark_ids", None)
         self.fleet.set_map(landmarks, ids)
+
+    def _release_anchored(self, placed: set[str]) -> None:
+        """Stop localizing a robot that the central estimate holds although MCL never localized it: the central
+        placed it another way (it anchors the world frame), and its scans would only take time from the robots
+        that wait for MCL."""
+        for rid in sorted(placed & set(self.fleet.robots)):
+            if self.fleet.robots[rid].localized_s is None:
+                self.fleet.remove_robot(rid)
+                self.extra["robots_released"] = self.extra.get("robots_released", 0.0) + 1.0
+                log.info("robot %s is in the central map without MCL (it anchors the frame): not localized further", rid)
 
     # ------------------------------------------------------------------ robots
 

@@ -1,7 +1,8 @@
 """Fleet placement live, over a real router: MR.CLAM robots replayed with their start poses withheld.
 
-The first robot announced (r3) anchors the central map's frame at the origin; the other is localized by the MCL
-service in the central map (landmark ids as signatures) and joins it. One SE(2) transform (the anchor's true
+The first robot announced (r3) anchors the central map's frame at the origin, and the MCL service stops
+localizing it; the other is localized by the MCL service in the central map (landmark ids as signatures) and
+joins it. One SE(2) transform (the anchor's true
 start pose) must then carry both robots and the map onto the truth.
 """
 
@@ -13,7 +14,7 @@ import pytest
 from robots.loaders import data_root, load_dataset
 from robots.models import transform_points
 from schemas.keys import Keys
-from schemas.messages import Estimate
+from schemas.messages import Estimate, ServiceStats
 from tests.helpers import Collector, wait_until
 
 pytestmark = pytest.mark.integration
@@ -46,6 +47,9 @@ def test_mrclam_robots_without_start_poses_are_anchored_placed_and_merged(proces
     data = load_dataset(f"mrclam:{FOLDER}")
     alone = [r.robot_id for r in next(e for e in estimates.decoded(Estimate) if e.robots).robots]
     assert alone == ["r3"], f"r3 anchors the frame, not {alone}"
+    released = wait_until(lambda: [m for m in stats.decoded(ServiceStats) if m.extra.get("robots_released", 0) >= 1],
+                          30, what="the mcl service to stop localizing the anchor")
+    assert released[-1].extra["robots_released"] == 1  # r3 only: r2 is placed by MCL itself
     frame = data.robots["r3"].info.start_pose  # the anchor's true start pose: the map's origin in the truth's frame
     first = both_placed()[0]
 
