@@ -4,13 +4,14 @@ D-SLAM's mapping measurement z_map (Wang, Huang, Dissanayake, "Implementation
 Issues and Experimental Evaluation of D-SLAM", eq. 3) needs two mapped
 features in one scan. A sensor that sees one beacon at a time (the ACFR car
 park, a camera with a narrow field of view) rarely gives two, and the features
-it sees then never reach the map. The same authors' D-SLAM with local maps
-(Wang, Huang, Dissanayake, "D-SLAM: A Decoupled Solution to Simultaneous
-Localization and Mapping", IJRR 2007) fixes that by collecting several scans
-into a local map first: the features seen over a stretch of the trajectory,
-with their joint covariance, in the frame of the robot's pose at the stretch's
-start. That frame is the robot's own, so the local map's z_map is as free of
-the robot's global pose as one scan's.
+it sees then never reach the map. Following the idea of local maps in the
+same authors' journal version of D-SLAM (Wang, Huang, Dissanayake, "D-SLAM: A
+Decoupled Solution to Simultaneous Localization and Mapping", IJRR 2007; not
+among the papers we work from, so this is our own form of it), several scans
+are collected into a local map first: the features seen over a stretch of the
+trajectory, with their joint covariance, in the frame of the robot's pose at
+the stretch's start. That frame is the robot's own, so the local map's z_map
+is as free of the robot's global pose as one scan's.
 
 Observations of one feature key are fused (EKF update); a new key augments
 the state. The robot's relative pose is part of the state, so the points are
