@@ -15,11 +15,13 @@ Per scan of a robot:
    moved but not yet localized against it, with a small dead-reckoning error
    and fewer than two mapped features in view): the raw observations give
    absolute positions with the joint covariance of the pose and the noise.
-   Phase II: with at least two mapped landmarks in the scan, the scan is
-   recast into z_map (eq. 3) around the best-conditioned reference pair, new
-   features are initialised by eq. 9 and the map updated by eq. 10, unless
-   z_map fails its χ² test. z_map is free of any robot frame, so every
-   robot's scans update the one map.
+   Phase II: the scan joins the robot's local map (:mod:`services.dslam.local_map`,
+   several scans in the robot's own frame); once that holds at least two mapped
+   landmarks, its points are recast into z_map (eq. 3) around the
+   best-conditioned reference pair, new features are initialised by eq. 9 and
+   the map updated by eq. 10, unless z_map fails its χ² test
+   (``local_map_max_std=0``: one scan at a time, as in the paper). z_map is free
+   of any robot frame, so every robot's scans update the one map.
 4. Recovery of the mean and of the covariance columns near the robots
    (:class:`services.dslam.information_filter.InformationMap`).
 
