@@ -92,7 +92,8 @@ def main() -> None:
     parser.add_argument("--association", default="known", choices=("known", "shared"),
                         help="known: the scans' ids; shared: --association unknown's method")
     parser.add_argument("--particles", type=int, default=100)
-    parser.add_argument("--scans", type=int, default=2 * SCANS_PER_LAP, help=f"scans per size (the first {SCANS_PER_LAP}: warm-up)")
+    parser.add_argument("--scans", type=int, default=2 * SCANS_PER_LAP,
+                        help=f"scans per size (the first {SCANS_PER_LAP}: warm-up)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out")
     args = parser.parse_args()

@@ -135,7 +135,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--particles", default="100", help="comma-separated particle counts, one run each")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--duration", type=float, default=None, help="seconds of Victoria Park data for fleetslam (default: all)")
+    parser.add_argument("--duration", type=float, default=None,
+                        help="seconds of Victoria Park data for fleetslam (default: all)")
     parser.add_argument("--graph", default=None, help=f"iSAM graph file (default: <data>/{GRAPH})")
     parser.add_argument("--skip-fleetslam", action="store_true")
     parser.add_argument("--skip-isam2", action="store_true")

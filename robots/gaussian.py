@@ -1,5 +1,6 @@
 """The numeric helpers every filter shares: closed-form Gaussian algebra on stacks of 2-vectors and 2×2
-matrices, a PSD square root, systematic resampling and the EKF-SLAM state operations (predict, update, augment). One copy, imported by FastSLAM, D-SLAM and MCL."""
+matrices, a PSD square root, systematic resampling and the EKF-SLAM state operations (predict, update,
+augment). One copy, imported by FastSLAM, D-SLAM, the EKF baseline and MCL."""
 
 from __future__ import annotations
 

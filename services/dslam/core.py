@@ -318,7 +318,8 @@ class DSlam:
         request = AssociationRequest(
             measurements=obs.reshape(-1, 2), noise=noise, landmarks=landmarks.reshape(-1, 2),
             landmark_covs=0.5 * (landmark_covs + np.swapaxes(landmark_covs, 1, 2)), pose=robot.pose,
-            pose_cov=0.5 * (robot.cov + robot.cov.T) + np.diag(np.square(s.gate_pose_floor)), sensor_offset=np.asarray(spec.offset, float),
+            pose_cov=0.5 * (robot.cov + robot.cov.T) + np.diag(np.square(s.gate_pose_floor)),
+            sensor_offset=np.asarray(spec.offset, float),
             gate_probability=s.gate_probability, new_feature_gate_probability=s.new_feature_gate_probability,
             clutter_density=max(spec.clutter_rate / area, 1e-9), new_feature_density=s.new_feature_density,
             detection_probability=min(max(spec.detection_probability, 1e-3), 1 - 1e-3),
