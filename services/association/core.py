@@ -211,20 +211,20 @@ def _solve_ihgr(problem: Problem, tie_margin: float) -> tuple[np.ndarray, np.nda
     of once per component (its start-up, not the solve, is what costs). The
     rounding then picks the largest fractional variable over every component.
     """
-    single_rows, single_cols, rest = _isolated_pairs(problem.gated)
+    (single_rows, single_cols), components = split_components(problem.gated)
     take = problem.cost[single_rows, single_cols] < 0.0
     rows, cols = [single_rows[take]], [single_cols[take]]
     lp_objective = float(np.minimum(problem.cost[single_rows, single_cols], 0).sum())
     lp_solves = 0
-    if rest.any():
-        union_rows, union_cols = np.flatnonzero(rest.any(1)), np.flatnonzero(rest.any(0))
-        cost = np.where(rest[np.ix_(union_rows, union_cols)], problem.cost[np.ix_(union_rows, union_cols)], np.inf)
-        result = solvers.solve_ihgr(cost, tie_margin=tie_margin)
+    if components:  # an isolated pair's row and column gate nothing else: the union holds no isolated pair
+        union_rows = np.sort(np.concatenate([comp_rows for comp_rows, _ in components]))
+        union_cols = np.sort(np.concatenate([comp_cols for _, comp_cols in components]))
+        result = solvers.solve_ihgr(problem.cost[np.ix_(union_rows, union_cols)], tie_margin=tie_margin)
         lp_objective += result.lp_objective
         lp_solves += result.lp_solves
         rows.append(union_rows[result.rows])
         cols.append(union_cols[result.cols])
-    info = {"components": len(split_components(problem.gated)[1]), "lp_objective": lp_objective, "lp_solves": lp_solves}
+    info = {"components": len(components), "lp_objective": lp_objective, "lp_solves": lp_solves}
     return np.concatenate(rows).astype(np.int64), np.concatenate(cols).astype(np.int64), info
 
 
