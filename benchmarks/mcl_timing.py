@@ -29,7 +29,7 @@ from robots.worlds import make_world
 from schemas.contract import OdomEvent, ScanEvent
 from services.mcl.config import MclConfig
 from services.mcl.core import MonteCarloLocalizer
-from services.mcl import kernels
+from services import compiled
 from services.mcl.likelihood import scan_log_likelihood
 from report import emit
 
@@ -94,7 +94,7 @@ def main() -> None:
     parser.add_argument("--duration", type=float, default=20.0, help="robot seconds per run")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
-    warm_up_s = kernels.warm_up()
+    warm_up_s = compiled.warm_up()
     world = landmark_world(args.landmarks, args.seed)
     dataset = simulate(world, seed=args.seed, duration=args.duration)
     results = [run(dataset, "mcl", int(p), True, args.seed) for p in args.particles.split(",")]

@@ -13,7 +13,6 @@ branch never disturbs its ancestors' rows.
 from __future__ import annotations
 
 import math
-import time
 
 import numpy as np
 
@@ -115,10 +114,8 @@ def jcbb_kernel(innovations, joint_blocks, noise, candidates, counts, order, bou
     return best_m[:best_count].copy(), best_n[:best_count].copy(), best_count, best_d2, truncated, nodes
 
 
-def warm_up() -> float:
-    """Compile (or load from the cache) the kernel on a tiny input; returns the seconds it took."""
-    started = time.perf_counter()
+def warm_up() -> None:
+    """Compile (or load from the cache) the kernel on a tiny input (:func:`services.compiled.warm_up` times it)."""
     if AVAILABLE:
         jcbb_kernel(np.zeros((1, 1, 2)), np.zeros((1, 1, 2, 2)), np.eye(2), np.zeros((1, 1), np.int64),
                     np.ones(1, np.int64), np.zeros(1, np.int64), np.full(1, 9.0), 100)
-    return time.perf_counter() - started

@@ -13,14 +13,12 @@ The cell merging is a union-find over each occupied cell's 26 neighbours,
 found by binary search in the sorted cell keys, instead of a sparse graph.
 
 Compiled on first use and cached on disk (``cache=True``); :func:`warm_up`
-compiles it ahead of the first scan, as the MCL service does before it
-subscribes.
+compiles them ahead of the first scan (:mod:`services.compiled`).
 """
 
 from __future__ import annotations
 
 import math
-import time
 
 import numpy as np
 
@@ -41,14 +39,15 @@ def _cell_row(x: float, y: float, origin: np.ndarray, cell: float, nx: int, ny: 
 def scan_log_likelihood_kernel(poses, body, ranges, bearings, ux, uy, info, match_scale, floor, padded,
                                match_table, match_origin, match_cell, match_nx, match_ny,
                                view_table, view_origin, view_cell, view_nx, view_ny,
-                               offset_a, offset_b, gate, inner_far, inner_near, inner_half, full_circle,
-                               view_far, view_near, view_cos_half, log_miss):
+                               offset_a, offset_b, gate, far, near, half, full_circle, log_miss):
     """Log-likelihood ``(P,)`` of one scan for each pose: the kernel of
-    :func:`services.mcl.likelihood._chunk_log_likelihood` (same model, same candidates)."""
+    :func:`services.mcl.likelihood._chunk_log_likelihood` (same model, same candidates). ``far``, ``near`` and
+    ``half``: the range limits and half field of view less their margins (surely visible inside them)."""
     count = poses.shape[0]
     n = body.shape[0]
     out = np.empty(count)
     matched = np.empty(n, np.int64)
+    cos_half = math.cos(max(half, 0.0))
     for p in range(count):
         x, y, theta = poses[p, 0], poses[p, 1], poses[p, 2]
         c, s = math.cos(theta), math.sin(theta)
@@ -73,7 +72,7 @@ def scan_log_likelihood_kernel(poses, body, ranges, bearings, ux, uy, info, matc
             loglik += math.log(match_scale * math.exp(-0.5 * best_m2) + floor)
             r = ranges[j] + best_radial
             phi = bearings[j] + best_across
-            inside = inner_near <= r <= inner_far and (full_circle or abs(phi) <= inner_half)
+            inside = near <= r <= far and (full_circle or abs(phi) <= half)
             if best_m2 <= gate and inside:
                 seen = False
                 for i in range(distinct):
@@ -92,8 +91,8 @@ def scan_log_likelihood_kernel(poses, body, ranges, bearings, ux, uy, info, matc
             dx = padded[landmark, 0] - px
             dy = padded[landmark, 1] - py
             r2 = dx * dx + dy * dy
-            if r2 <= view_far * view_far and r2 >= view_near * view_near:
-                if full_circle or c * dx + s * dy >= math.sqrt(r2) * view_cos_half:
+            if r2 <= far * far and r2 >= near * near:
+                if full_circle or c * dx + s * dy >= math.sqrt(r2) * cos_half:
                     visible += 1
         out[p] = loglik + max(visible - distinct, 0) * log_miss
     return out
@@ -146,15 +145,13 @@ def merge_cells_kernel(cells, ny, turns, steps, mean_xy, mean_theta, merge_xy, m
     return component
 
 
-def warm_up() -> float:
-    """Compile (or load from the cache) every kernel on tiny inputs; returns the seconds it took."""
-    started = time.perf_counter()
+def warm_up() -> None:
+    """Compile (or load from the cache) every kernel on tiny inputs (:func:`services.compiled.warm_up` times it)."""
     if AVAILABLE:
         table = np.zeros((1, 1), np.int64)
         one = np.ones(1)
         scan_log_likelihood_kernel(np.zeros((1, 3)), np.ones((1, 2)), one, one, one, one, np.eye(2), 1.0, 0.1,
                                    np.zeros((1, 2)), table, np.zeros(2), 1.0, 1, 1, table, np.zeros(2), 1.0, 1, 1,
-                                   0.0, 0.0, 9.0, 5.0, 0.0, 1.0, False, 5.0, 0.0, 0.5, -1.0)
+                                   0.0, 0.0, 9.0, 5.0, 0.0, 1.0, False, -1.0)
         merge_cells_kernel(np.array([0, 1], np.int64), 3, 8, np.array([[0, 0, 1]], np.int64), np.zeros((2, 2)),
                            np.zeros(2), 1.0, 1.0)
-    return time.perf_counter() - started

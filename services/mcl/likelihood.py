@@ -258,8 +258,7 @@ def _compiled_log_likelihood(poses: np.ndarray, z: np.ndarray, lmap: LandmarkMap
         match.table, match.origin, match.cell, match.shape[0], match.shape[1],
         view.table, view.origin, view.cell, view.shape[0], view.shape[1],
         float(a), float(b), model.gate, model.max_range - model.margin_range, model.min_range + model.margin_range,
-        half, model.full_circle, model.max_range - model.margin_range, model.min_range + model.margin_range,
-        math.cos(max(half, 0.0)), math.log(model.miss_probability),
+        half, model.full_circle, math.log(model.miss_probability),
     )
 
 
