@@ -31,7 +31,7 @@ from concurrent.futures import ProcessPoolExecutor
 
 import numpy as np
 
-from report import emit
+from report import emit, over_seeds
 from robots.loaders import load_dataset
 from schemas.contract import RunOptions
 from support.fastslam_experiments import aligned_map_error, run_and_score
@@ -84,14 +84,9 @@ def passed_beacons(dataset, means: np.ndarray, within: float = 0.3) -> dict:
 
 def summarise(runs: list[dict]) -> dict:
     """Median and worst over the seeds of every figure (worst: the largest, for errors and counts alike)."""
-    out: dict = {"seeds": len(runs)}
-    for key in ("ate_robot_median_m", "ate_robot_worst_m", "gps_rmse_m", "map_rmse_m", "landmarks_mapped",
-                "spurious", "matched", "beacons_passed", "beacons_mapped_within_0_3m", "wall_s"):
-        values = [r[key] for r in runs if r.get(key) is not None]
-        if values:
-            out[key] = {"median": round(float(np.median(values)), 3), "worst": round(float(max(values)), 3),
-                        "min": round(float(min(values)), 3)}
-    return out
+    keys = ("ate_robot_median_m", "ate_robot_worst_m", "gps_rmse_m", "map_rmse_m", "landmarks_mapped", "spurious",
+            "matched", "beacons_passed", "beacons_mapped_within_0_3m", "wall_s")
+    return {"seeds": len(runs), **over_seeds(runs, keys, least=True)}
 
 
 def main() -> None:

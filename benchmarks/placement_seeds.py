@@ -30,7 +30,7 @@ from concurrent.futures import ProcessPoolExecutor
 
 import numpy as np
 
-from report import emit
+from report import emit, over_seeds
 from robots.loaders import load_dataset
 from schemas.contract import RunOptions
 from services.evaluation.metrics import Trajectory, fleet_alignment
@@ -114,11 +114,8 @@ def main() -> None:
     summary = {}
     for case in cases:
         mine = [r for r in runs if r["case"] == case]
-        summary[case] = {"seeds": len(mine), "never_placed_or_localized": sum(bool(r["unplaced"]) for r in mine)}
-        for key in ("worst_robot_ate_m", "longest_delay_s"):
-            values = [r[key] for r in mine if r[key] is not None]
-            if values:
-                summary[case][key] = {"median": round(float(np.median(values)), 3), "worst": round(float(max(values)), 3)}
+        summary[case] = {"seeds": len(mine), "never_placed_or_localized": sum(bool(r["unplaced"]) for r in mine),
+                         **over_seeds(mine, ("worst_robot_ate_m", "longest_delay_s"))}
     emit({"settings": vars(args), "data_bound_s": data_bound(load_dataset(args.data)), "runs": runs,
           "summary": summary}, args.out)
 

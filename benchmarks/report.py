@@ -20,6 +20,19 @@ def summary(value):
     return clean_json(value)
 
 
+def over_seeds(runs: list[dict], keys, least: bool = False) -> dict:
+    """Per key, the median and the worst (the largest, for errors and counts alike) over the runs that have a
+    value, and with ``least`` the smallest too: what the seed benchmarks report, never the best alone."""
+    out = {}
+    for key in keys:
+        values = [run[key] for run in runs if run.get(key) is not None]
+        if values:
+            out[key] = {"median": round(float(np.median(values)), 3), "worst": round(float(max(values)), 3)}
+            if least:
+                out[key]["min"] = round(float(min(values)), 3)
+    return out
+
+
 def emit(result: dict, out: str | None) -> None:
     """Print ``result`` as indented JSON; also write it to ``out`` (folders made) when given."""
     text = json.dumps(summary(result), indent=2)
