@@ -25,10 +25,12 @@ def njit(function):
 
 def warm_up() -> float:
     """Compile (or load from the cache) every kernel of the system on tiny inputs; returns the seconds taken."""
+    from central.fastslam import kernels as fastslam_kernels
     from services.association import kernels as association_kernels
     from services.mcl import kernels as mcl_kernels
 
     started = time.perf_counter()
     mcl_kernels.warm_up()
     association_kernels.warm_up()
+    fastslam_kernels.warm_up()
     return time.perf_counter() - started

@@ -28,7 +28,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from central.fastslam import evidence, landmarks, resampling, shared
+from central.fastslam import evidence, kernels, landmarks, resampling, shared
 from central.fastslam.lifecycle import RobotState
 from robots.gaussian import LOG_2PI, inv2, quad2
 from robots.models import wrap_angle
@@ -105,13 +105,17 @@ def update_known(slam: FastSlam, robot: RobotState, z, r, ids, weigh: bool) -> N
         if known.any():
             slots = np.array([slam.known_slots[int(i)] for i in idk[known]])
             m = slots.size
-            p = np.repeat(np.arange(n), m)
-            slot = np.tile(slots, n)
-            terms = landmarks.predict(slam.map, robot.sensor, slam.pose[p, robot.index], p, slot, r)
             counted = np.ones(m, bool) if slam.config.association == "known" else shared.confirmed(slam, idk[known])
-            ll = update(slam, robot, p, np.tile(zk[known], (n, 1)), slot, terms)
+            if slam.config.compiled:
+                ll = kernels.known_update(slam.map, robot.sensor, slam.pose[:, robot.index], slots, zk[known], r,
+                                          slam.config.exist_hit, slam.config.exist_max)
+            else:
+                p = np.repeat(np.arange(n), m)
+                slot = np.tile(slots, n)
+                terms = landmarks.predict(slam.map, robot.sensor, slam.pose[p, robot.index], p, slot, r)
+                ll = update(slam, robot, p, np.tile(zk[known], (n, 1)), slot, terms).reshape(n, m)
             if weigh and counted.any():
-                slam.logw += ll.reshape(n, m)[:, counted].sum(1)
+                slam.logw += ll[:, counted].sum(1)
         if (~known).any():
             fresh_ids, fresh_z = idk[~known], zk[~known]
             if int(slam.map.used[0]) + fresh_ids.size > slam.map.capacity:  # full: free the dropped slots first

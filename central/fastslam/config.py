@@ -63,6 +63,8 @@ class FastSlamConfig(CoreConfig):
     max_detection_probability: float = Field(0.95, gt=0.0, lt=1.0, description="P_D is capped here (a miss never costs log 0)")
     max_obs_range: float | None = Field(None, gt=0.0, description="ignore detections farther than this (m); None: the sensor's range")
     robot_detections: bool = Field(False, description="weight particles by robot-to-robot detections (relative pose likelihood)")
+    compiled: bool = Field(True, description="EKF updates with known ids, control integration, pose and map mixtures by the "
+                           "numba kernels (False: the numpy references)")
     robot_detection_max_dt: float = Field(0.1, ge=0.0, description="... only when the other robot's pose is this recent (s)")
 
     @model_validator(mode="after")

@@ -23,7 +23,7 @@ from collections import Counter
 import numpy as np
 from scipy.stats import chi2
 
-from central.fastslam import association, lifecycle, motion, proposal, resampling, robot_detections, shared
+from central.fastslam import association, kernels, lifecycle, motion, proposal, resampling, robot_detections, shared
 from central.fastslam.config import FastSlamConfig
 from central.fastslam.landmarks import LandmarkMap
 from central.fastslam.lifecycle import RobotState
@@ -176,6 +176,9 @@ class FastSlam:
             pose = self.pose[:, robot.index]
             extra = np.zeros((3, 3))
             pending = motion.pending_motion(robot, self.config)
+            if self.config.compiled:
+                out[rid] = kernels.weighted_pose(pose, w, pending)
+                continue
             if pending is not None:
                 extra = np.einsum("p,pij->ij", w, sandwich(compose_jacobian(pose[:, 2]), pending[1]))
                 pose = se2_compose(pose, pending[0])

@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from central.fastslam import kernels
 from central.fastslam.config import FastSlamConfig
 from central.fastslam.lifecycle import RobotState
 from robots.gaussian import sqrt_psd, valid_cov2
@@ -77,7 +78,8 @@ def pending_motion(robot: RobotState, config: FastSlamConfig) -> tuple[np.ndarra
     key = (len(robot.controls), robot.pending_s)
     if robot.pending_memo is not None and robot.pending_memo[0] == key:
         return robot.pending_memo[1]
-    delta, cov = integrate_controls(robot.model, np.array(robot.controls), np.array(robot.dts), np.array(robot.covs))
+    integrate = kernels.integrate_controls if config.compiled else integrate_controls
+    delta, cov = integrate(robot.model, np.array(robot.controls), np.array(robot.dts), np.array(robot.covs))
     cov = cov + np.diag(np.square(config.pose_noise_per_s)) * robot.pending_s
     robot.pending_memo = (key, (delta, cov))
     return delta, cov

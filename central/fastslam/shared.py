@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from central.fastslam import motion, resampling
+from central.fastslam import kernels, motion, resampling
 from central.fastslam.lifecycle import RobotState
 from robots.gaussian import inv2, quad2, sandwich, sandwich2
 from robots.models import compose_jacobian, se2_compose, wrap_angle
@@ -46,6 +46,10 @@ def marginal_map(slam: FastSlam, near: tuple[np.ndarray, float] | None = None
     ids = np.fromiter(slam.known_slots.keys(), np.int64, len(slam.known_slots))
     slots = np.fromiter(slam.known_slots.values(), np.int64, len(slam.known_slots))
     w = resampling.weights(slam.logw)
+    if slam.config.compiled:
+        point, radius = (np.zeros(2), np.inf) if near is None else (np.asarray(near[0], float), float(near[1]))
+        keep, mean, cov = kernels.marginal_map_kernel(w, slam.map.mean, slam.map.cov, slots, point, radius)
+        return ids[keep], slots[keep], mean, cov
     particles = w.shape[0]
     mean = (w @ slam.map.mean.reshape(particles, -1)).reshape(-1, 2)[slots]  # every slot at once: no (P, K) gather
     if near is not None:
@@ -66,7 +70,8 @@ def pose_belief(slam: FastSlam, robot: RobotState) -> tuple[np.ndarray, np.ndarr
     """The robot's weighted mean pose, its spread over the particles, and the extra variance the association
     assumes against drift: ``gate_pose_floor``² plus ``gate_pose_growth``² per second since its last match (at
     most 120 s)."""
-    mean, cov = resampling.weighted_pose(slam.pose[:, robot.index], resampling.weights(slam.logw))
+    pose, w = slam.pose[:, robot.index], resampling.weights(slam.logw)
+    mean, cov = kernels.weighted_pose(pose, w, None) if slam.config.compiled else resampling.weighted_pose(pose, w)
     pending = motion.pending_motion(robot, slam.config)  # FastSLAM 2.0 associates before it moves the particles
     if pending is not None:
         jac = compose_jacobian(mean[2])
@@ -87,16 +92,10 @@ def associate(slam: FastSlam, robot: RobotState, z: np.ndarray, r: np.ndarray) -
     reach = robot.info.sensor.max_range + 3.0 * float(np.sqrt(r[0, 0])) + 2.0
     known, slots, mean, cov = marginal_map(slam, (position, reach))
     if known.size:
-        zhat = robot.sensor.observe(pose, mean)
-        h_x, h_m = robot.sensor.jacobians(np.broadcast_to(pose, (known.size, 3)), mean)
-        own = sandwich2(h_m, cov)
         # tentative landmarks were seen from about the present drift: they are gated without it, so clutter
         # does not confirm them by falling into a gate widened for old landmarks
         tentative = slam.map.hits[0, slots] < slam.config.confirm_hits
-        s = own + sandwich(h_x, spread) + r + np.where(tentative[:, None, None], 0.0, sandwich(h_x, drift))
-        nu = z[:, None, :] - zhat[None]
-        nu[..., 1] = wrap_angle(nu[..., 1])
-        d2 = quad2(nu, inv2(s)[0][None])
+        zhat, h_x, own, nu, d2 = _gating(slam, robot, pose, mean, cov, tentative, spread, drift, r, z)
         gated = d2 < slam.gate
         ambiguous = _ambiguous(slam, d2, gated, zhat, r)
         gated[ambiguous] = False
@@ -112,6 +111,22 @@ def associate(slam: FastSlam, robot: RobotState, z: np.ndarray, r: np.ndarray) -
     ids[fresh] = slam.next_landmark_id + np.arange(int(fresh.sum()))
     slam.next_landmark_id += int(fresh.sum())
     return ids
+
+
+def _gating(slam: FastSlam, robot: RobotState, pose, mean, cov, tentative, spread, drift, r, z) -> tuple:
+    """(ẑ, H_x, H_m Σ H_mᵀ, ν, d²) of the detections against the landmark mixtures, S = H_m Σ H_mᵀ + H_x P H_xᵀ +
+    R (+ H_x D H_xᵀ for confirmed landmarks): by the kernel, or by this numpy reference."""
+    if slam.config.compiled:
+        a, b = robot.sensor.offset
+        return kernels.shared_gating_kernel(pose, float(a), float(b), mean, cov, tentative, spread, drift, r, z)
+    zhat = robot.sensor.observe(pose, mean)
+    h_x, h_m = robot.sensor.jacobians(np.broadcast_to(pose, (mean.shape[0], 3)), mean)
+    own = sandwich2(h_m, cov)
+    s = own + sandwich(h_x, spread) + r + np.where(tentative[:, None, None], 0.0, sandwich(h_x, drift))
+    nu = z[:, None, :] - zhat[None]
+    nu[..., 1] = wrap_angle(nu[..., 1])
+    d2 = quad2(nu, inv2(s)[0][None])
+    return zhat, h_x, own, nu, d2
 
 
 def _ambiguous(slam: FastSlam, d2: np.ndarray, gated: np.ndarray, zhat: np.ndarray, r: np.ndarray) -> np.ndarray:
@@ -139,11 +154,13 @@ def _solve(slam: FastSlam, nu, gated, d2, h_x, own, pose_cov, r) -> tuple[np.nda
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
     if slam.config.shared_solver == "exact":
         return solve_exact(np.where(gated, d2 - slam.gate, np.inf))
+    reach = np.flatnonzero(gated.any(0))  # JCBB never looks at a landmark no detection gates: leave them out
+    nu, gated, d2, h_x, own = nu[:, reach], gated[:, reach], d2[:, reach], h_x[reach], own[reach]
     joint = np.tensordot(h_x @ pose_cov, h_x, axes=([2], [2])).transpose(0, 2, 1, 3)  # H_a P H_bᵀ (a, b, 2, 2)
     joint[np.arange(own.shape[0]), np.arange(own.shape[0])] += own
     result = solve_jcbb(nu, gated, d2, joint, r, slam.config.gate_probability)
     slam.counts["jcbb_truncated"] += int(result.truncated)
-    return result.rows, result.cols
+    return result.rows, reach[result.cols]
 
 
 def _age_tentative(slam: FastSlam, robot: RobotState, ids: np.ndarray, slots: np.ndarray, zhat: np.ndarray,

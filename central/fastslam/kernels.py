@@ -1,0 +1,361 @@
+"""Compiled (numba) kernels of FastSLAM's per-scan work; the numpy functions they replace stay as the references.
+
+With ids given or chosen once per scan (``known``, ``shared``), a scan's work is the same few operations on
+every particle and every detected landmark; vectorised numpy pays its call overhead a dozen times per scan for
+arrays of a few hundred 2 × 2 blocks, more than the arithmetic. Each kernel does one of them in a single pass:
+
+- :func:`known_update`: every particle's EKF update of the scan's landmarks (Montemerlo et al., "FastSLAM: a
+  factored solution to the simultaneous localization and mapping problem", one 2-D EKF per landmark and
+  particle), with the innovation log-likelihood that weighs the particle
+  (:func:`central.fastslam.landmarks.predict` then :func:`~central.fastslam.landmarks.update`);
+- :func:`integrate_controls`: the buffered controls as one Gaussian relative motion
+  (:func:`robots.models.integrate_controls`, unicycle and Ackermann models);
+- :func:`weighted_pose`: a robot's particle-weighted mean and covariance, with its pending motion
+  (:meth:`central.fastslam.core.FastSlam.poses`);
+- :func:`marginal_map_kernel`: the landmarks' particle mixtures near the robot (:func:`central.fastslam.shared.marginal_map`);
+- :func:`shared_gating_kernel`: the predicted detections, Jacobians and gating distances of a scan against those
+  mixtures (:func:`central.fastslam.shared.associate`).
+
+Each has a thin wrapper that takes the Python objects; ``FastSlamConfig.compiled`` chooses kernels or references.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from robots.models import AckermannModel, UnicycleModel
+from services.compiled import AVAILABLE, njit
+
+TWO_PI = 2.0 * math.pi
+LOG_2PI = math.log(2.0 * math.pi)
+
+
+@njit
+def _wrap(angle):
+    return angle - TWO_PI * math.floor((angle + math.pi) / TWO_PI)
+
+
+@njit
+def known_update_kernel(mean, cov, exist, hits, pose, a, b, slots, z, r, exist_hit, exist_max, log_likelihood):
+    """EKF update of landmark ``slots[j]`` by detection ``z[j]`` in every particle (in place); ``log_likelihood``
+    ``(P, m)`` gets log N(ν; 0, S), S = H Σ Hᵀ + R, with H the Jacobian at the prior landmark estimate; (a, b)
+    is the sensor's offset on the robot."""
+    for p in range(pose.shape[0]):
+        theta = pose[p, 2]
+        c, s = math.cos(theta), math.sin(theta)
+        px = pose[p, 0] + a * c - b * s
+        py = pose[p, 1] + a * s + b * c
+        for j in range(slots.shape[0]):
+            k = slots[j]
+            dx, dy = mean[p, k, 0] - px, mean[p, k, 1] - py
+            q = dx * dx + dy * dy
+            distance = math.sqrt(q)
+            q = max(q, 1e-18)
+            rs = max(distance, 1e-9)
+            h00, h01, h10, h11 = dx / rs, dy / rs, -dy / q, dx / q
+            m00, m01, m10, m11 = cov[p, k, 0, 0], cov[p, k, 0, 1], cov[p, k, 1, 0], cov[p, k, 1, 1]
+            t00, t01 = h00 * m00 + h01 * m01, h00 * m01 + h01 * m11
+            t10, t11 = h10 * m00 + h11 * m01, h10 * m01 + h11 * m11
+            cross = t00 * h10 + t01 * h11
+            s00 = t00 * h00 + t01 * h01 + r[0, 0]
+            s01 = cross + r[0, 1]
+            s10 = cross + r[1, 0]
+            s11 = t10 * h10 + t11 * h11 + r[1, 1]
+            det = s00 * s11 - s01 * s10
+            safe = det if abs(det) > 1e-300 else 1e-300
+            i00, i01, i10, i11 = s11 / safe, -s01 / safe, -s10 / safe, s00 / safe
+            n0 = z[j, 0] - distance
+            n1 = _wrap(z[j, 1] - _wrap(math.atan2(dy, dx) - theta))
+            u00, u01 = m00 * h00 + m01 * h01, m00 * h10 + m01 * h11  # Σ Hᵀ
+            u10, u11 = m10 * h00 + m11 * h01, m10 * h10 + m11 * h11
+            g00, g01 = u00 * i00 + u01 * i10, u00 * i01 + u01 * i11  # K = Σ Hᵀ S⁻¹
+            g10, g11 = u10 * i00 + u11 * i10, u10 * i01 + u11 * i11
+            mean[p, k, 0] += g00 * n0 + g01 * n1
+            mean[p, k, 1] += g10 * n0 + g11 * n1
+            v00, v01 = g00 * s00 + g01 * s01, g00 * s01 + g01 * s11  # K S Kᵀ (S symmetric)
+            v10, v11 = g10 * s00 + g11 * s01, g10 * s01 + g11 * s11
+            shared = v00 * g10 + v01 * g11
+            cov[p, k, 0, 0] = m00 - (v00 * g00 + v01 * g01)
+            cov[p, k, 0, 1] = m01 - shared
+            cov[p, k, 1, 0] = m10 - shared
+            cov[p, k, 1, 1] = m11 - (v10 * g10 + v11 * g11)
+            exist[p, k] = min(exist[p, k] + exist_hit, exist_max)
+            hits[p, k] += 1
+            d2 = i00 * n0 * n0 + (i01 + i10) * n0 * n1 + i11 * n1 * n1
+            log_likelihood[p, j] = -0.5 * d2 - 0.5 * math.log(max(det, 1e-300)) - LOG_2PI
+
+
+def known_update(landmarks, sensor, pose: np.ndarray, slots: np.ndarray, z: np.ndarray, r: np.ndarray,
+                 exist_hit: float, exist_max: float) -> np.ndarray:
+    """Update landmarks ``slots`` ``(m,)`` of every particle by detections ``z`` ``(m, 2)`` seen from ``pose``
+    ``(P, 3)``; returns log N(ν; 0, S) ``(P, m)``."""
+    out = np.empty((pose.shape[0], slots.shape[0]))
+    known_update_kernel(landmarks.mean, landmarks.cov, landmarks.exist, landmarks.hits, pose, sensor.offset[0],
+                        sensor.offset[1], slots, z, r, exist_hit, exist_max, out)
+    return out
+
+
+@njit
+def integrate_controls_kernel(ackermann, wheelbase, encoder_offset, controls, dts, covs):
+    """(Δ̄ ``(3,)``, Σ_Δ ``(3, 3)``): the reference's exact arcs composed from the origin, and Σ Σ_k M_k G_k Q_k
+    G_kᵀ M_kᵀ with M_k the lever of the end pose about pose k and G_k the control Jacobian."""
+    count = controls.shape[0]
+    path = np.zeros((count + 1, 3))
+    g = np.zeros((count, 3, 2))
+    heading_sum = 0.0
+    for k in range(count):
+        v, w = controls[k, 0], controls[k, 1]
+        j00, j01, j10, j11 = 1.0, 0.0, 0.0, 1.0
+        if ackermann:
+            tan_a = math.tan(w)
+            sec2 = 1.0 + tan_a * tan_a
+            den = 1.0 - tan_a * encoder_offset / wheelbase
+            v_e = v
+            v = v_e / den
+            w = v * tan_a / wheelbase
+            j00 = 1.0 / den
+            j01 = v_e * (encoder_offset / wheelbase) * sec2 / (den * den)
+            j10 = j00 * tan_a / wheelbase
+            j11 = (j01 * tan_a + v * sec2) / wheelbase
+        dt = dts[k]
+        h = 0.5 * w * dt
+        if abs(h) < 1e-4:
+            sinc, dsinc = 1.0 - h * h / 6.0, -h / 3.0
+        else:
+            sinc, dsinc = math.sin(h) / h, (h * math.cos(h) - math.sin(h)) / (h * h)
+        chord = v * dt * sinc
+        step_x, step_y, step_theta = chord * math.cos(h), chord * math.sin(h), _wrap(w * dt)  # the arc from the origin
+        heading = heading_sum
+        c, s = math.cos(heading), math.sin(heading)
+        path[k + 1, 0] = path[k, 0] + (c * step_x - s * step_y)
+        path[k + 1, 1] = path[k, 1] + (s * step_x + c * step_y)
+        heading_sum += step_theta
+        path[k + 1, 2] = _wrap(heading_sum)
+        alpha = path[k, 2] + h
+        ca, sa = math.cos(alpha), math.sin(alpha)
+        dd_dw = v * dt * dsinc * 0.5 * dt
+        f00, f01 = dt * sinc * ca, dd_dw * ca - chord * sa * 0.5 * dt
+        f10, f11 = dt * sinc * sa, dd_dw * sa + chord * ca * 0.5 * dt
+        f20, f21 = 0.0, dt
+        g[k, 0, 0], g[k, 0, 1] = f00 * j00 + f01 * j10, f00 * j01 + f01 * j11
+        g[k, 1, 0], g[k, 1, 1] = f10 * j00 + f11 * j10, f10 * j01 + f11 * j11
+        g[k, 2, 0], g[k, 2, 1] = f20 * j00 + f21 * j10, f20 * j01 + f21 * j11
+    end = path[count].copy()
+    cov = np.zeros((3, 3))
+    for k in range(count):
+        lever_x, lever_y = -(end[1] - path[k + 1, 1]), end[0] - path[k + 1, 0]
+        m = np.empty((3, 2))
+        for col in range(2):
+            m[0, col] = g[k, 0, col] + lever_x * g[k, 2, col]
+            m[1, col] = g[k, 1, col] + lever_y * g[k, 2, col]
+            m[2, col] = g[k, 2, col]
+        for i in range(3):
+            t0 = m[i, 0] * covs[k, 0, 0] + m[i, 1] * covs[k, 1, 0]
+            t1 = m[i, 0] * covs[k, 0, 1] + m[i, 1] * covs[k, 1, 1]
+            for j in range(3):
+                cov[i, j] += t0 * m[j, 0] + t1 * m[j, 1]
+    for i in range(3):
+        for j in range(i + 1, 3):
+            half = 0.5 * (cov[i, j] + cov[j, i])
+            cov[i, j] = cov[j, i] = half
+    return end, cov
+
+
+def integrate_controls(model, controls: np.ndarray, dts: np.ndarray, covs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`robots.models.integrate_controls` by the kernel, for the unicycle and Ackermann models."""
+    if isinstance(model, AckermannModel):
+        ackermann, wheelbase, offset = True, float(model.wheelbase), float(model.encoder_offset)
+    elif isinstance(model, UnicycleModel):
+        ackermann, wheelbase, offset = False, 1.0, 0.0
+    else:
+        raise TypeError(f"no kernel for the motion model {model!r}")
+    return integrate_controls_kernel(ackermann, wheelbase, offset, np.asarray(controls, float).reshape(-1, 2),
+                                     np.asarray(dts, float).ravel(), np.asarray(covs, float).reshape(-1, 2, 2))
+
+
+@njit
+def weighted_pose_kernel(pose, w, delta, delta_cov, moved):
+    """(mean, covariance) of poses ``(P, 3)`` under weights ``w``; with ``moved``, of every pose ⊕ ``delta``, the
+    covariance plus the weighted J_p Σ_Δ J_pᵀ (J_p: the composition's Jacobian in the increment)."""
+    count = pose.shape[0]
+    moved_pose = np.empty((count, 3))
+    extra = np.zeros((3, 3))
+    q00, q01, q02 = delta_cov[0, 0], delta_cov[0, 1], delta_cov[0, 2]
+    q10, q11, q12 = delta_cov[1, 0], delta_cov[1, 1], delta_cov[1, 2]
+    q20, q21, q22 = delta_cov[2, 0], delta_cov[2, 1], delta_cov[2, 2]
+    for p in range(count):
+        x, y, theta = pose[p, 0], pose[p, 1], pose[p, 2]
+        if moved:
+            wp = w[p]
+            c, s = math.cos(theta), math.sin(theta)  # J = [[c, −s, 0], [s, c, 0], [0, 0, 1]]
+            a00, a01, a02 = c * q00 - s * q10, c * q01 - s * q11, c * q02 - s * q12  # rows of J Σ
+            a10, a11, a12 = s * q00 + c * q10, s * q01 + c * q11, s * q02 + c * q12
+            extra[0, 0] += wp * (a00 * c - a01 * s)
+            extra[0, 1] += wp * (a00 * s + a01 * c)
+            extra[0, 2] += wp * a02
+            extra[1, 0] += wp * (a10 * c - a11 * s)
+            extra[1, 1] += wp * (a10 * s + a11 * c)
+            extra[1, 2] += wp * a12
+            extra[2, 0] += wp * (q20 * c - q21 * s)
+            extra[2, 1] += wp * (q20 * s + q21 * c)
+            extra[2, 2] += wp * q22
+            x, y, theta = x + c * delta[0] - s * delta[1], y + s * delta[0] + c * delta[1], _wrap(theta + delta[2])
+        moved_pose[p, 0], moved_pose[p, 1], moved_pose[p, 2] = x, y, theta
+    sum_sin, sum_cos, mean_x, mean_y = 0.0, 0.0, 0.0, 0.0
+    for p in range(count):
+        sum_sin += w[p] * math.sin(moved_pose[p, 2])
+        sum_cos += w[p] * math.cos(moved_pose[p, 2])
+        mean_x += w[p] * moved_pose[p, 0]
+        mean_y += w[p] * moved_pose[p, 1]
+    mean = np.array([mean_x, mean_y, math.atan2(sum_sin, sum_cos)])
+    cov = np.zeros((3, 3))
+    for p in range(count):
+        d0, d1 = moved_pose[p, 0] - mean[0], moved_pose[p, 1] - mean[1]
+        d2 = _wrap(moved_pose[p, 2] - mean[2])
+        wp = w[p]
+        cov[0, 0] += wp * d0 * d0
+        cov[0, 1] += wp * d0 * d1
+        cov[0, 2] += wp * d0 * d2
+        cov[1, 1] += wp * d1 * d1
+        cov[1, 2] += wp * d1 * d2
+        cov[2, 2] += wp * d2 * d2
+    cov[1, 0], cov[2, 0], cov[2, 1] = cov[0, 1], cov[0, 2], cov[1, 2]
+    cov += extra
+    return mean, 0.5 * (cov + cov.T)
+
+
+def weighted_pose(pose: np.ndarray, w: np.ndarray, pending: tuple[np.ndarray, np.ndarray] | None
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """(mean, covariance) of one robot's particles ``(P, 3)``, its ``pending`` motion (Δ̄, Σ_Δ) applied if any."""
+    moved = pending is not None
+    delta, delta_cov = pending if moved else (np.zeros(3), np.zeros((3, 3)))
+    return weighted_pose_kernel(pose, w, delta, delta_cov, moved)
+
+
+@njit
+def marginal_map_kernel(w, mean, cov, slots, point, radius):
+    """(kept rows of ``slots``, means ``(k, 2)``, covariances ``(k, 2, 2)``): the particle mixture of each
+    landmark slot whose weighted mean lies within ``radius`` of ``point`` (the weighted covariances plus the
+    spread of the means)."""
+    count = slots.shape[0]
+    means = np.zeros((count, 2))
+    for p in range(w.shape[0]):
+        wp = w[p]
+        for i in range(count):
+            means[i, 0] += wp * mean[p, slots[i], 0]
+            means[i, 1] += wp * mean[p, slots[i], 1]
+    keep = np.zeros(count, np.int64)
+    kept = 0
+    for i in range(count):
+        if math.hypot(means[i, 0] - point[0], means[i, 1] - point[1]) < radius:
+            keep[kept] = i
+            kept += 1
+    keep = keep[:kept]
+    out_mean = np.empty((kept, 2))
+    out_cov = np.zeros((kept, 2, 2))
+    for n in range(kept):
+        out_mean[n] = means[keep[n]]
+    for p in range(w.shape[0]):
+        wp = w[p]
+        for n in range(kept):
+            slot = slots[keep[n]]
+            r0, r1 = mean[p, slot, 0] - out_mean[n, 0], mean[p, slot, 1] - out_mean[n, 1]
+            out_cov[n, 0, 0] += wp * (cov[p, slot, 0, 0] + r0 * r0)
+            out_cov[n, 0, 1] += wp * (cov[p, slot, 0, 1] + r0 * r1)
+            out_cov[n, 1, 0] += wp * (cov[p, slot, 1, 0] + r0 * r1)
+            out_cov[n, 1, 1] += wp * (cov[p, slot, 1, 1] + r1 * r1)
+    return keep, out_mean, out_cov
+
+
+@njit
+def _sandwich3(h, k, m):
+    """Rows ``(2, 2)`` of H_k M H_kᵀ for the 2 × 3 block ``h[k]`` and a 3 × 3 ``m``."""
+    out = np.empty((2, 2))
+    for i in range(2):
+        t0 = h[k, i, 0] * m[0, 0] + h[k, i, 1] * m[1, 0] + h[k, i, 2] * m[2, 0]
+        t1 = h[k, i, 0] * m[0, 1] + h[k, i, 1] * m[1, 1] + h[k, i, 2] * m[2, 1]
+        t2 = h[k, i, 0] * m[0, 2] + h[k, i, 1] * m[1, 2] + h[k, i, 2] * m[2, 2]
+        for j in range(2):
+            out[i, j] = t0 * h[k, j, 0] + t1 * h[k, j, 1] + t2 * h[k, j, 2]
+    return out
+
+
+@njit
+def shared_gating_kernel(pose, a, b, mean, cov, tentative, spread, drift, r, z):
+    """(ẑ ``(K, 2)``, H_x ``(K, 2, 3)``, H_m Σ H_mᵀ ``(K, 2, 2)``, ν ``(m, K, 2)``, d² ``(m, K)``) of detections
+    ``z`` against landmarks (``mean``, ``cov``) seen from the robot's mean ``pose``: S = H_m Σ H_mᵀ + H_x P H_xᵀ +
+    R, plus H_x D H_xᵀ (drift) for the confirmed ones; (a, b) is the sensor's offset."""
+    count = mean.shape[0]
+    theta = pose[2]
+    c, s = math.cos(theta), math.sin(theta)
+    px, py = pose[0] + a * c - b * s, pose[1] + a * s + b * c
+    d_theta0, d_theta1 = -a * s - b * c, a * c - b * s
+    zhat = np.empty((count, 2))
+    h_x = np.empty((count, 2, 3))
+    own = np.empty((count, 2, 2))
+    s_inv = np.empty((count, 2, 2))
+    for k in range(count):
+        dx, dy = mean[k, 0] - px, mean[k, 1] - py
+        zhat[k, 0] = math.hypot(dx, dy)
+        zhat[k, 1] = _wrap(math.atan2(dy, dx) - theta)
+        q = max(dx * dx + dy * dy, 1e-18)
+        distance = math.sqrt(q)
+        h00, h01, h10, h11 = dx / distance, dy / distance, -dy / q, dx / q
+        h_x[k, 0, 0], h_x[k, 0, 1], h_x[k, 1, 0], h_x[k, 1, 1] = -h00, -h01, -h10, -h11
+        h_x[k, 0, 2] = -(h00 * d_theta0 + h01 * d_theta1)
+        h_x[k, 1, 2] = -(h10 * d_theta0 + h11 * d_theta1) - 1.0
+        m00, m01, m11 = cov[k, 0, 0], cov[k, 0, 1], cov[k, 1, 1]
+        t00, t01 = h00 * m00 + h01 * m01, h00 * m01 + h01 * m11
+        t10, t11 = h10 * m00 + h11 * m01, h10 * m01 + h11 * m11
+        own[k, 0, 0] = t00 * h00 + t01 * h01
+        own[k, 0, 1] = own[k, 1, 0] = t00 * h10 + t01 * h11
+        own[k, 1, 1] = t10 * h10 + t11 * h11
+        pose_part = _sandwich3(h_x, k, spread)
+        total = np.empty((2, 2))
+        for i in range(2):
+            for j in range(2):
+                total[i, j] = own[k, i, j] + pose_part[i, j] + r[i, j]
+        if not tentative[k]:
+            drift_part = _sandwich3(h_x, k, drift)
+            for i in range(2):
+                for j in range(2):
+                    total[i, j] += drift_part[i, j]
+        det = total[0, 0] * total[1, 1] - total[0, 1] * total[1, 0]
+        safe = det if abs(det) > 1e-300 else 1e-300
+        s_inv[k, 0, 0], s_inv[k, 0, 1] = total[1, 1] / safe, -total[0, 1] / safe
+        s_inv[k, 1, 0], s_inv[k, 1, 1] = -total[1, 0] / safe, total[0, 0] / safe
+    nu = np.empty((z.shape[0], count, 2))
+    d2 = np.empty((z.shape[0], count))
+    for i in range(z.shape[0]):
+        for k in range(count):
+            n0 = z[i, 0] - zhat[k, 0]
+            n1 = _wrap(z[i, 1] - zhat[k, 1])
+            nu[i, k, 0], nu[i, k, 1] = n0, n1
+            d2[i, k] = s_inv[k, 0, 0] * n0 * n0 + (s_inv[k, 0, 1] + s_inv[k, 1, 0]) * n0 * n1 + s_inv[k, 1, 1] * n1 * n1
+    return zhat, h_x, own, nu, d2
+
+
+def warm_up() -> None:
+    """Compile (or load from the cache) every FastSLAM kernel on tiny inputs."""
+    from central.fastslam.landmarks import LandmarkMap
+    from robots.models import RangeBearingSensor
+
+    landmarks = LandmarkMap(2, 2)
+    landmarks.cov[:] = np.eye(2)
+    landmarks.mean[:, :, 0] = 3.0
+    pose = np.zeros((2, 1, 3))[:, 0]  # a robot's poses are a strided view of the (P, R, 3) particle poses
+    known_update(landmarks, RangeBearingSensor(), pose, np.array([0]), np.array([[3.0, 0.0]]), np.eye(2) * 0.01, 1.0, 6.0)
+    for model in (UnicycleModel(), AckermannModel()):
+        integrate_controls(model, np.array([[1.0, 0.1]]), np.array([0.1]), np.eye(2)[None] * 0.01)
+    weights = np.full(2, 0.5)
+    weighted_pose(pose, weights, None)
+    weighted_pose(pose, weights, (np.zeros(3), np.eye(3)))
+    keep, mean, cov = marginal_map_kernel(weights, landmarks.mean, landmarks.cov, np.array([0, 1]), np.zeros(2), 10.0)
+    shared_gating_kernel(np.zeros(3), 0.0, 0.0, mean, cov, np.zeros(keep.size, np.bool_), np.eye(3), np.eye(3),
+                         np.eye(2), np.array([[3.0, 0.0]]))
+
+
+__all__ = ["AVAILABLE", "integrate_controls", "known_update", "marginal_map_kernel", "shared_gating_kernel", "warm_up",
+           "weighted_pose"]

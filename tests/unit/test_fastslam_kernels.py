@@ -1,0 +1,160 @@
+"""The compiled FastSLAM kernels against their numpy references, on seeded inputs and on whole seeded runs."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from central.fastslam import kernels, landmarks, resampling, shared
+from central.fastslam.config import FastSlamConfig
+from central.fastslam.core import FastSlam
+from robots.models import AckermannModel, RangeBearingSensor, UnicycleModel, integrate_controls, se2_compose
+from robots.simulator import simulate
+from schemas.contract import OdomEvent, ScanEvent
+
+
+def feed(estimator, dataset):
+    for event in dataset.events():
+        if isinstance(event, OdomEvent):
+            estimator.on_odometry(event)
+        elif isinstance(event, ScanEvent):
+            estimator.on_scan(event)
+
+
+def random_map(seed: int, particles: int = 40, slots: int = 12) -> landmarks.LandmarkMap:
+    rng = np.random.default_rng(seed)
+    lmap = landmarks.LandmarkMap(particles, slots)
+    lmap.mean[:] = rng.uniform(-8.0, 8.0, (1, slots, 2)) + rng.normal(0.0, 0.3, (particles, slots, 2))
+    root = rng.normal(0.0, 0.3, (particles, slots, 2, 2))
+    lmap.cov[:] = root @ np.swapaxes(root, -1, -2) + 0.01 * np.eye(2)
+    lmap.exist[:] = rng.uniform(0.0, 6.0, (particles, slots))
+    lmap.hits[:] = rng.integers(1, 9, (particles, slots))
+    lmap.valid[:] = True
+    lmap.used[:] = slots
+    return lmap
+
+
+def test_kernels_are_compiled():
+    assert kernels.AVAILABLE  # numba is a declared dependency
+    assert hasattr(kernels.known_update_kernel, "signatures")
+
+
+@pytest.mark.parametrize("seed, offset", [(0, (0.0, 0.0)), (1, (0.4, -0.2)), (2, (1.2, 0.3))])
+def test_known_update_kernel_gives_the_reference_update(seed, offset):
+    rng = np.random.default_rng(seed)
+    sensor = RangeBearingSensor(offset)
+    reference, compiled = random_map(seed), random_map(seed)
+    poses = np.zeros((40, 2, 3))  # a robot's poses are a strided view, as in the filter
+    poses[:, 1] = rng.normal([0.5, -0.5, 2.0], [0.3, 0.3, 0.2], (40, 3))
+    pose = poses[:, 1]
+    slots = np.array([3, 7, 0, 11])
+    truth = reference.mean[0, slots] + rng.normal(0.0, 0.5, (4, 2))
+    z = sensor.observe(pose[0], truth) + rng.normal(0.0, [0.05, 0.02], (4, 2))
+    r = np.array([[0.04, 0.001], [0.001, 0.003]])
+    n, m = pose.shape[0], slots.size
+    p = np.repeat(np.arange(n), m)
+    slot = np.tile(slots, n)
+    terms = landmarks.predict(reference, sensor, pose[p], p, slot, r)
+    expected = landmarks.update(reference, sensor, p, np.tile(z, (n, 1)), slot, terms, 1.0, 6.0).reshape(n, m)
+    got = kernels.known_update(compiled, sensor, pose, slots, z, r, 1.0, 6.0)
+    assert np.ptp(expected) > 1.0  # the particles disagree: agreement is not trivial
+    np.testing.assert_allclose(got, expected, rtol=1e-10, atol=1e-10)
+    for name in ("mean", "cov", "exist"):
+        np.testing.assert_allclose(getattr(compiled, name), getattr(reference, name), rtol=1e-10, atol=1e-12)
+    np.testing.assert_array_equal(compiled.hits, reference.hits)
+    assert not np.allclose(compiled.mean, random_map(seed).mean)  # the update did move the landmarks
+
+
+@pytest.mark.parametrize("model, steer", [(UnicycleModel(), 0.8), (AckermannModel(2.83, 0.76), 0.3)])
+@pytest.mark.parametrize("seed", [0, 1])
+def test_integrate_controls_kernel_gives_the_reference_motion(model, steer, seed):
+    rng = np.random.default_rng(seed)
+    count = 17
+    controls = np.column_stack([rng.uniform(0.0, 4.0, count), rng.uniform(-steer, steer, count)])
+    controls[3, 1] = 1e-7  # straight: the series branch of sin(h)/h
+    dts = rng.uniform(0.01, 0.2, count)
+    root = rng.normal(0.0, 0.1, (count, 2, 2))
+    covs = root @ np.swapaxes(root, -1, -2)
+    expected = integrate_controls(model, controls, dts, covs)
+    got = kernels.integrate_controls(model, controls, dts, covs)
+    assert np.linalg.norm(expected[0][:2]) > 1.0
+    np.testing.assert_allclose(got[0], expected[0], rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(got[1], expected[1], rtol=1e-10, atol=1e-14)
+
+
+@pytest.mark.parametrize("moved", [False, True])
+def test_weighted_pose_kernel_gives_the_reference_moments(moved):
+    rng = np.random.default_rng(3)
+    pose = rng.normal([1.0, 2.0, 3.1], [0.5, 0.5, 0.1], (50, 3))  # headings across ±π
+    w = rng.uniform(0.0, 1.0, 50)
+    w /= w.sum()
+    delta = np.array([0.8, -0.1, 0.2])
+    root = rng.normal(0.0, 0.1, (3, 3))
+    delta_cov = root @ root.T
+    got = kernels.weighted_pose(pose, w, (delta, delta_cov) if moved else None)
+    if moved:
+        rotation = np.zeros((50, 3, 3))
+        rotation[:, 0, 0] = rotation[:, 1, 1] = np.cos(pose[:, 2])
+        rotation[:, 1, 0], rotation[:, 0, 1] = np.sin(pose[:, 2]), -np.sin(pose[:, 2])
+        rotation[:, 2, 2] = 1.0
+        extra = np.einsum("p,pij,jk,plk->il", w, rotation, delta_cov, rotation)
+        mean, cov = resampling.weighted_pose(se2_compose(pose, delta), w)
+        cov = cov + extra
+    else:
+        mean, cov = resampling.weighted_pose(pose, w)
+    np.testing.assert_allclose(got[0], mean, atol=1e-12)
+    np.testing.assert_allclose(got[1], 0.5 * (cov + cov.T), atol=1e-12)
+
+
+def test_marginal_map_and_gating_kernels_give_the_reference_on_a_run():
+    """A shared-association filter part way through a run: the landmark mixtures near a point and the gating of a
+    scan against them, by kernel and by reference."""
+    data = simulate("arena", robots=2, seed=1, duration=10.0)
+    slam = FastSlam(FastSlamConfig(particles=20, association="shared", seed=0), [log.info for log in data.robots.values()])
+    feed(slam, data)
+    point = slam.map.mean[0, 0] + 0.3
+    results = {}
+    for compiled in (True, False):
+        slam.config = slam.config.model_copy(update={"compiled": compiled})
+        results[compiled] = shared.marginal_map(slam, (point, 4.0))
+    assert 0 < results[True][0].size < len(slam.known_slots)
+    for got, expected in zip(results[True], results[False]):
+        np.testing.assert_allclose(got, expected, rtol=1e-10, atol=1e-12)
+    robot = slam.robots["r1"]
+    _, _, mean, cov = results[True]
+    rng = np.random.default_rng(0)
+    tentative = rng.random(mean.shape[0]) < 0.3
+    pose, spread, drift = np.array([point[0] - 1.0, point[1], 0.4]), np.diag([0.1, 0.2, 0.05]), np.diag([0.3, 0.3, 0.01])
+    z = np.column_stack([rng.uniform(0.5, 5.0, 5), rng.uniform(-3.0, 3.0, 5)])
+    r = np.diag([0.01, 0.002])
+    gating = {}
+    for compiled in (True, False):
+        slam.config = slam.config.model_copy(update={"compiled": compiled})
+        gating[compiled] = shared._gating(slam, robot, pose, mean, cov, tentative, spread, drift, r, z)
+    assert np.ptp(gating[False][4]) > 10.0
+    for got, expected in zip(gating[True], gating[False]):
+        np.testing.assert_allclose(got, expected, rtol=1e-10, atol=1e-12)
+
+
+@pytest.mark.parametrize("association", ["known", "shared"])
+def test_whole_run_with_kernels_matches_the_reference(association):
+    """Every kernel in the loop: a seeded noisy run gives the reference's poses and map (the random draws are the
+    same, so only rounding may differ). Unicycle robots: with a rank-deficient motion covariance (a car standing
+    still) a rounding difference can switch the square root of the draw from Cholesky to eigenvectors, another
+    valid draw; the Ackermann integration is compared on its own above."""
+    data = simulate("arena", robots=2, seed=3, duration=25.0, clutter_rate=0.5)
+    infos = [log.info for log in data.robots.values()]
+    runs = {}
+    for compiled in (True, False):
+        slam = FastSlam(FastSlamConfig(particles=30, association=association, seed=4, compiled=compiled), infos)
+        feed(slam, data)
+        runs[compiled] = slam
+    assert runs[False].counts["resamples"] > 0 and runs[False].counts["detections"] > 100
+    np.testing.assert_allclose(runs[True].pose, runs[False].pose, atol=1e-8)
+    np.testing.assert_allclose(runs[True].logw, runs[False].logw, atol=1e-6)
+    got, expected = runs[True].landmark_map(), runs[False].landmark_map()
+    assert len(expected.means) > 5
+    np.testing.assert_allclose(got.means, expected.means, atol=1e-8)
+    for rid, (pose, cov) in runs[False].poses().items():
+        np.testing.assert_allclose(runs[True].poses()[rid][0], pose, atol=1e-8)
+        np.testing.assert_allclose(runs[True].poses()[rid][1], cov, atol=1e-10)
