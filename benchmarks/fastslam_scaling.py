@@ -2,14 +2,15 @@
 
 Paper 001 (Nieto, Guivant, Nebot, Thrun, "Real Time Data Association for FastSLAM") claims an update in time
 logarithmic in the number of landmarks, from per-particle maps that share unchanged landmarks in a tree.
-This measures ours. The world of :mod:`support.grid_world` (N landmarks on a 3 m grid, a 180° / 5 m sensor,
+This measures ours (known and shared association: :class:`central.fastslam.aligned_map.AlignedMap`, copy-on-write
+blocks). The world of :mod:`support.grid_world` (N landmarks on a 3 m grid, a 180° / 5 m sensor,
 about 8 landmarks per scan) is put whole into every particle's map first (the truth plus the sensor's
-noise, as if mapped), then a robot with a known start drives a 4 m circle in the middle of it, with its
+noise, as if mapped, the same in every particle), then a robot with a known start drives a 4 m circle in the middle of it, with its
 scans' ids (``--association known``: the association's own cost is measured elsewhere) or without
 (``--association unknown``), and every scan is timed (wall and CPU) after a first lap of warm-up.
 
-Reported per N: time per scan (median, mean, p90, max), the bytes of the particles' landmark arrays, the
-process RSS, the ratio of each figure to the previous decade's (target ≤ 1.5) and the exponents of power
+Reported per N: time per scan (median, mean, p90, max), the bytes of the particles' landmark arrays (pool,
+block tables, per-slot data) and the blocks in use, the process RSS, the ratio of each figure to the previous decade's (target ≤ 1.5) and the exponents of power
 laws fitted against N.
 
     .venv/bin/python benchmarks/fastslam_scaling.py [--sizes 1000,10000,100000] [--association known]
@@ -36,19 +37,19 @@ LANDMARK_STD = 0.05  # m: the prior every landmark enters the particles' maps wi
 
 
 def prefilled(world: GridWorld, particles: int, association: str, seed: int) -> FastSlam:
-    """A filter whose every particle already holds every landmark of the world (ids = grid indices)."""
+    """A filter whose every particle already holds every landmark of the world (ids = grid indices), the same
+    Gaussians in every particle: a map the particles agree on, as their lineages merge after many resamplings
+    (stored once, in blocks every particle shares)."""
     slam = FastSlam(FastSlamConfig(particles=particles, association=association, seed=seed),
                     [world.robot_info(world.circle_start())])
     rng = np.random.default_rng([seed, world.n])
     means = world.landmarks + rng.normal(0.0, LANDMARK_STD, world.landmarks.shape)
     ids = np.arange(world.n)
-    slam.map.reserve(world.n, compact=False)
-    particle = np.repeat(np.arange(particles), world.n)
-    slots = slam.map.append(particle, np.tile(means, (particles, 1)),
-                            np.tile(np.eye(2) * LANDMARK_STD**2, (particles * world.n, 1, 1)),
-                            slam.config.exist_max, np.tile(ids, particles))
-    slam.map.hits[:] = np.maximum(slam.map.hits, slam.config.confirm_hits)  # every landmark confirmed
-    slam.known_slots = dict(zip(ids.tolist(), slots[: world.n].tolist()))
+    slots = slam.map.allocate(world.n)
+    slam.map.write(slots, means, np.broadcast_to(np.eye(2) * LANDMARK_STD**2, (world.n, 2, 2)))
+    slam.map.exist[slots], slam.map.hits[slots] = slam.config.exist_max, slam.config.confirm_hits  # all confirmed
+    slam.map.label[slots], slam.map.valid[slots] = ids, True
+    slam.known_slots = dict(zip(ids.tolist(), slots.tolist()))
     slam.next_landmark_id = world.n
     return slam
 
@@ -72,7 +73,6 @@ def one_size(n: int, particles: int, association: str, scans: int, seed: int) ->
         detections.append(scan.ranges.size)
     steady = np.array(wall[SCANS_PER_LAP:]) * 1e3
     steady_cpu = np.array(cpu[SCANS_PER_LAP:]) * 1e3
-    arrays = sum(getattr(slam.map, name).nbytes for name in slam.map.EMPTY) + slam.map.used.nbytes
     pose, _ = slam.poses()["r1"]
     return {
         "landmarks": n, "particles": particles, "fill_s": round(fill_s, 3),
@@ -80,7 +80,8 @@ def one_size(n: int, particles: int, association: str, scans: int, seed: int) ->
                         "p90": float(np.percentile(steady, 90)), "max": float(np.max(steady)), "scans": int(steady.size)},
         "cpu_ms_per_scan_median": float(np.median(steady_cpu)),
         "detections_per_scan": float(np.mean(detections)),
-        "map_bytes": int(arrays), "map_capacity": int(slam.map.capacity), "rss_mb": round(rss_mb(), 1),
+        "map_bytes": slam.map.nbytes, "map_capacity": int(slam.map.capacity), "rss_mb": round(rss_mb(), 1),
+        "blocks_in_use": slam.map.blocks_in_use(), "block_slots": slam.map.block,
         "landmarks_in_map": int(len(slam.known_slots)),
         "final_pose_error_m": float(np.hypot(*(pose[:2] - truth[:2]))),
     }

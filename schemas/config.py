@@ -21,11 +21,11 @@ import types
 import typing
 from typing import Any, Literal, TypeVar
 
-from pydantic import Field, ValidationError
+from pydantic import Field, ValidationError, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict, SettingsError as EnvironmentParseError
 
 from central.fastslam.config import FastSlamConfig
-from schemas.contract import C, SettingsError, describe_validation_error
+from schemas.contract import C, SettingsError, describe_validation_error, resolve_association
 from services.dslam.config import DslamConfig
 from services.mcl.config import MclConfig
 
@@ -236,6 +236,13 @@ class DslamSettings(FleetSettings, DslamConfig):
     assoc_retry_s: float = Field(5.0, ge=0, description="after a failed query, associate in-process this long before asking again (s)")
     map_period_s: float = Field(1.0, gt=0, description="period of the map publication (s)")
 
+    @field_validator("association", mode="before")
+    @classmethod
+    def _unknown_is_recommended(cls, value):
+        """``unknown``: D-SLAM's recommended association without landmark ids, as for ``fleetslam run``."""
+        return resolve_association("dslam", value) if isinstance(value, str) else value
+
+
 class RunSettings(ProcessSettings):
     """``fleetslam run``: feed a data set straight into an estimator (no Zenoh) and score it."""
 
@@ -317,3 +324,9 @@ class CentralSettings(FleetSettings, FastSlamConfig):
         "start_pose", description="a robot whose first odometry was missed: keep its announced start pose, "
         "or wait for MCL to place it")
     duration: float | None = Field(None, gt=0, description="stop after this many seconds (default: until SIGINT/SIGTERM)")
+
+    @field_validator("association", mode="before")
+    @classmethod
+    def _unknown_is_recommended(cls, value):
+        """``unknown``: FastSLAM's recommended association without landmark ids, as for ``fleetslam run``."""
+        return resolve_association("fastslam", value) if isinstance(value, str) else value

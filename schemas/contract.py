@@ -158,6 +158,21 @@ class RunOptions:
 
 
 # ---------------------------------------------------------------- configuration
+UNKNOWN_ASSOCIATION: dict[str, str] = {
+    "odometry": "unknown",
+    "ekf": "jcbb",
+    "fastslam": "shared",
+    "dslam": "auto",
+    "mcl": "unknown",
+}
+"""What ``--association unknown`` means for each estimator: its recommended method when scans carry no ids."""
+
+
+def resolve_association(estimator: str, association: str) -> str:
+    """The association an estimator runs: ``unknown`` becomes the estimator's recommended method without ids."""
+    return UNKNOWN_ASSOCIATION.get(estimator, association) if association == "unknown" else association
+
+
 class SettingsError(ValueError):
     """A setting that does not exist or has a bad value; the message is one line naming it."""
 

@@ -11,7 +11,7 @@ from dataclasses import replace
 from typing import Callable
 
 from central.fastslam.core import make_estimator as make_fastslam
-from schemas.contract import Estimator, RunOptions
+from schemas.contract import UNKNOWN_ASSOCIATION, Estimator, RunOptions, resolve_association
 from schemas.messages import RobotInfo
 from services.baselines.dead_reckoning import make_estimator as make_dead_reckoning
 from services.baselines.ekf_slam import make_estimator as make_ekf_slam
@@ -29,21 +29,6 @@ ESTIMATORS: dict[str, Factory] = {
 }
 
 
-UNKNOWN_ASSOCIATION: dict[str, str] = {
-    "odometry": "unknown",
-    "ekf": "jcbb",
-    "fastslam": "shared",
-    "dslam": "auto",
-    "mcl": "unknown",
-}
-"""What ``--association unknown`` means for each estimator: its recommended method when scans carry no ids."""
-
-
-def resolve_association(estimator: str, association: str) -> str:
-    """The association an estimator runs: ``unknown`` becomes the estimator's recommended method without ids."""
-    return UNKNOWN_ASSOCIATION.get(estimator, association) if association == "unknown" else association
-
-
 def make_estimator(options: RunOptions, infos: list[RobotInfo]) -> Estimator:
     """Build the estimator ``options.estimator`` for the robots ``infos`` (ValueError naming the choices)."""
     try:
@@ -51,3 +36,6 @@ def make_estimator(options: RunOptions, infos: list[RobotInfo]) -> Estimator:
     except KeyError:
         raise ValueError(f"unknown estimator {options.estimator!r}; choose from {', '.join(ESTIMATORS)}") from None
     return factory(replace(options, association=resolve_association(options.estimator, options.association)), infos)
+
+
+__all__ = ["ESTIMATORS", "UNKNOWN_ASSOCIATION", "make_estimator", "resolve_association"]

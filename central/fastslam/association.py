@@ -30,7 +30,7 @@ import numpy as np
 
 from central.fastslam import evidence, kernels, landmarks, resampling, shared
 from central.fastslam.lifecycle import RobotState
-from robots.gaussian import LOG_2PI, inv2, quad2
+from robots.gaussian import LOG_2PI, inv2, quad2, sandwich2
 from robots.models import wrap_angle
 
 if TYPE_CHECKING:
@@ -98,35 +98,52 @@ def update_known(slam: FastSlam, robot: RobotState, z, r, ids, weigh: bool) -> N
     first = np.searchsorted(ids[order], ids[order])
     occurrence = np.empty(ids.size, np.int64)
     occurrence[order] = np.arange(ids.size) - first
-    n = slam.pose.shape[0]
     for k in range(int(occurrence.max()) + 1):  # a landmark seen twice in one scan: one update per round
         zk, idk = z[occurrence == k], ids[occurrence == k]
         known = np.array([int(i) in slam.known_slots for i in idk], bool)
         if known.any():
-            slots = np.array([slam.known_slots[int(i)] for i in idk[known]])
-            m = slots.size
-            counted = np.ones(m, bool) if slam.config.association == "known" else shared.confirmed(slam, idk[known])
+            slots = np.array([slam.known_slots[int(i)] for i in idk[known]], np.int64)
+            counted = np.ones(slots.size, bool) if slam.config.association == "known" else shared.confirmed(slam, idk[known])
             if slam.config.compiled:
                 ll = kernels.known_update(slam.map, robot.sensor, slam.pose[:, robot.index], slots, zk[known], r,
                                           slam.config.exist_hit, slam.config.exist_max)
             else:
-                p = np.repeat(np.arange(n), m)
-                slot = np.tile(slots, n)
-                terms = landmarks.predict(slam.map, robot.sensor, slam.pose[p, robot.index], p, slot, r)
-                ll = update(slam, robot, p, np.tile(zk[known], (n, 1)), slot, terms).reshape(n, m)
+                ll = known_update_reference(slam, robot, slots, zk[known], r)
             if weigh and counted.any():
                 slam.logw += ll[:, counted].sum(1)
         if (~known).any():
-            fresh_ids, fresh_z = idk[~known], zk[~known]
-            if int(slam.map.used[0]) + fresh_ids.size > slam.map.capacity:  # full: free the dropped slots first
-                new_of = slam.map.compact_aligned()
-                slam.known_slots = {lid: int(new_of[slot]) for lid, slot in slam.known_slots.items()}
-            slam.map.reserve(fresh_ids.size, compact=False)
-            base = int(slam.map.used[0])
-            for j, lid in enumerate(fresh_ids):
-                slam.known_slots[int(lid)] = base + j
-            p = np.repeat(np.arange(n), fresh_ids.size)
-            create(slam, robot, p, np.tile(fresh_z, (n, 1)), r, np.tile(fresh_ids, n))
+            create_known(slam, robot, zk[~known], r, idk[~known])
+
+
+def known_update_reference(slam: FastSlam, robot: RobotState, slots: np.ndarray, z: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """The numpy reference of :func:`central.fastslam.kernels.known_update`: the slots copied out of every particle
+    into a dense :class:`~central.fastslam.landmarks.LandmarkMap`, updated there, written back; log N ``(P, m)``."""
+    n, m = slam.pose.shape[0], slots.size
+    scratch = landmarks.LandmarkMap(n, m)
+    scratch.mean[:], scratch.cov[:] = slam.map.gather(np.arange(n)[:, None], slots[None])
+    scratch.exist[:], scratch.hits[:] = slam.map.exist[slots], slam.map.hits[slots]
+    p, slot = np.repeat(np.arange(n), m), np.tile(np.arange(m), n)
+    terms = landmarks.predict(scratch, robot.sensor, slam.pose[p, robot.index], p, slot, r)
+    ll = landmarks.update(scratch, robot.sensor, p, np.tile(z, (n, 1)), slot, terms, slam.config.exist_hit,
+                          slam.config.exist_max)
+    slam.map.write(slots, scratch.mean, scratch.cov)
+    slam.map.exist[slots], slam.map.hits[slots] = scratch.exist[0], scratch.hits[0]
+    return ll.reshape(n, m)
+
+
+def create_known(slam: FastSlam, robot: RobotState, z: np.ndarray, r: np.ndarray, ids: np.ndarray) -> None:
+    """New landmarks ``ids`` (not in the map) where detections ``z`` ``(m, 2)`` put them, in every particle: one slot
+    each, the same in all particles, the sensor noise ``r`` carried into the map."""
+    slots = slam.map.allocate(ids.size)
+    for lid, slot in zip(ids.tolist(), slots.tolist()):
+        slam.known_slots[int(lid)] = int(slot)
+    pose = slam.pose[:, robot.index][:, None, :]
+    mean = robot.sensor.inverse(pose, z[None])
+    _, g = robot.sensor.inverse_jacobians(pose, z[None])
+    slam.map.write(slots, mean, sandwich2(g, r))
+    slam.map.exist[slots], slam.map.hits[slots] = slam.config.exist_init, 1
+    slam.map.label[slots], slam.map.valid[slots] = ids, True
+    slam.counts["landmarks_created"] += slam.pose.shape[0] * ids.size
 
 
 # ------------------------------------------------------------------ candidates and scoring

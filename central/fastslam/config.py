@@ -18,7 +18,8 @@ class FastSlamConfig(CoreConfig):
     particles: int = Field(100, ge=1, le=100_000, description="particles of the filter")
     association: Literal["known", "shared", "nn", "mht"] = Field(
         "shared", description="known (scan ids), shared (one JCBB assignment per scan on the marginal map, for "
-        "every particle), nn (per particle: maximum likelihood, gated) or mht (per particle: paper 001's n+2 split)")
+        "every particle), nn (per particle: maximum likelihood, gated) or mht (per particle: paper 001's n+2 split); "
+        "the service and fleetslam run also take unknown: the recommended method without ids (shared)")
     seed: int = Field(0, description="seed of every random draw of the filter")
     proposal: Literal["fastslam1", "fastslam2"] = Field(
         "fastslam1", description="fastslam1: sample from the motion model; fastslam2: fold the scan into the proposal")

@@ -13,7 +13,10 @@ functions that take it explicitly, one module per concern:
 - :mod:`~central.fastslam.evidence`: negative evidence, landmark existence, merging duplicates;
 - :mod:`~central.fastslam.robot_detections`: robot-to-robot detections (``robot_detections``);
 - :mod:`~central.fastslam.resampling`: weights, effective sample size, resampling;
-- :mod:`~central.fastslam.landmarks`: every particle's landmark map and its EKF.
+- :mod:`~central.fastslam.landmarks`: every particle's landmark map and its EKF (per-particle association);
+- :mod:`~central.fastslam.aligned_map`: the landmark map of known and shared association, in copy-on-write blocks
+  that particles share;
+- :mod:`~central.fastslam.kernels`: the numba kernels of the per-scan work (``compiled``; numpy references kept).
 """
 
 from __future__ import annotations
@@ -25,6 +28,7 @@ from scipy.stats import chi2
 
 from central.fastslam import association, kernels, lifecycle, motion, proposal, resampling, robot_detections, shared
 from central.fastslam.config import FastSlamConfig
+from central.fastslam.aligned_map import AlignedMap
 from central.fastslam.landmarks import LandmarkMap
 from central.fastslam.lifecycle import RobotState
 from robots.gaussian import sandwich, valid_cov2
@@ -37,7 +41,8 @@ class FastSlam:
     """The central filter: robots in and out, ``on_odometry``, ``on_scan``, ``poses``, ``landmark_map``.
 
     State: ``pose`` ``(P, R, 3)`` (every particle's pose of every placed robot), ``logw`` ``(P,)``
-    (log-weights), ``map`` (:class:`LandmarkMap`), ``robots`` (placed, by id) and ``waiting`` (known, no
+    (log-weights), ``map`` (:class:`AlignedMap` with known or shared association, else :class:`LandmarkMap`),
+    ``robots`` (placed, by id) and ``waiting`` (known, no
     pose yet), ``known_slots`` (known association: landmark id → map slot), and the counters ``counts`` and
     ``rejected``. Bad input (wrong shapes, NaN, negative ranges, time going backwards, robots never
     announced or not yet placed) is counted in ``rejected`` and leaves the state untouched.
@@ -49,7 +54,7 @@ class FastSlam:
         n = config.particles
         self.pose = np.zeros((n, 0, 3))
         self.logw = np.zeros(n)
-        self.map = LandmarkMap(n)
+        self.map = AlignedMap(n) if config.association in ("known", "shared") else LandmarkMap(n)
         self.robots: dict[str, RobotState] = {}
         self.waiting: dict[str, RobotInfo] = {}
         self.known_slots: dict[int, int] = {}
@@ -195,7 +200,7 @@ class FastSlam:
         if self.config.association in ("known", "shared"):
             ids, slots, mean, cov = shared.marginal_map(self)
             if self.config.association == "shared":
-                keep = self.map.hits[0, slots] >= self.config.confirm_hits
+                keep = self.map.hits[slots] >= self.config.confirm_hits
                 return MapView(mean[keep], cov[keep], None)
             return MapView(mean, cov, ids) if ids.size else MapView.empty(with_ids=True)
         p = self.best_particle()

@@ -12,7 +12,8 @@ arrays of a few hundred 2 × 2 blocks, more than the arithmetic. Each kernel doe
   (:func:`robots.models.integrate_controls`, unicycle and Ackermann models);
 - :func:`weighted_pose`: a robot's particle-weighted mean and covariance, with its pending motion
   (:meth:`central.fastslam.core.FastSlam.poses`);
-- :func:`marginal_map_kernel`: the landmarks' particle mixtures near the robot (:func:`central.fastslam.shared.marginal_map`);
+- :func:`private_blocks`: copy on write of the blocks of :class:`central.fastslam.aligned_map.AlignedMap`;
+- :func:`marginal_map`: the landmarks' particle mixtures near the robot (:func:`central.fastslam.shared.marginal_map`);
 - :func:`shared_gating_kernel`: the predicted detections, Jacobians and gating distances of a scan against those
   mixtures (:func:`central.fastslam.shared.associate`).
 
@@ -38,24 +39,28 @@ def _wrap(angle):
 
 
 @njit
-def known_update_kernel(mean, cov, exist, hits, pose, a, b, slots, z, r, exist_hit, exist_max, log_likelihood):
-    """EKF update of landmark ``slots[j]`` by detection ``z[j]`` in every particle (in place); ``log_likelihood``
-    ``(P, m)`` gets log N(ν; 0, S), S = H Σ Hᵀ + R, with H the Jacobian at the prior landmark estimate; (a, b)
-    is the sensor's offset on the robot."""
+def known_update_kernel(pool_mean, pool_cov, table, block, exist, hits, pose, a, b, slots, z, r, exist_hit,
+                        exist_max, log_likelihood):
+    """EKF update of landmark ``slots[j]`` by detection ``z[j]`` in every particle (in place, in the blocks the
+    particles' ``table`` names: they must be private, :meth:`AlignedMap.private`); ``log_likelihood`` ``(P, m)``
+    gets log N(ν; 0, S), S = H Σ Hᵀ + R, with H the Jacobian at the prior landmark estimate; (a, b) is the
+    sensor's offset on the robot. Hit counts and existence scores are per slot, counted once."""
     for p in range(pose.shape[0]):
         theta = pose[p, 2]
         c, s = math.cos(theta), math.sin(theta)
         px = pose[p, 0] + a * c - b * s
         py = pose[p, 1] + a * s + b * c
         for j in range(slots.shape[0]):
-            k = slots[j]
-            dx, dy = mean[p, k, 0] - px, mean[p, k, 1] - py
+            mean = pool_mean[table[p, slots[j] // block]]
+            cov = pool_cov[table[p, slots[j] // block]]
+            k = slots[j] % block
+            dx, dy = mean[k, 0] - px, mean[k, 1] - py
             q = dx * dx + dy * dy
             distance = math.sqrt(q)
             q = max(q, 1e-18)
             rs = max(distance, 1e-9)
             h00, h01, h10, h11 = dx / rs, dy / rs, -dy / q, dx / q
-            m00, m01, m10, m11 = cov[p, k, 0, 0], cov[p, k, 0, 1], cov[p, k, 1, 0], cov[p, k, 1, 1]
+            m00, m01, m10, m11 = cov[k, 0, 0], cov[k, 0, 1], cov[k, 1, 0], cov[k, 1, 1]
             t00, t01 = h00 * m00 + h01 * m01, h00 * m01 + h01 * m11
             t10, t11 = h10 * m00 + h11 * m01, h10 * m01 + h11 * m11
             cross = t00 * h10 + t01 * h11
@@ -72,29 +77,54 @@ def known_update_kernel(mean, cov, exist, hits, pose, a, b, slots, z, r, exist_h
             u10, u11 = m10 * h00 + m11 * h01, m10 * h10 + m11 * h11
             g00, g01 = u00 * i00 + u01 * i10, u00 * i01 + u01 * i11  # K = Σ Hᵀ S⁻¹
             g10, g11 = u10 * i00 + u11 * i10, u10 * i01 + u11 * i11
-            mean[p, k, 0] += g00 * n0 + g01 * n1
-            mean[p, k, 1] += g10 * n0 + g11 * n1
+            mean[k, 0] += g00 * n0 + g01 * n1
+            mean[k, 1] += g10 * n0 + g11 * n1
             v00, v01 = g00 * s00 + g01 * s01, g00 * s01 + g01 * s11  # K S Kᵀ (S symmetric)
             v10, v11 = g10 * s00 + g11 * s01, g10 * s01 + g11 * s11
             shared = v00 * g10 + v01 * g11
-            cov[p, k, 0, 0] = m00 - (v00 * g00 + v01 * g01)
-            cov[p, k, 0, 1] = m01 - shared
-            cov[p, k, 1, 0] = m10 - shared
-            cov[p, k, 1, 1] = m11 - (v10 * g10 + v11 * g11)
-            exist[p, k] = min(exist[p, k] + exist_hit, exist_max)
-            hits[p, k] += 1
+            cov[k, 0, 0] = m00 - (v00 * g00 + v01 * g01)
+            cov[k, 0, 1] = m01 - shared
+            cov[k, 1, 0] = m10 - shared
+            cov[k, 1, 1] = m11 - (v10 * g10 + v11 * g11)
             d2 = i00 * n0 * n0 + (i01 + i10) * n0 * n1 + i11 * n1 * n1
             log_likelihood[p, j] = -0.5 * d2 - 0.5 * math.log(max(det, 1e-300)) - LOG_2PI
+    for j in range(slots.shape[0]):
+        exist[slots[j]] = min(exist[slots[j]] + exist_hit, exist_max)
+        hits[slots[j]] += 1
 
 
 def known_update(landmarks, sensor, pose: np.ndarray, slots: np.ndarray, z: np.ndarray, r: np.ndarray,
                  exist_hit: float, exist_max: float) -> np.ndarray:
-    """Update landmarks ``slots`` ``(m,)`` of every particle by detections ``z`` ``(m, 2)`` seen from ``pose``
-    ``(P, 3)``; returns log N(ν; 0, S) ``(P, m)``."""
+    """Update landmarks ``slots`` ``(m,)`` (distinct) of every particle of an :class:`AlignedMap` by detections ``z``
+    ``(m, 2)`` seen from ``pose`` ``(P, 3)``; returns log N(ν; 0, S) ``(P, m)``."""
+    landmarks.private(slots)
     out = np.empty((pose.shape[0], slots.shape[0]))
-    known_update_kernel(landmarks.mean, landmarks.cov, landmarks.exist, landmarks.hits, pose, sensor.offset[0],
-                        sensor.offset[1], slots, z, r, exist_hit, exist_max, out)
+    known_update_kernel(landmarks.pool_mean, landmarks.pool_cov, landmarks.table, landmarks.block, landmarks.exist,
+                        landmarks.hits, pose, sensor.offset[0], sensor.offset[1], slots, z, r, exist_hit, exist_max, out)
     return out
+
+
+@njit
+def private_blocks(table, blocks, refs, pool_mean, pool_cov, free_blocks, free_count):
+    """Copy on write: each particle's block ``b`` in ``blocks`` that other particles share (or that is not written
+    yet) becomes a block of its own, taken from ``free_blocks`` (enough must be free). The last particle holding
+    a shared block keeps it."""
+    for p in range(table.shape[0]):
+        for b in blocks:
+            phys = table[p, b]
+            if phys >= 0 and refs[phys] == 1:
+                continue
+            free_count[0] -= 1
+            fresh = free_blocks[free_count[0]]
+            if phys < 0:
+                pool_mean[fresh] = 0.0
+                pool_cov[fresh] = 0.0
+            else:
+                pool_mean[fresh] = pool_mean[phys]
+                pool_cov[fresh] = pool_cov[phys]
+                refs[phys] -= 1
+            refs[fresh] = 1
+            table[p, b] = fresh
 
 
 @njit
@@ -235,17 +265,48 @@ def weighted_pose(pose: np.ndarray, w: np.ndarray, pending: tuple[np.ndarray, np
 
 
 @njit
-def marginal_map_kernel(w, mean, cov, slots, point, radius):
+def _block_weights(w, table, needed, pool_size):
+    """For each block ``b`` with ``needed[b]``: the distinct physical blocks the particles hold there
+    (``phys[b, :count[b]]``) and the summed weight of the particles holding each (``weight[b, :count[b]]``)."""
+    particles, blocks = table.shape
+    phys = np.empty((blocks, particles), np.int64)
+    weight = np.zeros((blocks, particles))
+    count = np.zeros(blocks, np.int64)
+    position = np.full(pool_size, -1, np.int64)
+    for b in range(blocks):
+        if not needed[b]:
+            continue
+        for p in range(particles):
+            held = table[p, b]
+            j = position[held]
+            if j < 0:
+                j = count[b]
+                count[b] += 1
+                position[held] = j
+                phys[b, j] = held
+            weight[b, j] += w[p]
+        for j in range(count[b]):
+            position[phys[b, j]] = -1
+    return phys, weight, count
+
+
+@njit
+def marginal_map_kernel(w, pool_mean, pool_cov, table, block, slots, point, radius):
     """(kept rows of ``slots``, means ``(k, 2)``, covariances ``(k, 2, 2)``): the particle mixture of each
     landmark slot whose weighted mean lies within ``radius`` of ``point`` (the weighted covariances plus the
-    spread of the means)."""
+    spread of the means). Particles sharing a block share its Gaussians: each distinct block is read once, with
+    the summed weight of its holders, so the cost follows the blocks, not particles × landmarks."""
     count = slots.shape[0]
+    needed = np.zeros(table.shape[1], np.bool_)
+    for i in range(count):
+        needed[slots[i] // block] = True
+    phys, weight, holders = _block_weights(w, table, needed, pool_mean.shape[0])
     means = np.zeros((count, 2))
-    for p in range(w.shape[0]):
-        wp = w[p]
-        for i in range(count):
-            means[i, 0] += wp * mean[p, slots[i], 0]
-            means[i, 1] += wp * mean[p, slots[i], 1]
+    for i in range(count):
+        b, k = slots[i] // block, slots[i] % block
+        for j in range(holders[b]):
+            means[i, 0] += weight[b, j] * pool_mean[phys[b, j], k, 0]
+            means[i, 1] += weight[b, j] * pool_mean[phys[b, j], k, 1]
     keep = np.zeros(count, np.int64)
     kept = 0
     for i in range(count):
@@ -257,16 +318,22 @@ def marginal_map_kernel(w, mean, cov, slots, point, radius):
     out_cov = np.zeros((kept, 2, 2))
     for n in range(kept):
         out_mean[n] = means[keep[n]]
-    for p in range(w.shape[0]):
-        wp = w[p]
-        for n in range(kept):
-            slot = slots[keep[n]]
-            r0, r1 = mean[p, slot, 0] - out_mean[n, 0], mean[p, slot, 1] - out_mean[n, 1]
-            out_cov[n, 0, 0] += wp * (cov[p, slot, 0, 0] + r0 * r0)
-            out_cov[n, 0, 1] += wp * (cov[p, slot, 0, 1] + r0 * r1)
-            out_cov[n, 1, 0] += wp * (cov[p, slot, 1, 0] + r0 * r1)
-            out_cov[n, 1, 1] += wp * (cov[p, slot, 1, 1] + r1 * r1)
+        slot = slots[keep[n]]
+        b, k = slot // block, slot % block
+        for j in range(holders[b]):
+            wj, held = weight[b, j], phys[b, j]
+            r0, r1 = pool_mean[held, k, 0] - out_mean[n, 0], pool_mean[held, k, 1] - out_mean[n, 1]
+            out_cov[n, 0, 0] += wj * (pool_cov[held, k, 0, 0] + r0 * r0)
+            out_cov[n, 0, 1] += wj * (pool_cov[held, k, 0, 1] + r0 * r1)
+            out_cov[n, 1, 0] += wj * (pool_cov[held, k, 1, 0] + r0 * r1)
+            out_cov[n, 1, 1] += wj * (pool_cov[held, k, 1, 1] + r1 * r1)
     return keep, out_mean, out_cov
+
+
+def marginal_map(landmarks, w: np.ndarray, slots: np.ndarray, point: np.ndarray, radius: float) -> tuple:
+    """:func:`marginal_map_kernel` on an :class:`AlignedMap`."""
+    return marginal_map_kernel(w, landmarks.pool_mean, landmarks.pool_cov, landmarks.table, landmarks.block, slots,
+                               point, radius)
 
 
 @njit
@@ -339,23 +406,23 @@ def shared_gating_kernel(pose, a, b, mean, cov, tentative, spread, drift, r, z):
 
 def warm_up() -> None:
     """Compile (or load from the cache) every FastSLAM kernel on tiny inputs."""
-    from central.fastslam.landmarks import LandmarkMap
+    from central.fastslam.aligned_map import AlignedMap
     from robots.models import RangeBearingSensor
 
-    landmarks = LandmarkMap(2, 2)
-    landmarks.cov[:] = np.eye(2)
-    landmarks.mean[:, :, 0] = 3.0
+    landmarks = AlignedMap(2)
+    slots = landmarks.allocate(2)
+    landmarks.write(slots, np.array([[3.0, 0.0], [3.0, 1.0]]), np.broadcast_to(np.eye(2), (2, 2, 2)))
     pose = np.zeros((2, 1, 3))[:, 0]  # a robot's poses are a strided view of the (P, R, 3) particle poses
-    known_update(landmarks, RangeBearingSensor(), pose, np.array([0]), np.array([[3.0, 0.0]]), np.eye(2) * 0.01, 1.0, 6.0)
+    known_update(landmarks, RangeBearingSensor(), pose, slots[:1], np.array([[3.0, 0.0]]), np.eye(2) * 0.01, 1.0, 6.0)
     for model in (UnicycleModel(), AckermannModel()):
         integrate_controls(model, np.array([[1.0, 0.1]]), np.array([0.1]), np.eye(2)[None] * 0.01)
     weights = np.full(2, 0.5)
     weighted_pose(pose, weights, None)
     weighted_pose(pose, weights, (np.zeros(3), np.eye(3)))
-    keep, mean, cov = marginal_map_kernel(weights, landmarks.mean, landmarks.cov, np.array([0, 1]), np.zeros(2), 10.0)
+    keep, mean, cov = marginal_map(landmarks, weights, slots, np.zeros(2), 10.0)
     shared_gating_kernel(np.zeros(3), 0.0, 0.0, mean, cov, np.zeros(keep.size, np.bool_), np.eye(3), np.eye(3),
                          np.eye(2), np.array([[3.0, 0.0]]))
 
 
-__all__ = ["AVAILABLE", "integrate_controls", "known_update", "marginal_map_kernel", "shared_gating_kernel", "warm_up",
-           "weighted_pose"]
+__all__ = ["AVAILABLE", "integrate_controls", "known_update", "marginal_map", "private_blocks", "shared_gating_kernel",
+           "warm_up", "weighted_pose"]

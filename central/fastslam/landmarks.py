@@ -2,10 +2,12 @@
 
 Slot ``s`` of particle ``p`` holds a landmark iff ``valid[p, s]``. New
 landmarks of a particle go after its high-water mark ``used[p]``; deleted ones
-leave holes that :meth:`LandmarkMap.compact` squeezes out when room runs short
-(:meth:`LandmarkMap.compact_aligned` when every particle keeps a landmark id in
-one slot: known and shared association), and the capacity doubles when that is
-not enough (amortised O(1) growth).
+leave holes that :meth:`LandmarkMap.compact` squeezes out when room runs short,
+and the capacity doubles when that is not enough (amortised O(1) growth). This
+dense map serves per-particle association (nn, mht), where each particle has
+landmarks of its own; with known or shared association a landmark has one slot
+in every particle and :class:`central.fastslam.aligned_map.AlignedMap` shares
+unchanged blocks between particles instead.
 Resampling is a gather along the particle axis. The functions after the class
 are the EKF of a landmark seen from a pose: predicted detection, update, creation.
 """
@@ -81,21 +83,9 @@ class LandmarkMap:
         self.hits, self.label, self.valid = take(self.hits), take(self.label), take(self.valid)
         self.used = self.valid.sum(1).astype(np.int64)
 
-    def compact_aligned(self) -> np.ndarray:
-        """Squeeze out the slots no particle holds, by the same move in every particle (known or shared
-        association: a landmark id has one slot in all particles). Returns the new slot of each old slot
-        (−1: freed); the capacity stays."""
-        keep = np.flatnonzero(self.valid[:, : int(self.used.max(initial=0))].any(0))
-        new_of = np.full(self.capacity, -1, np.int64)
-        new_of[keep] = np.arange(keep.size)
-        for name, empty in self.EMPTY.items():
-            array = getattr(self, name)
-            out = np.empty_like(array)
-            out[:, : keep.size] = array[:, keep]
-            out[:, keep.size:] = empty
-            setattr(self, name, out)
-        self.used[:] = keep.size
-        return new_of
+    def gather(self, particle: np.ndarray, slot: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(means, covariances) of landmark ``slot`` of ``particle`` (broadcast index arrays)."""
+        return self.mean[particle, slot], self.cov[particle, slot]
 
     def select(self, index: np.ndarray) -> None:
         """Keep particles ``index`` (with repetition): the gather of resampling and of MHT splitting.

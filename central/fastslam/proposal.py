@@ -46,7 +46,7 @@ def propose(slam: FastSlam, robot: RobotState, z, r, ids) -> bool:
         return False
     m = z.shape[0]
     pose = slam.pose[p, col]
-    mu, sig = slam.map.mean[p, slot], slam.map.cov[p, slot]
+    mu, sig = slam.map.gather(p, slot)
     zhat = robot.sensor.observe(pose, mu)
     h_x, h_m = robot.sensor.jacobians(pose, mu)
     h = np.zeros((n, m, 2, 3))

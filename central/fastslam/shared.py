@@ -48,21 +48,15 @@ def marginal_map(slam: FastSlam, near: tuple[np.ndarray, float] | None = None
     w = resampling.weights(slam.logw)
     if slam.config.compiled:
         point, radius = (np.zeros(2), np.inf) if near is None else (np.asarray(near[0], float), float(near[1]))
-        keep, mean, cov = kernels.marginal_map_kernel(w, slam.map.mean, slam.map.cov, slots, point, radius)
+        keep, mean, cov = kernels.marginal_map(slam.map, w, slots, point, radius)
         return ids[keep], slots[keep], mean, cov
-    particles = w.shape[0]
-    mean = (w @ slam.map.mean.reshape(particles, -1)).reshape(-1, 2)[slots]  # every slot at once: no (P, K) gather
+    means, covs = slam.map.gather(np.arange(w.size)[:, None], slots[None])
+    mean = np.einsum("p,pkj->kj", w, means)
     if near is not None:
         keep = np.hypot(*(mean - near[0]).T) < near[1]
-        ids, slots, mean = ids[keep], slots[keep], mean[keep]
-    resid = np.take(slam.map.mean, slots, axis=1) - mean  # np.take: a fraction of fancy indexing's time here
-    cov = (w @ np.take(slam.map.cov, slots, axis=1).reshape(particles, -1)).reshape(-1, 2, 2)
-    spread = w @ np.stack([resid[..., 0] ** 2, resid[..., 0] * resid[..., 1], resid[..., 1] ** 2], -1).reshape(particles, -1)
-    spread = spread.reshape(-1, 3)
-    cov[:, 0, 0] += spread[:, 0]
-    cov[:, 0, 1] += spread[:, 1]
-    cov[:, 1, 0] += spread[:, 1]
-    cov[:, 1, 1] += spread[:, 2]
+        ids, slots, mean, means, covs = ids[keep], slots[keep], mean[keep], means[:, keep], covs[:, keep]
+    resid = means - mean
+    cov = np.einsum("p,pkij->kij", w, covs) + np.einsum("p,pki,pkj->kij", w, resid, resid)
     return ids, slots, mean, cov
 
 
@@ -94,7 +88,7 @@ def associate(slam: FastSlam, robot: RobotState, z: np.ndarray, r: np.ndarray) -
     if known.size:
         # tentative landmarks were seen from about the present drift: they are gated without it, so clutter
         # does not confirm them by falling into a gate widened for old landmarks
-        tentative = slam.map.hits[0, slots] < slam.config.confirm_hits
+        tentative = slam.map.hits[slots] < slam.config.confirm_hits
         zhat, h_x, own, nu, d2 = _gating(slam, robot, pose, mean, cov, tentative, spread, drift, r, z)
         gated = d2 < slam.gate
         ambiguous = _ambiguous(slam, d2, gated, zhat, r)
@@ -169,7 +163,7 @@ def _age_tentative(slam: FastSlam, robot: RobotState, ids: np.ndarray, slots: np
     ``tentative_misses`` times."""
     spec = robot.info.sensor
     inside = (zhat[:, 0] < spec.max_range) & (zhat[:, 0] > spec.min_range) & (np.abs(zhat[:, 1]) < 0.5 * spec.fov)
-    hits = slam.map.hits[0, slots]
+    hits = slam.map.hits[slots]
     for lid, slot in zip(ids[inside & (hits < slam.config.confirm_hits)].tolist(),
                          slots[inside & (hits < slam.config.confirm_hits)].tolist()):
         if lid in seen:
@@ -180,11 +174,11 @@ def _age_tentative(slam: FastSlam, robot: RobotState, ids: np.ndarray, slots: np
             continue
         slam.tentative_misses.pop(lid, None)
         del slam.known_slots[lid]
-        slam.map.valid[:, slot] = False
+        slam.map.release(np.array([slot]))
         slam.counts["landmarks_dropped_tentative"] += 1
 
 
 def confirmed(slam: FastSlam, ids: np.ndarray) -> np.ndarray:
     """Which of the landmark ``ids`` (already in the map) are confirmed: associated ``confirm_hits`` times."""
     slots = np.array([slam.known_slots[int(i)] for i in ids], np.int64)
-    return slam.map.hits[0, slots] >= slam.config.confirm_hits if slots.size else np.zeros(0, bool)
+    return slam.map.hits[slots] >= slam.config.confirm_hits if slots.size else np.zeros(0, bool)

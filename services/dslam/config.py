@@ -15,7 +15,8 @@ class DslamConfig(CoreConfig):
 
     association: Literal["known", "nn", "greedy", "ihgr", "exact", "jcbb", "auto"] = Field(
         "known",
-        description="known (true ids from the scans) or a method of the association service: nn, greedy, ihgr, exact, jcbb, auto",
+        description="known (true ids from the scans) or a method of the association service: nn, greedy, ihgr, exact, jcbb, "
+        "auto; the service and fleetslam run also take unknown: the recommended method without ids (auto)",
     )
     gate_probability: float = Field(0.99, gt=0, lt=1, description="chi-square gate of the association")
     new_feature_gate_probability: float = Field(0.9999, gt=0, lt=1, description="a measurement starts a feature only outside this gate of every landmark")

@@ -55,3 +55,14 @@ def test_core_configurations_never_read_the_environment(monkeypatch):
     monkeypatch.setenv("FLEETSLAM_PARTICLES", "70")  # MCL needs at least 10
     mcl = MclSettings().core(MclConfig)
     assert mcl.variant == "kld" and mcl.particles == 70
+
+
+def test_services_take_unknown_association_as_their_recommended_method():
+    """``--association unknown`` means the same in a service as in ``fleetslam run``; a bad name is still refused."""
+    from schemas.config import CentralSettings, DslamSettings, settings_from_args
+
+    assert CentralSettings(association="unknown").association == "shared"
+    assert DslamSettings(association="unknown").association == "auto"
+    assert CentralSettings(association="nn").association == "nn"
+    with pytest.raises(SettingsError, match="association"):
+        settings_from_args(CentralSettings, argparse.Namespace(association="nearest"))

@@ -13,6 +13,7 @@ from benchmarks.support.paper001 import two_beacons
 from central.fastslam.config import FastSlamConfig
 from central.fastslam import resampling, shared
 from central.fastslam.core import FastSlam, make_estimator
+from central.fastslam.aligned_map import AlignedMap
 from central.fastslam.landmarks import LandmarkMap
 from robots.models import AckermannModel, UnicycleModel, integrate_controls, se2_accumulate, se2_compose, wrap_angle
 from robots.simulator import simulate
@@ -84,23 +85,44 @@ def test_landmark_map_appends_compacts_and_grows():
     assert lm.counts().tolist() == [1, 1, 1] and lm.label[:, 0].tolist() == [9, 9, 8]
 
 
-def test_aligned_compaction_frees_dropped_slots_in_every_particle_alike():
-    lm = LandmarkMap(2, capacity=4)
-    lm.reserve(4, compact=False)
-    for particle in (0, 1):
-        lm.append(np.full(4, particle), np.arange(8.0).reshape(4, 2) + particle, np.tile(np.eye(2), (4, 1, 1)), 1.0,
-                  np.array([10, 11, 12, 13]))
-    lm.valid[:, [0, 2]] = False  # two landmarks dropped from every particle
-    lm.select(np.array([1, 0]))  # resampling moves the particles, not the slots
-    new_of = lm.compact_aligned()
-    assert new_of.tolist() == [-1, 0, -1, 1] and lm.used.tolist() == [2, 2] and lm.capacity == 4
-    assert lm.label[:, :2].tolist() == [[11, 13], [11, 13]] and not lm.valid[:, 2:].any()
-    np.testing.assert_allclose(lm.mean[0, :2], [[3.0, 4.0], [7.0, 8.0]])  # particle 1's means, now first
+def test_aligned_map_shares_blocks_after_resampling_and_copies_on_write():
+    """Resampling copies block tables, not landmarks; a particle that changes a landmark gets its own copy of that
+    block, and the other particles keep theirs."""
+    lm = AlignedMap(3, block=4)
+    slots = lm.allocate(6)  # two blocks
+    means = np.arange(36.0).reshape(3, 6, 2)
+    lm.write(slots, means, np.broadcast_to(np.eye(2), (3, 6, 2, 2)))
+    assert lm.blocks_in_use() == 6
+    lm.select(np.array([1, 1, 1]))  # every particle a copy of particle 1: one set of blocks, shared
+    assert lm.blocks_in_use() == 2 and lm.refs.max() == 3
+    np.testing.assert_array_equal(lm.gather(np.arange(3)[:, None], slots[None])[0], np.broadcast_to(means[1], (3, 6, 2)))
+    changed = lm.gather(np.arange(3)[:, None], slots[None])[0]
+    changed[0, 5] = [-1.0, -2.0]
+    lm.write(slots[5:], changed[:, 5:], np.broadcast_to(np.eye(2), (3, 1, 2, 2)))  # the second block, all particles
+    assert lm.blocks_in_use() == 4  # the first block still shared by all three, the second now one per particle
+    after = lm.gather(np.arange(3)[:, None], slots[None])[0]
+    np.testing.assert_array_equal(after[0, 5], [-1.0, -2.0])
+    np.testing.assert_array_equal(after[1:], np.broadcast_to(means[1], (2, 6, 2)))
 
 
-def test_shared_association_keeps_the_map_compact_as_tentative_landmarks_die(monkeypatch):
+def test_aligned_map_reuses_released_slots_and_stores_an_agreed_map_once():
+    lm = AlignedMap(4, block=4)
+    slots = lm.allocate(5)
+    lm.label[slots], lm.valid[slots] = np.arange(10, 15), True
+    lm.release(slots[[1, 3]])
+    assert lm.counts().tolist() == [3, 3, 3, 3]
+    again = lm.allocate(3)
+    assert again.tolist() == [1, 3, 5] and not lm.valid[again].any() and (lm.label[again] == -1).all()
+    fresh = AlignedMap(100, block=4)
+    agreed = fresh.allocate(40)
+    fresh.write(agreed, np.arange(80.0).reshape(40, 2), np.broadcast_to(np.eye(2), (40, 2, 2)))
+    assert fresh.blocks_in_use() == 10  # one copy for 100 particles
+    np.testing.assert_array_equal(fresh.gather(99, agreed)[0], np.arange(80.0).reshape(40, 2))
+
+
+def test_shared_association_reuses_the_slots_of_dropped_tentative_landmarks(monkeypatch):
     """Clutter makes and drops many tentative landmarks: their slots are reused, every id keeps its landmark,
-    and the estimate is the one the filter gives without compaction (which only saves memory and copies)."""
+    and the estimate is the one the filter gives without reuse (which only saves memory)."""
     data = simulate("arena", robots=1, seed=5, duration=40.0, clutter_rate=3.0)
 
     def run() -> FastSlam:
@@ -110,9 +132,9 @@ def test_shared_association_keeps_the_map_compact_as_tentative_landmarks_die(mon
 
     slam = run()
     assert slam.counts["landmarks_dropped_tentative"] > 4 * slam.map.capacity  # slots reused many times over
-    assert sorted(slam.known_slots.values()) == np.flatnonzero(slam.map.valid[0]).tolist()
-    assert slam.map.label[0, list(slam.known_slots.values())].tolist() == list(slam.known_slots.keys())
-    monkeypatch.setattr(LandmarkMap, "compact_aligned", lambda self: np.arange(self.capacity))
+    assert sorted(slam.known_slots.values()) == np.flatnonzero(slam.map.valid).tolist()
+    assert slam.map.label[list(slam.known_slots.values())].tolist() == list(slam.known_slots.keys())
+    monkeypatch.setattr(AlignedMap, "release", lambda self, slots: self.valid.__setitem__(np.asarray(slots), False))
     sprawling = run()
     assert sprawling.map.capacity > 4 * slam.map.capacity
     np.testing.assert_allclose(slam.landmark_map().means, sprawling.landmark_map().means, atol=1e-9)
@@ -238,9 +260,10 @@ def test_marginal_map_near_a_point_is_the_full_marginal_cut_to_a_disc():
     np.testing.assert_array_equal(near_ids, ids[inside])
     np.testing.assert_allclose(near_means, means[inside], atol=1e-12)
     np.testing.assert_allclose(near_covs, covs[inside], atol=1e-12)
-    w, slots = resampling.weights(slam.logw), [slam.known_slots[int(i)] for i in near_ids]
-    spread = np.einsum("p,pki,pkj->kij", w, *[slam.map.mean[:, slots] - near_means] * 2)
-    own = np.einsum("p,pkij->kij", w, slam.map.cov[:, slots])
+    w, slots = resampling.weights(slam.logw), np.array([slam.known_slots[int(i)] for i in near_ids])
+    particle_means, particle_covs = slam.map.gather(np.arange(w.size)[:, None], slots[None])
+    spread = np.einsum("p,pki,pkj->kij", w, *[particle_means - near_means] * 2)
+    own = np.einsum("p,pkij->kij", w, particle_covs)
     np.testing.assert_allclose(near_covs, own + spread, atol=1e-12)  # mixture: mean covariance + spread of means
 
 

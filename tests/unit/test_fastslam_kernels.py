@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 
-from central.fastslam import kernels, landmarks, resampling, shared
+from central.fastslam import association, kernels, resampling, shared
+from central.fastslam.aligned_map import AlignedMap
 from central.fastslam.config import FastSlamConfig
 from central.fastslam.core import FastSlam
 from robots.models import AckermannModel, RangeBearingSensor, UnicycleModel, integrate_controls, se2_compose
@@ -21,17 +24,22 @@ def feed(estimator, dataset):
             estimator.on_scan(event)
 
 
-def random_map(seed: int, particles: int = 40, slots: int = 12) -> landmarks.LandmarkMap:
+def random_map(seed: int, particles: int = 40, slots: int = 12) -> AlignedMap:
+    """Landmarks every particle holds, each particle's Gaussians its own, in blocks of 4 slots."""
     rng = np.random.default_rng(seed)
-    lmap = landmarks.LandmarkMap(particles, slots)
-    lmap.mean[:] = rng.uniform(-8.0, 8.0, (1, slots, 2)) + rng.normal(0.0, 0.3, (particles, slots, 2))
+    lmap = AlignedMap(particles, block=4)
+    index = lmap.allocate(slots)
     root = rng.normal(0.0, 0.3, (particles, slots, 2, 2))
-    lmap.cov[:] = root @ np.swapaxes(root, -1, -2) + 0.01 * np.eye(2)
-    lmap.exist[:] = rng.uniform(0.0, 6.0, (particles, slots))
-    lmap.hits[:] = rng.integers(1, 9, (particles, slots))
-    lmap.valid[:] = True
-    lmap.used[:] = slots
+    lmap.write(index, rng.uniform(-8.0, 8.0, (1, slots, 2)) + rng.normal(0.0, 0.3, (particles, slots, 2)),
+               root @ np.swapaxes(root, -1, -2) + 0.01 * np.eye(2))
+    lmap.exist[index] = rng.uniform(0.0, 6.0, slots)
+    lmap.hits[index] = rng.integers(1, 9, slots)
+    lmap.valid[index] = True
     return lmap
+
+
+def gaussians(lmap: AlignedMap) -> tuple[np.ndarray, np.ndarray]:
+    return lmap.gather(np.arange(lmap.particles)[:, None], np.arange(lmap.used)[None])
 
 
 def test_kernels_are_compiled():
@@ -44,25 +52,30 @@ def test_known_update_kernel_gives_the_reference_update(seed, offset):
     rng = np.random.default_rng(seed)
     sensor = RangeBearingSensor(offset)
     reference, compiled = random_map(seed), random_map(seed)
+    reference.select(np.repeat(np.arange(20), 2))  # pairs of particles share blocks: the update copies them
+    compiled.select(np.repeat(np.arange(20), 2))
     poses = np.zeros((40, 2, 3))  # a robot's poses are a strided view, as in the filter
     poses[:, 1] = rng.normal([0.5, -0.5, 2.0], [0.3, 0.3, 0.2], (40, 3))
     pose = poses[:, 1]
     slots = np.array([3, 7, 0, 11])
-    truth = reference.mean[0, slots] + rng.normal(0.0, 0.5, (4, 2))
+    truth = gaussians(reference)[0][0, slots] + rng.normal(0.0, 0.5, (4, 2))
     z = sensor.observe(pose[0], truth) + rng.normal(0.0, [0.05, 0.02], (4, 2))
     r = np.array([[0.04, 0.001], [0.001, 0.003]])
-    n, m = pose.shape[0], slots.size
-    p = np.repeat(np.arange(n), m)
-    slot = np.tile(slots, n)
-    terms = landmarks.predict(reference, sensor, pose[p], p, slot, r)
-    expected = landmarks.update(reference, sensor, p, np.tile(z, (n, 1)), slot, terms, 1.0, 6.0).reshape(n, m)
+    slam = SimpleNamespace(map=reference, pose=poses, config=FastSlamConfig(exist_hit=1.0, exist_max=6.0))
+    robot = SimpleNamespace(index=1, sensor=sensor)
+    expected = association.known_update_reference(slam, robot, slots, z, r)
     got = kernels.known_update(compiled, sensor, pose, slots, z, r, 1.0, 6.0)
     assert np.ptp(expected) > 1.0  # the particles disagree: agreement is not trivial
     np.testing.assert_allclose(got, expected, rtol=1e-10, atol=1e-10)
-    for name in ("mean", "cov", "exist"):
-        np.testing.assert_allclose(getattr(compiled, name), getattr(reference, name), rtol=1e-10, atol=1e-12)
+    for a, b in zip(gaussians(compiled), gaussians(reference)):
+        np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(compiled.exist, reference.exist, rtol=1e-12)
     np.testing.assert_array_equal(compiled.hits, reference.hits)
-    assert not np.allclose(compiled.mean, random_map(seed).mean)  # the update did move the landmarks
+    before = random_map(seed)
+    before.select(np.repeat(np.arange(20), 2))
+    moved = np.abs(gaussians(compiled)[0] - gaussians(before)[0]).max(axis=(0, 2))
+    assert (moved[slots] > 0).all() and (np.delete(moved, slots) == 0).all()  # those slots, and only those, moved
+    assert compiled.blocks_in_use() > before.blocks_in_use()
 
 
 @pytest.mark.parametrize("model, steer", [(UnicycleModel(), 0.8), (AckermannModel(2.83, 0.76), 0.3)])
@@ -112,7 +125,7 @@ def test_marginal_map_and_gating_kernels_give_the_reference_on_a_run():
     data = simulate("arena", robots=2, seed=1, duration=10.0)
     slam = FastSlam(FastSlamConfig(particles=20, association="shared", seed=0), [log.info for log in data.robots.values()])
     feed(slam, data)
-    point = slam.map.mean[0, 0] + 0.3
+    point = slam.map.gather(0, next(iter(slam.known_slots.values())))[0] + 0.3
     results = {}
     for compiled in (True, False):
         slam.config = slam.config.model_copy(update={"compiled": compiled})
