@@ -37,7 +37,7 @@ def data_root() -> Path:
 
 def one(dataset: str, estimator: str, association: str, duration: float | None) -> dict:
     settings = RunSettings(dataset=dataset, estimator=estimator, association=association, duration=duration,
-                           progress=False)
+                           out=None, progress=False)
     output = run(settings)
     return {key: output[key] for key in KEEP if key in output}
 

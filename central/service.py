@@ -25,6 +25,11 @@ filter (:class:`central.fastslam.FastSlam`):
 The estimate (every placed robot's weighted mean pose and covariance, the
 map) is published on ``{prefix}/central/estimate`` at ``estimate_rate_hz``;
 the queryable ``{prefix}/central/state`` answers with a fresh one.
+
+With ``map`` (``--map FILE``, :mod:`schemas.mapfile`) the filter starts from a saved map, in its frame: the
+estimate is published from the start (the map alone, before any robot), and no robot anchors a new frame:
+robots without a start pose wait for MCL to place them against that map. With ``map_out`` the map is saved
+(atomically) every ``map_out_period_s`` and on exit.
 """
 
 from __future__ import annotations
@@ -42,7 +47,9 @@ from central.fastslam.core import FastSlam
 from schemas.codec import decode, encode
 from schemas.config import CentralSettings, add_settings_arguments, settings_from_args
 from schemas.contract import OdomEvent
+from schemas.mapfile import MapFileError
 from schemas.messages import Estimate, MclPose, RobotEstimate, RobotInfo
+from services.maps import MapSaver, load_prior, seed_estimator
 from services.roster import ReorderBuffer, StreamEvent
 from services.runtime import ServiceShell
 
@@ -67,6 +74,13 @@ class CentralService(ServiceShell):
         self.estimate_seq = 0
         self.last_stamp = 0.0
         self.announced_waiting: dict[str, float] = {}  # robots announced without a pose: when (wall clock)
+        prior = load_prior(settings.map)
+        self.prior_landmarks = 0 if prior is None else seed_estimator(self.slam, prior.view(), prior.hits(),
+                                                                      self.slam.config.association)
+        self.map_saver = MapSaver(settings.map_out, {
+            "estimator": "fastslam", "association": self.slam.config.association,
+            "particles": self.slam.config.particles, "seed": self.slam.config.seed, "service": "central",
+            "from_map": settings.map}, settings.map_out_period_s)
 
     # ------------------------------------------------------------ wiring
     def setup(self, session: zenoh.Session) -> None:
@@ -89,7 +103,7 @@ class CentralService(ServiceShell):
         """With ``anchor_first``: when no robot has been placed ``anchor_after_s`` after the first robot without a
         start pose was announced, that robot anchors the world frame at the origin (a robot with a start pose
         announced meanwhile is placed instead, and the frame stays the one its start pose is given in)."""
-        if not self.settings.anchor_first or self.slam.robot_count:
+        if not self.settings.anchor_first or self.slam.robot_count or self.prior_landmarks:
             return
         waiting = [(t, rid) for rid, t in self.announced_waiting.items() if self.slam.is_waiting(rid)]
         if not waiting or time.monotonic() - min(waiting)[0] < self.settings.anchor_after_s:
@@ -205,14 +219,17 @@ class CentralService(ServiceShell):
         await self._anchor()
         self._release(flush=False)
         self._update_stats()
-        if self.slam.robot_count:
+        if self.slam.robot_count or self.prior_landmarks:
             self._publish_estimate()
+        if self.map_saver.due():
+            self.map_saver.save(self.slam.landmark_map())
 
     def on_stop(self) -> None:
         self._release(flush=True)
         self._update_stats()
-        if self.slam.robot_count:
+        if self.slam.robot_count or self.prior_landmarks:
             self._publish_estimate()
+        self.map_saver.save(self.slam.landmark_map())
         log.info("central: processed %s; rejected %s", dict(self.processed), dict(self.rejected))
 
 
@@ -221,4 +238,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    return CentralService(settings_from_args(CentralSettings, args)).serve()
+    settings = settings_from_args(CentralSettings, args)
+    try:
+        service = CentralService(settings)
+    except MapFileError as error:
+        log.error("cannot start: %s", error)
+        return 2
+    return service.serve()

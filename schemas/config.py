@@ -21,13 +21,14 @@ import types
 import typing
 from typing import Any, Literal, TypeVar
 
-from pydantic import Field, ValidationError, field_validator
+from pydantic import BaseModel, Field, ValidationError, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict, SettingsError as EnvironmentParseError
 
 from central.fastslam.config import FastSlamConfig
 from schemas.contract import C, SettingsError, describe_validation_error, resolve_association
 from services.dslam.config import DslamConfig
 from services.mcl.config import MclConfig
+from services.viz.config import VizConfig
 
 S = TypeVar("S", bound=BaseSettings)
 ENV_PREFIX = "FLEETSLAM_"
@@ -118,6 +119,23 @@ class MonitorSettings(FleetSettings):
     json_out: str | None = Field(None, description="write the final counters to this JSON file")
 
 
+class VizSettings(FleetSettings, VizConfig):
+    """``fleetslam viz``: log the live fleet to Rerun (native viewer, web viewer and/or an .rrd recording).
+
+    With none of ``--spawn``, ``--serve``, ``--save``: serve the web viewer on port 9090.
+    """
+
+    spawn: bool = Field(False, description="open the native Rerun viewer (needs a display)")
+    serve: int | None = Field(None, ge=1, le=65535, description="serve the web viewer on http://127.0.0.1:PORT (its "
+                              "data over gRPC on --grpc-port); with none of --spawn, --serve, --save: 9090")
+    save: str | None = Field(None, description="write the recording to this .rrd file (replay: rerun FILE.rrd)")
+    grpc_port: int = Field(9876, ge=1, le=65535, description="gRPC port of the served data (--serve) or of the "
+                           "spawned viewer (--spawn; GRPC_PORT+1 with --serve too)")
+    grpc_bind: str = Field("127.0.0.1", description="address the served gRPC data listens on (0.0.0.0 to reach it from "
+                           "other machines or out of a container; the web viewer's page itself listens on every address)")
+    duration: float | None = Field(None, gt=0, description="stop after this many seconds (default: until Ctrl-C)")
+
+
 class DemoSettings(FleetSettings):
     """``fleetslam demo``: a router, robots, the monitor and every service, as separate processes."""
 
@@ -130,6 +148,31 @@ class DemoSettings(FleetSettings):
     rate: float = Field(10.0, gt=0, description="scan rate of every robot (Hz)")
     out: str = Field("reports/demo", description="folder for logs and results")
     port: int = Field(7447, ge=1, le=65535, description="router port on 127.0.0.1")
+    viz: bool = Field(False, description="also start fleetslam viz: the live fleet in the Rerun web viewer on "
+                      "http://127.0.0.1:9090 (data on gRPC port 9876), recorded to OUT/fleet.rrd")
+    record: str | None = Field(None, description="record every message of the demo to this MCAP file "
+                               "(fleetslam record; replay it with fleetslam replay, or fleetslam run --dataset mcap:FILE)")
+
+
+class RecordSettings(FleetSettings):
+    """``fleetslam record``: write every sample under the prefix to an MCAP file."""
+
+    out: str | None = Field(None, description="MCAP file to write (default: recordings/PREFIX-YYYYmmdd-HHMMSS.mcap); "
+                            "it is written as FILE.part and renamed when complete")
+    duration: float | None = Field(None, gt=0, description="stop after this many seconds (default: until Ctrl-C/SIGTERM)")
+    compression: Literal["zstd", "lz4", "none"] = Field("zstd", description="compression of the MCAP chunks")
+    progress_period_s: float = Field(5.0, gt=0, description="period of the progress line in the log (s)")
+
+
+class ReplaySettings(FleetSettings):
+    """``fleetslam replay``: the robots of a recording published again as live robots."""
+
+    speedup: float = Field(1.0, gt=0, description="replay this many times faster than recorded")
+    robot_ids: str | None = Field(None, description="comma-separated robot ids to replay (default: every recorded robot)",
+                                  json_schema_extra={"cli": "--robots"})
+    start_s: float = Field(0.0, ge=0, description="skip this many seconds from the start of the recording")
+    start_delay: float = Field(0.5, ge=0, description="wall seconds to wait after declaring, so subscribers can match")
+    progress_period_s: float = Field(5.0, gt=0, description="period of the progress line in the log (s)")
 
 
 def _json_value(text: str) -> Any:
@@ -220,7 +263,8 @@ class MclSettings(FleetSettings, MclConfig):
 
     source: str = Field(
         "truth", pattern=r"^(central|dslam|truth|file:.+)$",
-        description="map source: central (Estimate), dslam (MapEstimate), truth (WorldTruth) or file:PATH (.npy/.txt, (L,2))",
+        description="map source: central (Estimate), dslam (MapEstimate), truth (WorldTruth) or file:PATH (a "
+        "fleetslam-map .json saved by --map-out, or an (L,2) array in .npy/.txt/.csv)",
     )
     all_robots: bool = Field(False, description="localize every robot, not only those that announce no start pose")
     publish_every: int = Field(1, ge=1, description="publish a robot's MclPose every this many scans")
@@ -229,7 +273,18 @@ class MclSettings(FleetSettings, MclConfig):
 
 
 
-class DslamSettings(FleetSettings, DslamConfig):
+class SavedMapSettings(BaseModel):
+    """The saved-map flags of the mapping services (``fleetslam central``, ``fleetslam dslam``)."""
+
+    map: str | None = Field(
+        None, description="start from this saved map (a fleetslam-map JSON file written by --map-out), in its frame; "
+        "robots without a start pose are then placed by localization against it instead of anchoring a new frame")
+    map_out: str | None = Field(None, description="save the map here (fleetslam-map JSON, written atomically) on exit "
+                                "(SIGINT/SIGTERM too) and every map_out_period_s")
+    map_out_period_s: float = Field(30.0, ge=0, description="with map_out: rewrite the map file this often (s; 0: on exit only)")
+
+
+class DslamSettings(FleetSettings, DslamConfig, SavedMapSettings):
     """``fleetslam dslam``: one D-SLAM map fed by every robot; association through the queryable."""
 
     assoc_timeout_s: float = Field(0.5, gt=0, description="how long to wait for the association queryable (s)")
@@ -247,7 +302,8 @@ class RunSettings(ProcessSettings):
     """``fleetslam run``: feed a data set straight into an estimator (no Zenoh) and score it."""
 
     dataset: str = Field(
-        "sim:arena", description="mrclam:PATH[:N], victoria-park:PATH, car-park:PATH or sim:WORLD "
+        "sim:arena", description="mrclam:PATH[:N], victoria-park:PATH, car-park:PATH, mcap:FILE (a fleetslam record "
+        "file) or sim:WORLD "
         "(a relative PATH is also looked for under FLEETSLAM_DATA)",
     )
     estimator: ESTIMATORS = Field("odometry", description="estimator")
@@ -274,10 +330,21 @@ class RunSettings(ProcessSettings):
     sim_robots: int = Field(3, ge=1, le=50, description="robots simulated for sim:WORLD when --robots is not given")
     sim_rate: float = Field(10.0, gt=0, description="scan rate of simulated robots (Hz)")
     sample_period_s: float = Field(0.2, gt=0, description="estimated poses are sampled this often in data time (s)")
+    map: str | None = Field(
+        None, description="start from this saved map (a fleetslam-map JSON file written by --map-out), in its frame: "
+        "fastslam and dslam extend it, mcl localizes against it; robots without a start pose are placed by "
+        "localization against it instead of anchoring a new frame")
+    map_out: str | None = Field(None, description="save the final map here (fleetslam-map JSON, written atomically; "
+                                "also when interrupted)")
     map_cutoff_m: float = Field(1.0, gt=0, description="farther estimated <-> true landmark pairs are not matches (m)")
     rpe_delta_s: float = Field(1.0, gt=0, description="time step of the relative pose error (s)")
-    out: str | None = Field(None, description="write a report folder here (metrics.json, TUM trajectories, plots)")
-    json_out: str | None = Field(None, description="write the results JSON to this file", json_schema_extra={"cli": "--json"})
+    out: str | None = Field(
+        "reports/run", description="report folder: results.json, metrics.json, TUM trajectories and plots (files of an "
+        "earlier report there are removed first)")
+    json_out: str | None = Field(None, description="also write the results JSON to this file", json_schema_extra={"cli": "--json"})
+    rerun: str | None = Field(
+        None, pattern=r"\.rrd$", description="also write a Rerun recording (FILE.rrd) of the run on the data's clock: "
+        "true and estimated trajectories, true landmarks, the final map with covariance ellipses (open: rerun FILE.rrd)")
     progress: bool = Field(True, description="show a progress bar on the terminal")
     log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = Field("INFO", description="log level")
 
@@ -309,7 +376,7 @@ class AssocSettings(FleetSettings):
     duration: float | None = Field(None, gt=0, description="stop after this many seconds (default: until SIGINT/SIGTERM)")
 
 
-class CentralSettings(FleetSettings, FastSlamConfig):
+class CentralSettings(FleetSettings, FastSlamConfig, SavedMapSettings):
     """``fleetslam central``: the central multi-robot FastSLAM service (every robot in one filter)."""
 
     estimate_rate_hz: float = Field(2.0, gt=0, le=100, description="rate of the estimate publication on {prefix}/central/estimate")

@@ -145,7 +145,8 @@ class Estimator(Protocol):
 class RunOptions:
     """How one estimator is asked for: by name, with the settings every estimator shares, its own settings
     (``settings``, validated by the estimator's core configuration), and what it may be given beyond the
-    events: a prior landmark map ``(L, 2)`` and the true trajectories ``{rid: (stamps, poses)}``."""
+    events: a prior landmark map ``(L, 2)`` (a localizer's map; with covariances, the saved map a mapping estimator
+    starts from: :mod:`services.maps`) and the true trajectories ``{rid: (stamps, poses)}``."""
 
     estimator: str = "odometry"
     association: str = "known"
@@ -154,6 +155,8 @@ class RunOptions:
     settings: dict[str, Any] = field(default_factory=dict)
     landmarks: np.ndarray | None = None
     landmark_ids: np.ndarray | None = None  # ids of ``landmarks`` (L,), when the map has them
+    landmark_covs: np.ndarray | None = None  # covariances (L, 2, 2): a saved map a mapping estimator starts from
+    landmark_hits: np.ndarray | None = None  # times each landmark was associated (L,), when known
     truth: dict[str, tuple[np.ndarray, np.ndarray]] | None = None
 
 

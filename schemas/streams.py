@@ -33,10 +33,14 @@ class StreamTracker:
     A message is accepted when its seq is past the last accepted one and its
     stamp does not go backwards; a jump in seq is accepted and the skipped
     messages are counted as ``missing``. Everything else is rejected with a
-    reason that ends up in the service's stats.
+    reason that ends up in the service's stats. ``missing_before_join``: the
+    messages a stream sent before its first one received here count as missing
+    (a filter that missed a robot's start must know); an observer that joins a
+    running fleet (the monitor) counts only what it lost after it joined.
     """
 
     streams: dict[tuple[str, str], _StreamState] = field(default_factory=dict)
+    missing_before_join: bool = True
     rejected: Counter = field(default_factory=Counter)
     left: set[str] = field(default_factory=set)  # robots whose liveliness token went away
 
@@ -49,7 +53,10 @@ class StreamTracker:
         elif stamp < state.last_stamp:
             verdict = Verdict.TIME_BACKWARDS
         else:
-            state.missing += seq - state.last_seq - 1 if state.last_seq >= 0 else seq
+            if state.last_seq >= 0:
+                state.missing += seq - state.last_seq - 1
+            elif self.missing_before_join:
+                state.missing += seq
             state.last_seq, state.last_stamp = seq, stamp
             state.received += 1
             return Verdict.ACCEPT

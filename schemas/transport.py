@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import logging
+import re
 import signal
 import threading
 from contextlib import contextmanager
@@ -77,19 +78,34 @@ def zenoh_config(
     return conf
 
 
+def zenoh_cause(error: Exception) -> str:
+    """The reason in a zenoh error, without the Rust source locations it carries (" at /…/x.rs:61.")."""
+    text = re.sub(r"\s+at\s+\S+\.rs:\d+\.?", "", str(error))
+    return re.sub(r"\s+", " ", text).strip().rstrip(".")
+
+
 def open_session(
     settings: FleetSettings, mode: str = "client", listen: str | None = None, base_file: str | None = None
 ) -> zenoh.Session:
-    """Open a Zenoh session; a router that does not answer in time raises :class:`ConnectError`."""
+    """Open a Zenoh session (logging where it connects or listens); a router that does not answer in time, or an
+    endpoint that cannot be listened on, raises :class:`ConnectError` with one line giving the real cause."""
     conf = zenoh_config(settings, mode, listen, base_file)
+    where = (listen or "tcp/0.0.0.0:7447") if mode == "router" else settings.zenoh_connect
+    if mode == "router":
+        log.info("listening on %s", where)
+    else:
+        log.info("connecting to the zenoh router at %s (waiting up to %g s)", where, settings.connect_timeout_s)
     try:
         return zenoh.open(conf)
     except zenoh.ZError as exc:
-        where = listen if mode == "router" else settings.zenoh_connect
+        cause = zenoh_cause(exc)
+        if mode == "router":
+            hint = ("another router or program holds that port: stop it or choose another endpoint with --listen"
+                    if "Address already in use" in cause else "check the endpoint given to --listen")
+            raise ConnectError(f"cannot listen on {where}: {cause}; {hint}") from None
         raise ConnectError(
-            f"could not {'listen on' if mode == 'router' else 'reach the zenoh router at'} {where} "
-            f"within {settings.connect_timeout_s:g} s ({exc}); start it with `fleetslam router` "
-            "or set FLEETSLAM_ZENOH_CONNECT"
+            f"could not reach the zenoh router at {where} within {settings.connect_timeout_s:g} s ({cause}); "
+            "start one with `fleetslam router`, or point --zenoh-connect / FLEETSLAM_ZENOH_CONNECT at yours"
         ) from None
 
 

@@ -44,6 +44,16 @@ def _run() -> ModuleType:
     return offline
 
 
+def _record() -> ModuleType:
+    from services import record
+    return record
+
+
+def _replay() -> ModuleType:
+    from services import replay
+    return replay
+
+
 def _evaluate() -> ModuleType:
     from services.evaluation import service
     return service
@@ -69,17 +79,25 @@ def _mcl() -> ModuleType:
     return service
 
 
+def _viz() -> ModuleType:
+    from services.viz import service
+    return service
+
+
 COMMANDS: dict[str, tuple[Callable[[], ModuleType], str]] = {
     "router": (_router, "run the Zenoh router (router mode; access control and TLS optional)"),
     "robot": (_robot, "run one robot: simulated in a named world, or replaying a data set"),
     "monitor": (_monitor, "live console of robots, message rates, gaps, rejections and service stats"),
     "demo": (_demo, "start a router, robots, the monitor and every service; print what was measured"),
     "run": (_run, "offline: feed a data set straight into an estimator, no Zenoh; JSON results"),
+    "record": (_record, "record every message under the prefix to an MCAP file (ROS 2, Foxglove, Rerun read it)"),
+    "replay": (_replay, "publish the robots of an MCAP recording again as live robots"),
     "evaluate": (_evaluate, "live evaluator: compare estimates with truth, write a report folder"),
     "assoc": (_assoc, "data-association queryable on {prefix}/assoc/{method}"),
     "central": (_central, "central multi-robot FastSLAM service"),
     "dslam": (_dslam, "D-SLAM map service (sparse information-filter map) and localization"),
     "mcl": (_mcl, "Monte Carlo localization service (global localization, kidnapping)"),
+    "viz": (_viz, "live view of the fleet in Rerun: trajectories, maps with ellipses, MCL hypotheses, latency"),
 }
 
 

@@ -16,6 +16,7 @@ from schemas.messages import RobotInfo
 from services.baselines.dead_reckoning import make_estimator as make_dead_reckoning
 from services.baselines.ekf_slam import make_estimator as make_ekf_slam
 from services.dslam.core import make_estimator as make_dslam
+from services.maps import seed_from_options
 from services.mcl.fleet import make_estimator as make_mcl
 
 Factory = Callable[[RunOptions, list[RobotInfo]], Estimator]
@@ -30,12 +31,16 @@ ESTIMATORS: dict[str, Factory] = {
 
 
 def make_estimator(options: RunOptions, infos: list[RobotInfo]) -> Estimator:
-    """Build the estimator ``options.estimator`` for the robots ``infos`` (ValueError naming the choices)."""
+    """Build the estimator ``options.estimator`` for the robots ``infos`` (ValueError naming the choices), started
+    from the saved map in ``options`` if it carries one (:func:`services.maps.seed_from_options`)."""
     try:
         factory = ESTIMATORS[options.estimator]
     except KeyError:
         raise ValueError(f"unknown estimator {options.estimator!r}; choose from {', '.join(ESTIMATORS)}") from None
-    return factory(replace(options, association=resolve_association(options.estimator, options.association)), infos)
+    options = replace(options, association=resolve_association(options.estimator, options.association))
+    estimator = factory(options, infos)
+    seed_from_options(estimator, options)
+    return estimator
 
 
 __all__ = ["ESTIMATORS", "UNKNOWN_ASSOCIATION", "make_estimator", "resolve_association"]

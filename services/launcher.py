@@ -1,7 +1,7 @@
 """``fleetslam demo``: a whole fleet on this machine, as separate processes.
 
-Starts a router, the services that exist in this installation, the monitor,
-and ``--robots`` simulated robots in one world (plus ``--unknown-start-robots``
+Starts a router, the services that exist in this installation, the monitor (and with ``--viz`` the live
+Rerun view, ``fleetslam viz``), and ``--robots`` simulated robots in one world (plus ``--unknown-start-robots``
 that announce no start pose, for MCL to find); lets the robots run for
 ``--duration`` wall seconds; stops everything in order (robots, services,
 monitor, router) with SIGTERM; then prints per-robot message counts, service
@@ -50,6 +50,9 @@ SERVICES: list[ServiceSpec] = [
     ServiceSpec("mcl"),
     ServiceSpec("evaluate", ["--out", "{out}/report"], stats_name="eval"),
 ]
+
+
+VIZ_WEB_PORT, VIZ_GRPC_PORT = 9090, 9876  # fleetslam viz's defaults: web viewer (HTTP) and its data (gRPC)
 
 
 @dataclass
@@ -151,8 +154,13 @@ class Fleet:
 
 
 def run_demo(settings: DemoSettings, shutdown: Shutdown, console: Console) -> dict:
+    from services.evaluation.report import clear_report  # matplotlib: only when a demo runs
+
     out = Path(settings.out)
     out.mkdir(parents=True, exist_ok=True)
+    cleared = clear_report(out / "report")
+    if cleared:
+        log.info("removed %d files of an earlier demo report from %s", cleared, out / "report")
     fleet = Fleet(settings, out)
     services = SERVICES
     summary: dict = {"settings": settings.model_dump(mode="json"), "services": [s.name for s in services]}
@@ -160,8 +168,16 @@ def run_demo(settings: DemoSettings, shutdown: Shutdown, console: Console) -> di
     try:
         fleet.wait_for_router()
         monitor = fleet.start("monitor", "monitor", "--plain", "--json-out", str(out / "monitor.json"))
+        viewers = [fleet.start("viz", "viz", "--serve", str(VIZ_WEB_PORT), "--grpc-port", str(VIZ_GRPC_PORT),
+                               "--save", str(out / "fleet.rrd"))] if settings.viz else []
+        recorders = [fleet.start("record", "record", "--out", settings.record)] if settings.record else []
         service_children = [fleet.start(s.name, s.name, *(a.format(out=settings.out) for a in s.args)) for s in services]
-        ready_s = fleet.wait_for_services(["monitor", *(s.stats_name or s.name for s in services)], shutdown)
+        ready_s = fleet.wait_for_services(["monitor", *(c.name for c in viewers), *(c.name for c in recorders),
+                                           *(s.stats_name or s.name for s in services)], shutdown)
+        if viewers:
+            from services.viz.recording import web_viewer_url
+
+            console.print(f"live view: {web_viewer_url(VIZ_WEB_PORT, VIZ_GRPC_PORT)} (recording to {out / 'fleet.rrd'})")
         summary["services_ready_s"] = ready_s
         robot_duration = settings.duration * settings.speedup
         robots = [
@@ -175,7 +191,8 @@ def run_demo(settings: DemoSettings, shutdown: Shutdown, console: Console) -> di
                       f"(+{settings.unknown_start_robots} with no start pose) in world "
                       f"'{settings.world}', services: {', '.join(s.name for s in services) or 'none yet'}; "
                       f"{settings.duration:g} s (Ctrl-C stops early)")
-        deadline = time.monotonic() + settings.duration + 15.0
+        started = time.monotonic()
+        deadline = started + settings.duration + 15.0
         memory: dict[str, float | None] = {}
         while any(r.process.poll() is None for r in robots) and time.monotonic() < deadline:
             if shutdown.wait(0.5):
@@ -183,13 +200,14 @@ def run_demo(settings: DemoSettings, shutdown: Shutdown, console: Console) -> di
                 break
             if not memory and time.monotonic() > deadline - settings.duration - 12.0:
                 memory = {c.name: fleet.memory_mb(c) for c in fleet.children}
+        summary["elapsed_s"] = time.monotonic() - started
         memory = {c.name: fleet.memory_mb(c) for c in fleet.children} if not memory else memory
         summary["memory_mb"] = memory
         summary["stop_s"] = fleet.stop(robots)
         evaluators = [c for c in service_children if c.name == "evaluate"]
         summary["stop_s"].update(fleet.stop([c for c in service_children if c not in evaluators], timeout=15.0))
         summary["stop_s"].update(fleet.stop(evaluators, timeout=30.0))
-        summary["stop_s"].update(fleet.stop([monitor]))
+        summary["stop_s"].update(fleet.stop([monitor, *viewers, *recorders]))
     finally:
         remaining = [c for c in fleet.children if c.process.poll() is None and c is not router]
         if remaining:
@@ -201,19 +219,54 @@ def run_demo(settings: DemoSettings, shutdown: Shutdown, console: Console) -> di
     metrics_path = out / "report" / "metrics.json"
     if metrics_path.exists():
         summary["metrics"] = json.loads(metrics_path.read_text())
+    summary["problems"] = problems(summary)
     (out / "demo.json").write_text(json.dumps(summary, indent=2))
     return summary
 
 
+LAG_MEDIAN_MS, LAG_P99_MS = 250.0, 1000.0  # a service slower than this did not keep up with the fleet
+ROBOT_STREAM_SERVICES = ("central", "dslam", "mcl")  # services that take every robot's odometry and scans
+
+
+def problems(summary: dict) -> list[str]:
+    """What went wrong in a demo, one line each: services that lagged (latency, a backlog, robot messages they
+    never processed), robots that lost messages, robots MCL never localized. Services' figures are their last
+    stats (published every second or so), so a shortfall of up to two seconds of messages is not counted."""
+    monitor = summary.get("monitor", {})
+    robots = monitor.get("robots", {})
+    elapsed = max(float(summary.get("elapsed_s") or 0.0), 1e-9)
+    sent = sum(c["odom"] + c["scan"] for c in robots.values())
+    found = []
+    for rid, counts in sorted(robots.items()):
+        if counts["missing"]:
+            found.append(f"robot {rid}: {counts['missing']} messages lost on the way (seq gaps seen by the monitor)")
+    for name, stats in sorted(monitor.get("services", {}).items()):
+        service = name.split(":")[0]
+        median, p99 = stats["latency_ms_median"], stats["latency_ms_p99"]
+        if median > LAG_MEDIAN_MS or p99 > LAG_P99_MS:
+            found.append(f"{service} lagged: latency median {median:.0f} ms, p99 {p99:.0f} ms")
+        if stats.get("queue_depth", 0) > 0:
+            found.append(f"{service} had {stats['queue_depth']} messages queued at its last stats")
+        if service in ROBOT_STREAM_SERVICES and sent:
+            taken = stats["messages_in"].get("odom", 0) + stats["messages_in"].get("scan", 0)
+            slack = max(10.0, 2.0 * sent / elapsed)
+            if sent - taken > slack:
+                found.append(f"{service} never processed about {sent - taken} of the {sent} robot messages")
+    for rid in summary.get("metrics", {}).get("mcl_never_localized", []):
+        found.append(f"MCL never localized robot {rid}: no error figure for it")
+    return found
+
+
 def print_summary(summary: dict, console: Console, settings: DemoSettings) -> None:
     robots = summary.get("monitor", {}).get("robots", {})
-    table = Table(title=f"messages per robot (over {settings.duration:g} s wall, speed-up {settings.speedup:g})")
+    elapsed = float(summary.get("elapsed_s") or settings.duration)
+    table = Table(title=f"messages per robot (over {elapsed:.1f} s wall, speed-up {settings.speedup:g})")
     for column in ("robot", "odom", "scan", "truth", "missing", "msg/s"):
         table.add_column(column, justify="right")
     for rid, c in robots.items():
         total = c["odom"] + c["scan"] + c["truth"]
         table.add_row(rid, str(c["odom"]), str(c["scan"]), str(c["truth"]), str(c["missing"]),
-                      f"{total / settings.duration:.1f}")
+                      f"{total / max(elapsed, 1e-9):.1f}")
     console.print(table)
     services = summary.get("monitor", {}).get("services", {})
     if services:
@@ -244,7 +297,21 @@ def print_summary(summary: dict, console: Console, settings: DemoSettings) -> No
                 f"{landmarks.get('matched', '-')}/{landmarks.get('estimated', '-')}" if landmarks else "-",
             )
         console.print(rtable)
-    console.print(f"logs in {settings.out}/logs, results in {settings.out}/demo.json")
+    found = summary.get("problems", [])
+    if found:
+        console.print(f"[bold red]{len(found)} problem(s):[/]")
+        for line in found:
+            console.print(f"  - {line}")
+    else:
+        console.print("[green]no problems[/]: every service kept up, no message was lost, every robot was localized")
+    report = Path(settings.out) / "report"
+    console.print(f"plots (map_*.png, errors.png), TUM trajectories (*.tum) and metrics.json in {report}/; "
+                  f"logs in {settings.out}/logs; this summary in {settings.out}/demo.json")
+    if settings.record:
+        done = summary.get("exit_codes", {}).get("record") == 0 and Path(settings.record).is_file()
+        console.print(f"recording: {settings.record} (replay: fleetslam replay {settings.record}; offline: fleetslam run "
+                      f"--dataset mcap:{settings.record})" if done else
+                      f"[bold red]no recording[/]: {settings.record} was not finished; see {settings.out}/logs/record.log")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

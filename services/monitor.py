@@ -40,7 +40,7 @@ class Monitor(ServiceShell):
         super().__init__(settings)
         self.tick_period_s = 1.0 / settings.refresh_hz
         self.console = console or Console(stderr=False)
-        self.tracker = StreamTracker()
+        self.tracker = StreamTracker(missing_before_join=False)  # it joins a running fleet: count only later losses
         self.alive: dict[str, bool] = {}
         self.infos: dict[str, RobotInfo] = {}
         self.counts: dict[str, Counter] = defaultdict(Counter)

@@ -17,9 +17,12 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import signal
+import threading
 import time
 from collections import Counter
 from dataclasses import dataclass, field
+from typing import Callable
 from pathlib import Path
 
 import numpy as np
@@ -68,11 +71,13 @@ def default_start_poses(dataset: Dataset, robots: list[str]) -> str:
 
 def run_estimator(dataset: Dataset, options: RunOptions, robots: list[str] | None = None,
                   duration: float | None = None, sample_period_s: float = 0.1, progress: bool = False,
-                  start_poses: str | None = None) -> OfflineRun:
+                  start_poses: str | None = None, should_stop: Callable[[], bool] | None = None) -> OfflineRun:
     """Drive the estimator ``options.estimator`` over the data set's events; sample its poses.
 
     ``start_poses`` (known | first | none; default :func:`default_start_poses`) withholds start poses; an
     estimator that can take robots without one gets them placed by :class:`services.placement.FleetPlacer`.
+    ``should_stop`` is asked between events (a signal handler's flag): when it says so, or on
+    KeyboardInterrupt, the run ends there and what was computed is returned (``extra["interrupted"]``).
     """
     from services.estimators import make_estimator
     from services.evaluation.metrics import Trajectory, timing_stats
@@ -86,6 +91,8 @@ def run_estimator(dataset: Dataset, options: RunOptions, robots: list[str] | Non
     mode = start_poses or default_start_poses(dataset, chosen)
     infos = withhold_start_poses([dataset.robots[rid].info for rid in chosen], mode)
     estimator = make_estimator(options, infos)
+    log.info("running %s on %s: robots %s, %s s of data (Ctrl-C stops it and keeps what was computed)",
+             options.estimator, dataset.name, ", ".join(chosen), "all" if duration is None else f"{duration:g}")
     placer = None
     if any(info.start_pose is None for info in infos) and hasattr(estimator, "place_robot"):
         placer = FleetPlacer(estimator, infos, MclConfig(seed=options.seed),
@@ -117,37 +124,46 @@ def run_estimator(dataset: Dataset, options: RunOptions, robots: list[str] | Non
     scan_s: list[float] = []
     next_sample = start
     last_stamp = start
+    interrupted = False
     wall0 = time.perf_counter()
     sample()
     with Progress(TextColumn("[bold]{task.description}"), BarColumn(), TextColumn("{task.completed:.0f}/{task.total:.0f} s"),
                   TimeElapsedColumn(), console=Console(stderr=True), transient=True, disable=not progress) as bar:
         task = bar.add_task(f"{options.estimator} on {dataset.name}", total=max(end - start, 1e-9))
         next_refresh = wall0
-        for event in dataset.events(duration, chosen):
-            tick = time.perf_counter()
-            if placer is not None and placer.holds(event):
-                held[type(event).__name__] += 1
-            elif isinstance(event, OdomEvent):
-                estimator.on_odometry(event)
-                odom_s.append(time.perf_counter() - tick)
-                pose_stamp[event.robot_id] = event.stamp
-                counts["odometry"] += 1
-            elif isinstance(event, ScanEvent):
-                estimator.on_scan(event)
-                scan_s.append(time.perf_counter() - tick)
-                counts["scan"] += 1
-            last_stamp = event.stamp
-            if event.stamp >= next_sample:
-                sample()
-                next_sample = start + (np.floor((event.stamp - start) / sample_period_s) + 1) * sample_period_s
-            if progress and tick >= next_refresh:
-                bar.update(task, completed=event.stamp - start)
-                next_refresh = tick + 0.25
+        try:
+            for event in dataset.events(duration, chosen):
+                if should_stop is not None and should_stop():
+                    raise KeyboardInterrupt
+                tick = time.perf_counter()
+                if placer is not None and placer.holds(event):
+                    held[type(event).__name__] += 1
+                elif isinstance(event, OdomEvent):
+                    estimator.on_odometry(event)
+                    odom_s.append(time.perf_counter() - tick)
+                    pose_stamp[event.robot_id] = event.stamp
+                    counts["odometry"] += 1
+                elif isinstance(event, ScanEvent):
+                    estimator.on_scan(event)
+                    scan_s.append(time.perf_counter() - tick)
+                    counts["scan"] += 1
+                last_stamp = event.stamp
+                if event.stamp >= next_sample:
+                    sample()
+                    next_sample = start + (np.floor((event.stamp - start) / sample_period_s) + 1) * sample_period_s
+                if progress and tick >= next_refresh:
+                    bar.update(task, completed=event.stamp - start)
+                    next_refresh = tick + 0.25
+        except KeyboardInterrupt:  # Ctrl-C or SIGTERM (see main), between two events: keep what was computed
+            interrupted = True
+            log.warning("interrupted after %.1f s of data: scoring and saving what was computed", last_stamp - start)
         sample()
     wall_s = time.perf_counter() - wall0
     view = estimator.landmark_map()
     extra = dict(estimator.extra_metrics()) if hasattr(estimator, "extra_metrics") else {}
     extra["start_poses"] = mode
+    if interrupted:
+        extra["interrupted"] = True
     if placer is not None:
         extra["placement"] = placer.report(start)
         extra["held_for_placement"] = {"odometry": held["OdomEvent"], "scan": held["ScanEvent"]}
@@ -192,23 +208,55 @@ def run_options(settings: RunSettings, dataset: Dataset) -> RunOptions:
         options.landmarks = dataset.landmarks
         options.landmark_ids = dataset.landmark_ids
         options.truth = {rid: (log.truth_stamp, log.truth_pose) for rid, log in dataset.robots.items()}
+    if settings.map:  # a saved map: the one to start from, or (mcl) to localize against instead of the true one
+        from services.maps import load_prior, options_with_map
+
+        options = options_with_map(options, load_prior(settings.map))
     return options
 
 
-def run(settings: RunSettings, console: Console | None = None) -> dict:
+def save_run_map(settings: RunSettings, result: OfflineRun, robots: list[str]) -> None:
+    """Write the run's final map to ``settings.map_out`` (atomically), saying what made it; the outcome goes to
+    ``result.extra`` (``map_out``, or ``map_out_error``: the run's figures are kept either way)."""
+    from schemas.contract import MapView
+    from schemas.mapfile import MapFileError, save_map
+
+    covs = np.zeros((len(result.map_means), 2, 2)) if result.map_covs is None else result.map_covs
+    source = {"estimator": settings.estimator, "association": settings.association, "particles": settings.particles,
+              "seed": settings.seed, "settings": parse_estimator_settings(settings.estimator_settings),
+              "dataset": settings.dataset, "robots": robots, "start_poses": result.extra.get("start_poses"),
+              "data_s": round(result.data_s, 3), "interrupted": bool(result.extra.get("interrupted")),
+              "from_map": settings.map}
+    try:
+        save_map(settings.map_out, MapView(result.map_means, covs, result.map_ids), source)
+    except MapFileError as error:
+        log.error("map not saved: %s", error)
+        result.extra["map_out_error"] = str(error)
+        return
+    log.info("map of %d landmarks saved to %s", len(result.map_means), settings.map_out)
+    result.extra["map_out"] = {"path": settings.map_out, "landmarks": len(result.map_means)}
+
+
+def run(settings: RunSettings, console: Console | None = None, should_stop: Callable[[], bool] | None = None) -> dict:
     """Load, run, score; write the JSON and the report folder; return the results."""
     from services.evaluation.metrics import Trajectory, fleet_alignment, score_estimates
-    from services.evaluation.report import clean_json, write_report
+    from services.evaluation.report import clean_json, clear_report, write_report
 
     dataset = load(settings)
     robots = settings.robot_ids.split(",") if settings.robot_ids else None
     options = run_options(settings, dataset)
     result = run_estimator(dataset, options, robots, settings.duration, settings.sample_period_s,
-                           progress=settings.progress, start_poses=settings.start_poses)
+                           progress=settings.progress, start_poses=settings.start_poses, should_stop=should_stop)
+    if settings.map_out:
+        save_run_map(settings, result, robots or list(dataset.robots))
     chosen = robots or list(dataset.robots)
     truth = {rid: Trajectory(dataset.robots[rid].truth_stamp, dataset.robots[rid].truth_pose) for rid in chosen
              if dataset.robots[rid].truth_stamp.size}
     name = settings.estimator
+    if settings.rerun:
+        from services.viz.recording import save_offline_run
+
+        save_offline_run(settings.rerun, dataset, result, truth, name, settings.sample_period_s)
     maps = {name: (result.map_means, result.map_covs)}
     truth_offset = tuple(dataset.meta.get("truth_offset", (0.0, 0.0)))
     metrics, curves = score_estimates({name: result.trajectories}, truth, maps, dataset.landmarks, truth_offset,
@@ -238,10 +286,14 @@ def run(settings: RunSettings, console: Console | None = None) -> dict:
     output = clean_json(output)
     if settings.out:
         metrics["run"] = output
+        cleared = clear_report(settings.out)
         written = write_report(settings.out, metrics, curves, truth, {name: result.trajectories}, maps,
                                dataset.landmarks, dataset.name, truth_offset)
         output["report"] = str(Path(settings.out))
-        log.info("report: %s", ", ".join(p.name for p in written))
+        results = Path(settings.out) / "results.json"
+        results.write_text(json.dumps(output, indent=2))
+        log.info("report in %s: %s%s", settings.out, ", ".join(p.name for p in [results, *written]),
+                 f" ({cleared} files of an earlier report removed)" if cleared else "")
     if settings.json_out:
         Path(settings.json_out).parent.mkdir(parents=True, exist_ok=True)
         Path(settings.json_out).write_text(json.dumps(output, indent=2))
@@ -287,16 +339,32 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def main(args: argparse.Namespace) -> int:
     settings = settings_from_args(RunSettings, args)
     console = Console()
+    stop = threading.Event()
+
+    def request_stop(signum, _frame) -> None:
+        if stop.is_set():  # asked twice: leave now
+            raise KeyboardInterrupt
+        stop.set()
+        log.warning("%s: stopping after the current event; what was computed is scored and saved",
+                    signal.Signals(signum).name)
+
+    previous = {sig: signal.signal(sig, request_stop) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
-        output = run(settings)
+        output = run(settings, should_stop=stop.is_set)
     except SettingsError:
         raise  # the CLI prints it as one line
     except (ValueError, FileNotFoundError) as exc:
         log.error("cannot run: %s", exc)
         return 2
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
     print_results(output, console)
     if settings.json_out:
         console.print(f"results in {settings.json_out}")
     if settings.out:
-        console.print(f"report in {settings.out}")
+        console.print(f"results, metrics, TUM trajectories and plots in {settings.out}/")
+    if output.get("interrupted"):
+        console.print(f"interrupted after {output['data_s']:.1f} s of data: the figures above cover that part only")
+        return 130
     return 0

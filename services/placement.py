@@ -6,7 +6,9 @@
 :class:`FleetPlacer` that sits between the data and the estimator, as the MCL service does live:
 
 - while no robot is placed, the first robot to scan anchors the world frame: it is placed at the origin
-  (DESIGN §3: the world frame is the first robot's start pose unless a start pose is given);
+  (DESIGN §3: the world frame is the first robot's start pose unless a start pose is given), unless the
+  estimator started from a saved map (``--map``): that map's frame is the world frame, and every robot is
+  localized against it;
 - every other robot without a pose is localized globally by Monte Carlo localization (one filter per robot
   in a :class:`services.mcl.fleet.MclFleet`, the table the MCL service and estimator use) against the estimator's map so far, with landmark ids
   as signatures when the map and the scans have them; once localized it joins the estimator at the
@@ -77,6 +79,7 @@ class FleetPlacer:
         self.localizers = MclFleet(config, use_start_pose=False)  # a robot joins it at its first scan with a map
         self.map_stamp = -np.inf
         self.map_ready = False
+        self.prior_map = len(estimator.landmark_map().means) > 0  # a saved map: its frame, no anchor
         self.placements = {info.robot_id: Placement(info.robot_id) for info in infos}
         for info in infos:
             if estimator.has_robot(info.robot_id):
@@ -96,7 +99,7 @@ class FleetPlacer:
             return True
         if record.first_scan_stamp is None:
             record.first_scan_stamp = event.stamp
-        if self.estimator.robot_count == 0:
+        if self.estimator.robot_count == 0 and not self.prior_map:
             return self._place(record, np.zeros(3), np.zeros((3, 3)), event.stamp, "anchor")
         self._refresh_map(event.stamp)
         if not self.map_ready:

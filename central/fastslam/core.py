@@ -95,6 +95,31 @@ class FastSlam:
         """Take a robot out, placed or waiting (the landmarks it mapped stay); its RobotInfo, or None."""
         return lifecycle.remove(self, robot_id)
 
+    def load_landmarks(self, ids, means, covs, hits=None) -> None:
+        """Seed the map with landmarks every particle agrees on (a saved map, :mod:`schemas.mapfile`): ids ``(n,)``
+        (known: the scans' ids; shared: later new landmarks are numbered after the largest), means ``(n, 2)``,
+        covariances ``(n, 2, 2)``, hits ``(n,)`` (None: ``confirm_hits``; at least that, so they are confirmed),
+        existence at ``exist_max``. Stored once for every particle. ValueError on an id already in the map."""
+        ids = np.asarray(ids, np.int64).reshape(-1)
+        means, covs = np.asarray(means, float).reshape(-1, 2), np.asarray(covs, float).reshape(-1, 2, 2)
+        confirm = self.config.confirm_hits
+        hits = np.full(ids.size, confirm) if hits is None else np.maximum(np.asarray(hits, np.int64), confirm)
+        if len(set(ids.tolist())) != ids.size or set(ids.tolist()) & set(self.known_slots):
+            raise ValueError("landmark ids repeat or are already in the map")
+        if ids.size and isinstance(self.map, AlignedMap):
+            slots = self.map.allocate(ids.size)
+            self.map.write(slots, means, covs)
+            self.map.exist[slots], self.map.hits[slots] = self.config.exist_max, np.minimum(hits, 2**31 - 1)
+            self.map.label[slots], self.map.valid[slots] = ids, True
+            self.known_slots.update(zip(ids.tolist(), slots.tolist()))
+            self.next_landmark_id = max(self.next_landmark_id, int(ids.max()) + 1)
+        elif ids.size:  # nn, mht: every particle's own map gets a copy
+            self.map.reserve(ids.size)
+            particle = np.repeat(np.arange(self.particle_count), ids.size)
+            tile = lambda a: np.tile(a, (self.particle_count,) + (1,) * (a.ndim - 1))  # noqa: E731
+            slots = self.map.append(particle, tile(means), tile(covs), self.config.exist_max, tile(ids))
+            self.map.hits[particle, slots] = tile(np.minimum(hits, 2**31 - 1))
+
     # ------------------------------------------------------------------ events
     def on_odometry(self, event: OdomEvent) -> bool:
         """Buffer one control; it is applied with the others at the robot's next scan (or every ``max_batch_s``)."""

@@ -4,6 +4,7 @@ One entry point, :func:`load_dataset`, parses a spec:
 
 - ``mrclam:PATH`` (all five robots) or ``mrclam:PATH:N`` (robot N only, for a replay robot),
 - ``victoria-park:PATH``, ``car-park:PATH``,
+- ``mcap:FILE``: a fleet recorded by ``fleetslam record`` (every recorded robot),
 - ``sim:WORLD`` (delegates to :func:`robots.simulator.simulate`).
 
 A relative PATH that does not exist is looked up under :func:`data_root`;
@@ -18,15 +19,16 @@ from pathlib import Path
 
 from robots.dataset import Dataset
 from robots.loaders.car_park import detect_beacons, load_car_park
+from robots.loaders.mcap import load_mcap
 from robots.loaders.mrclam import load_mrclam
 from robots.loaders.victoria_park import load_victoria_park
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 DEFAULT_FOLDERS = {"mrclam": "utias_mrclam/MRCLAM_Dataset6", "victoria-park": "victoria_park", "car-park": "acfr_car_park"}
-KINDS = ("mrclam", "victoria-park", "car-park", "sim")
+KINDS = ("mrclam", "victoria-park", "car-park", "mcap", "sim")
 
 __all__ = ["data_root", "load_dataset", "resolve_path", "load_mrclam", "load_victoria_park", "load_car_park",
-           "detect_beacons", "KINDS"]
+           "detect_beacons", "load_mcap", "KINDS"]
 
 
 def data_root() -> Path | None:
@@ -65,6 +67,8 @@ def load_dataset(spec: str, **options) -> Dataset:
         if colon and tail.isdigit():
             path, robots = head, [int(tail)]
         return load_mrclam(resolve_path(kind, path), robots=robots, **options)
+    if kind == "mcap":
+        return load_mcap(rest)
     if kind == "victoria-park":
         return load_victoria_park(resolve_path(kind, rest), **options)
     return load_car_park(resolve_path(kind, rest), **options)

@@ -20,6 +20,38 @@ from services.compiled import AVAILABLE, njit
 
 
 @njit
+def jcbb_candidates(gated, nis):
+    """(table ``(M, C)``, counts ``(M,)``, order): each measurement's gated landmarks by increasing NIS (ties in
+    landmark order), and the measurements with any candidate, fewest candidates first (ties in measurement
+    order): the search order of :func:`services.association.solvers.solve_jcbb`."""
+    m_count, l_count = gated.shape
+    counts = np.zeros(m_count, np.int64)
+    for m in range(m_count):
+        for n in range(l_count):
+            if gated[m, n]:
+                counts[m] += 1
+    table = np.zeros((m_count, max(1, counts.max()) if m_count else 1), np.int64)
+    for m in range(m_count):
+        chosen = np.empty(counts[m], np.int64)
+        k = 0
+        for n in range(l_count):
+            if gated[m, n]:
+                chosen[k] = n
+                k += 1
+        ranked = np.argsort(nis[m, chosen], kind="mergesort")
+        for k in range(counts[m]):
+            table[m, k] = chosen[ranked[k]]
+    by_count = np.argsort(counts, kind="mergesort")
+    order = np.empty(m_count, np.int64)
+    kept = 0
+    for m in by_count:
+        if counts[m] > 0:
+            order[kept] = m
+            kept += 1
+    return table, counts, order[:kept]
+
+
+@njit
 def jcbb_kernel(innovations, joint_blocks, noise, candidates, counts, order, bounds, max_nodes):
     """(pair measurement indices, pair landmark indices, pairings, joint NIS, truncated, nodes).
 
@@ -117,5 +149,6 @@ def jcbb_kernel(innovations, joint_blocks, noise, candidates, counts, order, bou
 def warm_up() -> None:
     """Compile (or load from the cache) the kernel on a tiny input (:func:`services.compiled.warm_up` times it)."""
     if AVAILABLE:
+        jcbb_candidates(np.ones((1, 1), np.bool_), np.zeros((1, 1)))
         jcbb_kernel(np.zeros((1, 1, 2)), np.zeros((1, 1, 2, 2)), np.eye(2), np.zeros((1, 1), np.int64),
                     np.ones(1, np.int64), np.zeros(1, np.int64), np.full(1, 9.0), 100)

@@ -255,20 +255,21 @@ def solve_jcbb(
     this recursive reference.
     """
     m_count = innovations.shape[0]
+    if compiled and kernels.AVAILABLE:
+        table, counts, order = kernels.jcbb_candidates(np.ascontiguousarray(gated, np.bool_),
+                                                        np.ascontiguousarray(nis, float))
+        if not order.size:
+            return JcbbResult(_EMPTY, _EMPTY, 0.0, False, 0)
+        bounds = np.array([gate_value(probability, 2 * k) for k in range(1, order.size + 1)])
+        rows, cols, count, d2, truncated, nodes = kernels.jcbb_kernel(
+            np.ascontiguousarray(innovations, float), np.ascontiguousarray(joint_blocks, float),
+            np.asarray(noise, float), table, counts, order, bounds, max_nodes)
+        return JcbbResult(rows, cols, float(d2) if count else 0.0, bool(truncated), int(nodes))
     candidates = [np.flatnonzero(gated[m])[np.argsort(nis[m, gated[m]], kind="stable")] for m in range(m_count)]
     order = [m for m in sorted(range(m_count), key=lambda m: len(candidates[m])) if candidates[m].size]
     if not order:
         return JcbbResult(_EMPTY, _EMPTY, 0.0, False, 0)
     bounds = [gate_value(probability, 2 * k) for k in range(1, len(order) + 1)]
-    if compiled and kernels.AVAILABLE:
-        table = np.zeros((m_count, max(len(c) for c in candidates)), np.int64)
-        for m, c in enumerate(candidates):
-            table[m, :c.size] = c
-        rows, cols, count, d2, truncated, nodes = kernels.jcbb_kernel(
-            np.ascontiguousarray(innovations, float), np.ascontiguousarray(joint_blocks, float),
-            np.asarray(noise, float), table, np.array([c.size for c in candidates], np.int64),
-            np.asarray(order, np.int64), np.asarray(bounds, float), max_nodes)
-        return JcbbResult(rows, cols, float(d2) if count else 0.0, bool(truncated), int(nodes))
     best = {"pairs": [], "d2": np.inf}
     nodes = 0
     truncated = False

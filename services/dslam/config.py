@@ -46,6 +46,13 @@ class DslamConfig(CoreConfig):
     column_max_iter: int = Field(100, ge=1, description="PCG iterations of a covariance-column solve before a fresh sparse LU solve finishes it")
     refactor_iterations: int = Field(15, ge=1, description="a column solve slower than this many iterations makes the next one factorise I afresh")
     column_cache: int = Field(64, ge=1, description="covariance columns kept to warm-start the next solves (landmarks)")
+    covariance_columns: Literal["factored", "explicit"] = Field(
+        "factored", description="cached covariance columns kept as full-length base vectors times a small mixing "
+        "matrix, so that an update corrects them and the mean in work independent of the map size (factored), or as "
+        "full columns corrected in place, O(n) per update (explicit: the reference)")
+    recovery_check_every: int = Field(
+        16, ge=1, description="the mean is checked against I X = i (PCG, O(nnz)) every this many scans; in between the "
+        "rank-k corrections keep it exact (1: every scan, the reference)")
     relocalize_after: int = Field(
         10, ge=1, description="scans in a row whose observation estimate contradicts the prediction before the robot is relocalized"
     )

@@ -148,7 +148,8 @@ class DSlam:
         self.config = config or DslamConfig()
         s = self.config
         self.map = InformationMap(s.recovery_tol, s.recovery_max_iter, s.column_tol, s.column_max_iter, s.column_cache,
-                                  refactor_iterations=s.refactor_iterations)
+                                  refactor_iterations=s.refactor_iterations, columns=s.covariance_columns,
+                                  check_every=s.recovery_check_every)
         self.associator = associator or in_process_associate
         self.ids: list[int] = []
         self.index_of: dict[int, int] = {}
@@ -242,7 +243,7 @@ class DSlam:
             self._map_local(robot, obs, noise, kinds, refs)
         else:
             self._map_phase_two(obs, noise, kinds, refs, mapped, confirmed)
-        self.map.recover()
+        self.map.maintain()
         self.last_step_ms = (time.perf_counter() - started) * 1e3
 
     # ------------------------------------------------------------ association
@@ -337,7 +338,7 @@ class DSlam:
         """
         if index.size == 0 or (robot.pose is None and index.size < 2):
             return
-        landmarks = self.map.means[index]
+        landmarks = self.map.landmark_means(index)
         joint = self.map.joint_covariance(index)
         if robot.pose is None:
             points, _ = scan_points(obs, noise)
@@ -532,6 +533,23 @@ class DSlam:
                                       np.asarray(cov, float).copy()))
 
     # ------------------------------------------------------------------- maps
+    def load_landmarks(self, keys, means, covs, hits=None, chunk: int = 64) -> None:
+        """Seed the map with saved landmarks (:mod:`schemas.mapfile`) as prior information: each mean with the
+        inverse of its covariance, landmarks independent (a saved map keeps marginals only), through the phase-I
+        update ``chunk`` landmarks at a time. ``keys`` name them (known association: the scans' ids); ``hits``
+        is not needed (a saved landmark is mapped). ValueError on a key already in the map."""
+        keys = np.asarray(keys, np.int64).reshape(-1)
+        means, covs = np.asarray(means, float).reshape(-1, 2), np.asarray(covs, float).reshape(-1, 2, 2)
+        if len(set(keys.tolist())) != keys.size or set(keys.tolist()) & set(self.index_of):
+            raise ValueError("landmark keys repeat or are already in the map")
+        for start in range(0, keys.size, chunk):
+            part = slice(start, start + chunk)
+            index = self.map.update_absolute([], np.zeros((0, 2)), means[part], scipy.linalg.block_diag(*covs[part]))
+            self._register(keys[part].tolist(), index)
+        if keys.size:
+            self.map.recover()
+            self.counts["landmarks_loaded"] += keys.size
+
     def adopt(self, information_map: InformationMap, keys: list[int]) -> None:
         """Continue from a map built elsewhere (``keys``: the feature key of each landmark index), with this configuration."""
         s = self.config
@@ -539,6 +557,9 @@ class DSlam:
         information_map.tol, information_map.max_iter = s.recovery_tol, s.recovery_max_iter
         information_map.column_tol, information_map.column_max_iter = s.column_tol, s.column_max_iter
         information_map.refactor_iterations, information_map.cache.capacity = s.refactor_iterations, s.column_cache
+        if information_map.factored != (s.covariance_columns == "factored"):
+            information_map.use_columns(s.covariance_columns, s.column_cache)
+        information_map.check_every = s.recovery_check_every
         self.map = information_map
         self.ids, self.index_of, self.tentative = [], {}, {}
         self._register(list(keys), np.arange(information_map.n))
@@ -550,6 +571,7 @@ class DSlam:
         landmarks with a cached column get theirs and the others the inverse of
         their own information block (a lower bound: the reports' cost stays O(N)).
         """
+        self.map.recover()  # the check maintain() may have deferred
         means = self.map.means.copy()
         if self.map.n <= self.config.marginals_limit:
             covs = self.map.all_marginals()

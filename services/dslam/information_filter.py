@@ -238,13 +238,12 @@ class BlockSparseMatrix:
         return int(total)
 
 
-class ColumnCache:
-    """Covariance columns (2n, 2) of recently used landmarks, in one dense array, least recently used first out."""
+class _LandmarkSlots:
+    """Which landmarks' covariance columns a cache holds, in slots of two columns, least recently used first."""
 
     def __init__(self, capacity: int):
         self.capacity = capacity
         self.slot: OrderedDict[int, int] = OrderedDict()
-        self.data = np.zeros((0, 0))
         self._free: list[int] = []
 
     def __contains__(self, landmark: int) -> bool:
@@ -254,7 +253,7 @@ class ColumnCache:
         return len(self.slot)
 
     def columns(self, landmarks) -> np.ndarray:
-        """Array positions (2k,) of the columns of ``landmarks`` (all cached)."""
+        """Positions (2k,) of the columns of ``landmarks`` (all cached) among the cache's columns."""
         slots = np.array([self.slot[int(i)] for i in landmarks], np.int64)
         return (2 * slots[:, None] + np.arange(2)).ravel()
 
@@ -262,6 +261,22 @@ class ColumnCache:
         for i in landmarks:
             if int(i) in self.slot:
                 self.slot.move_to_end(int(i))
+
+
+class ColumnCache(_LandmarkSlots):
+    """Covariance columns (2n, 2) of recently used landmarks, in one dense array, least recently used first out."""
+
+    def __init__(self, capacity: int):
+        super().__init__(capacity)
+        self.data = np.zeros((0, 0))
+
+    def rows(self, rows: np.ndarray, positions: np.ndarray | slice = slice(None)) -> np.ndarray:
+        """P[rows, columns at ``positions``] (every slot by default)."""
+        return self.data[rows][:, positions]
+
+    def full(self, positions: np.ndarray, size: int) -> np.ndarray:
+        """The full-length columns (size, k) at ``positions``."""
+        return self.data[:size, positions]
 
     def resize_rows(self, rows: int) -> None:
         """Make room for ``rows`` state rows (new landmarks get zero rows, filled by the caller)."""
@@ -285,6 +300,9 @@ class ColumnCache:
         self.slot[landmark] = slot
         self.slot.move_to_end(landmark)
 
+    def nbytes(self) -> int:
+        return int(self.data.nbytes)
+
     def evict(self, keep=()) -> None:
         """Drop least recently used columns beyond the capacity (never those in ``keep``).
 
@@ -300,22 +318,170 @@ class ColumnCache:
                 self._free.append(self.slot.pop(landmark))
 
 
+class FactoredColumns(_LandmarkSlots):
+    """Covariance columns of recently used landmarks kept as B T: full-length base vectors B, a small mixing matrix T.
+
+    An update of D-SLAM (Wang, Huang, Dissanayake, "D-SLAM: a decoupled solution to simultaneous localization and
+    mapping") over landmarks O already cached corrects every cached column by P[:, O] times a small matrix, so the
+    columns stay in the span of the base vectors: only T (bases × cached columns) changes, and the mean's change
+    P[:, O] w is kept as base coefficients ``shift`` until the mean is read in full. The per-scan work is independent
+    of the map size; full-length vectors are touched only to add base vectors (a column solved, new features) and to
+    compact the base once evicted columns leave too many unused vectors. The rows of the base vectors are stored
+    contiguously (``base`` is bases × state rows), so a few rows of every column are a small gather.
+    """
+
+    def __init__(self, capacity: int):
+        super().__init__(capacity)
+        self.base = np.zeros((0, 0))  # (base capacity, state-row capacity); rows [: self.used] in use
+        self.mix = np.zeros((0, 0))  # (base capacity, 2 × slot capacity)
+        self.shift = np.zeros(0)  # (base capacity,) coefficients of the mean change not yet added to the mean
+        self.scale = np.zeros(0)  # (base capacity,) largest magnitude in each base vector
+        self.used = 0
+        self.size = 0  # state rows (2n)
+
+    def rows(self, rows: np.ndarray, positions: np.ndarray | slice = slice(None)) -> np.ndarray:
+        """P[rows, columns at ``positions``] (every slot by default): |rows| × 2b times 2b × columns."""
+        return self.base[: self.used, rows].T @ self.mix[: self.used, positions]
+
+    def diagonal_blocks(self, landmarks: np.ndarray) -> np.ndarray:
+        """The (k, 2, 2) blocks P[i, i] of the cached ``landmarks`` (k,), without the k × k submatrix."""
+        rows = self.base[: self.used, block_rows(landmarks)].reshape(self.used, -1, 2)
+        cols = self.mix[: self.used, self.columns(landmarks)].reshape(self.used, -1, 2)
+        return np.einsum("bka,bkc->kac", rows, cols)
+
+    def full(self, positions: np.ndarray, size: int) -> np.ndarray:
+        """The full-length columns (size = 2n, k) at ``positions`` of ``mix``."""
+        return (self.mix[: self.used, positions].T @ self.base[: self.used, : size]).T
+
+    def shift_rows(self, rows: np.ndarray) -> np.ndarray:
+        """The pending mean change at ``rows``."""
+        return self.shift[: self.used] @ self.base[: self.used, rows]
+
+    def take_shift(self) -> np.ndarray:
+        """The pending mean change (2n,), now cleared."""
+        change = self.shift[: self.used] @ self.base[: self.used, : self.size]
+        self.shift[:] = 0.0
+        return change
+
+    def clear_shift(self) -> None:
+        self.shift[:] = 0.0
+
+    def resize_rows(self, rows: int) -> None:
+        """Make room for ``rows`` state rows (new rows of the base vectors are zero, filled by the caller)."""
+        if rows > self.base.shape[1]:
+            grown = np.zeros((self.base.shape[0], max(rows, 2 * self.base.shape[1])))
+            grown[:, : self.size] = self.base[:, : self.size]
+            self.base = grown
+        self.size = rows
+
+    def add_bases(self, count: int) -> np.ndarray:
+        """Append ``count`` zero base vectors; return their indices."""
+        need = self.used + count
+        if need > self.base.shape[0]:
+            cap = max(need, 2 * self.base.shape[0])
+            base = np.zeros((cap, self.base.shape[1]))
+            base[: self.used] = self.base[: self.used]
+            mix = np.zeros((cap, self.mix.shape[1]))
+            mix[: self.used] = self.mix[: self.used]
+            shift, scale = np.zeros(cap), np.zeros(cap)
+            shift[: self.used], scale[: self.used] = self.shift[: self.used], self.scale[: self.used]
+            self.base, self.mix, self.shift, self.scale = base, mix, shift, scale
+        added = np.arange(self.used, need)
+        self.base[added] = 0.0
+        self.mix[added] = 0.0
+        self.shift[added] = 0.0
+        self.scale[added] = 0.0
+        self.used = need
+        return added
+
+    def new_slots(self, landmarks: list[int]) -> np.ndarray:
+        """Zero columns for ``landmarks`` (not cached); return their positions (2k,) in ``mix``."""
+        for landmark in landmarks:
+            if self._free:
+                slot = self._free.pop()
+            else:
+                slot = self.mix.shape[1] // 2
+                self.mix = np.concatenate([self.mix, np.zeros((self.mix.shape[0], 2))], axis=1)
+            self.slot[landmark] = slot
+            self.slot.move_to_end(landmark)
+        positions = self.columns(landmarks)
+        self.mix[:, positions] = 0.0
+        return positions
+
+    def insert_solved(self, landmarks: list[int], columns: np.ndarray) -> None:
+        """Store the solved (2n, 2k) columns of ``landmarks`` as new base vectors."""
+        bases = self.add_bases(columns.shape[1])
+        self.base[bases, : self.size] = columns.T
+        self.scale[bases] = np.max(np.abs(columns), axis=0)
+        positions = self.new_slots(landmarks)
+        self.mix[bases, positions] = 1.0
+
+    def evict(self, keep=()) -> None:
+        """As :meth:`ColumnCache.evict`; the columns dropped are zeroed (their base vectors stay until compaction)."""
+        keep = {int(i) for i in keep}
+        self.capacity = max(self.capacity, 3 * len(keep))
+        for landmark in list(self.slot):
+            if len(self.slot) <= self.capacity:
+                break
+            if landmark not in keep:
+                slot = self.slot.pop(landmark)
+                self.mix[:, 2 * slot: 2 * slot + 2] = 0.0
+                self._free.append(slot)
+
+    def precision_loss(self) -> float:
+        """How much larger the terms of B T are than the variances it gives (cached columns): the factor by which
+        rounding in B T exceeds rounding in explicit columns. It grows as updates shrink the covariances."""
+        if not self.slot:
+            return 1.0
+        rows = block_rows(np.fromiter(self.slot.keys(), np.int64, len(self.slot)))
+        positions = self.columns(self.slot.keys())
+        terms = self.scale[: self.used] @ np.abs(self.mix[: self.used, positions])
+        variances = np.einsum("bk,bk->k", self.base[: self.used, rows], self.mix[: self.used, positions])
+        return float(np.max(terms / np.maximum(np.abs(variances), 1e-300)))
+
+    def wants_compaction(self, precision_loss: float) -> bool:
+        """Time for :meth:`compact`: more base vectors than twice the cached columns (and some slack), or B T
+        losing more than ``precision_loss`` in relative precision."""
+        return self.used > 4 * len(self.slot) + 64 or self.precision_loss() > precision_loss
+
+    def compact(self) -> None:
+        """Make the cached columns themselves the base (B ← B T, T ← 1); the pending shift must be taken first."""
+        landmarks = list(self.slot)
+        positions = self.columns(landmarks) if landmarks else np.zeros(0, np.int64)
+        base = np.zeros((positions.size, self.base.shape[1]))
+        base[:, : self.size] = self.mix[: self.used, positions].T @ self.base[: self.used, : self.size]
+        self.base, self.used = base, positions.size
+        self.scale = np.max(np.abs(base), axis=1) if base.size else np.zeros(positions.size)
+        self.mix = np.eye(positions.size)
+        self.shift = np.zeros(positions.size)
+        self.slot = OrderedDict((landmark, k) for k, landmark in enumerate(landmarks))
+        self._free = []
+
+    def nbytes(self) -> int:
+        return int(self.base.nbytes + self.mix.nbytes + self.shift.nbytes)
+
+
 class InformationMap:
     """Information matrix, information vector and recovered mean of the absolute landmark map.
 
     Recovery (§3.2-3.3). Each update needs the covariance columns of the old
-    landmarks it involves; they are kept in a :class:`ColumnCache`, and a column
+    landmarks it involves; they are kept in a :class:`FactoredColumns` (``columns="factored"``)
+    or, the reference, a :class:`ColumnCache` of full columns (``columns="explicit"``); a column
     not there is solved by block PCG from a warm start (the column of the
     nearest cached landmark, preconditioned by a stored sparse LU factor of an
     earlier I). With those columns, the rank-k correction of the
     update gives the new mean and the new cached columns exactly (for the
     linearised measurement); the mean is then checked against I X̂ = i by PCG
-    warm-started there, which usually stops at once. Nothing inverts I.
+    warm-started there, which usually stops at once: :meth:`maintain` does that every
+    ``check_every`` scans (the check is one product with I, O(nnz)). Nothing inverts I.
     """
 
     def __init__(self, tol: float = 1e-5, max_iter: int = 200, column_tol: float = 1e-9,
                  column_max_iter: int = 100, cache_columns: int = 64, track_columns: bool = True,
-                 refactor_iterations: int = 15):
+                 refactor_iterations: int = 15, columns: str = "factored", check_every: int = 1,
+                 precision_loss: float = 100.0):
+        if columns not in ("factored", "explicit"):
+            raise ValueError(f"columns must be factored or explicit, not {columns!r}")
         self.matrix = BlockSparseMatrix()
         self.track_columns = track_columns
         self.refactor_iterations = refactor_iterations
@@ -323,12 +489,17 @@ class InformationMap:
         self._factor_size = 0
         self.factorisations = 0
         self.vector = np.zeros(0)
-        self.mean = np.zeros(0)
+        self._mean = np.zeros(0)
         self.tol = tol
         self.max_iter = max_iter
         self.column_tol = column_tol
         self.column_max_iter = column_max_iter
-        self.cache = ColumnCache(cache_columns)
+        self.factored = columns == "factored"
+        self.cache = FactoredColumns(cache_columns) if self.factored else ColumnCache(cache_columns)
+        self.check_every = check_every
+        self.precision_loss = precision_loss
+        self._since_check = 0
+        self._unchecked = False
         self.recovery_iterations = 0
         self.column_iterations = 0
         self.column_solves = 0
@@ -341,9 +512,37 @@ class InformationMap:
         return self.matrix.n
 
     @property
+    def mean(self) -> np.ndarray:
+        """The recovered mean (2n,), with the change the factored columns still hold added first."""
+        if self.factored and np.any(self.cache.shift[: self.cache.used]):
+            self._mean += self.cache.take_shift()
+        return self._mean
+
+    @mean.setter
+    def mean(self, value: np.ndarray) -> None:
+        self._mean = value
+        if self.factored:
+            self.cache.clear_shift()
+
+    @property
     def means(self) -> np.ndarray:
         """Current landmark estimates (n, 2) (a view of the recovered mean)."""
         return self.mean.reshape(-1, 2)
+
+    def landmark_means(self, index) -> np.ndarray:
+        """Estimates (k, 2) of the landmarks ``index`` (k,), without bringing the whole mean up to date."""
+        rows = block_rows(np.asarray(index, np.int64).reshape(-1))
+        values = self._mean[rows]
+        if self.factored:
+            values = values + self.cache.shift_rows(rows)
+        return values.reshape(-1, 2)
+
+    def use_columns(self, columns: str, capacity: int) -> None:
+        """Keep covariance columns as ``columns`` (factored or explicit) from now on, starting from an empty cache."""
+        self._mean = self.mean
+        self.factored = columns == "factored"
+        self.cache = FactoredColumns(capacity) if self.factored else ColumnCache(capacity)
+        self.cache.resize_rows(2 * self.n)
 
     # ---------------------------------------------------------------- updates
     def update(self, old: np.ndarray, jacobian: np.ndarray, residual: np.ndarray, noise: np.ndarray,
@@ -380,17 +579,17 @@ class InformationMap:
         new_rows = np.any(jacobian[:, split:] != 0.0, axis=1) if m_new else np.zeros(jacobian.shape[0], bool)
         if int(new_rows.sum()) != 2 * m_new:
             raise ValueError("each new feature must own exactly two measurement rows")
-        rows_old = block_rows(old)
-        linearised = np.concatenate([self.mean[rows_old], new_positions.ravel()])
+        linearised = np.concatenate([self.landmark_means(old).ravel(), new_positions.ravel()])
         old_rows = ~new_rows
         added = np.zeros(0, np.int64)
         if not self.track_columns:
             added = self._grow(new_positions)
+            self._unchecked = True
         else:
             if m_old:
                 self._ensure_columns(old)
             a = jacobian[old_rows][:, :split]
-            delta = np.zeros(2 * self.n)
+            delta = np.zeros(split)
             if m_old and old_rows.any():
                 delta = self._correct_old(old, a, residual[old_rows], noise[np.ix_(old_rows, old_rows)], gate)
                 if delta is None:
@@ -403,15 +602,18 @@ class InformationMap:
         self.matrix.add(chain, 0.5 * (product[:, :-1] + product[:, :-1].T))
         self.vector[block_rows(chain)] += product[:, -1]
         self.cache.touch(chain)
-        self.cache.evict(keep=chain)
+        self._evict(chain)
         return added
 
     def _correct_old(self, old: np.ndarray, a: np.ndarray, nu: np.ndarray, noise: np.ndarray,
                      gate: float | None) -> np.ndarray | None:
         """Kalman form of the update on the old landmarks: mean change, cached columns corrected.
 
-        Returns None, changing nothing, when the NIS of ``nu`` exceeds ``gate``.
+        Returns the mean change at the old landmarks' rows, or None, changing
+        nothing, when the NIS of ``nu`` exceeds ``gate``.
         """
+        if self.factored:
+            return self._correct_old_factored(old, a, nu, noise, gate)
         size = 2 * self.n
         cols = self.cache.data
         p_old = cols[:size, self.cache.columns(old)]
@@ -424,9 +626,31 @@ class InformationMap:
         delta = gain @ nu
         self.mean += delta
         rank_k_update(cols[:size], gain, a @ cols[rows_old])  # every slot, free ones too: one pass
-        return delta
+        return delta[rows_old]
 
-    def _add_new(self, old, a, jac_new, residual, noise, new_rows, new_positions, delta) -> np.ndarray:
+    def _correct_old_factored(self, old: np.ndarray, a: np.ndarray, nu: np.ndarray, noise: np.ndarray,
+                              gate: float | None) -> np.ndarray | None:
+        """:meth:`_correct_old` on :class:`FactoredColumns`: P ← P − P_O Aᵀ S⁻¹ A P_O· becomes T ← T − T_O Aᵀ S⁻¹ A P_O·,
+        and the mean change P_O Aᵀ S⁻¹ ν is kept as base coefficients T_O Aᵀ S⁻¹ ν (work independent of n). The
+        gain is formed as in the explicit update (S solved against (P_O Aᵀ)ᵀ), so that both round alike."""
+        cache = self.cache
+        rows_old = block_rows(old)
+        positions = cache.columns(old)
+        p_rows = cache.rows(rows_old)  # P[O, every slot]
+        p_old = p_rows[:, positions]
+        s = a @ p_old @ a.T + noise
+        mix_old = cache.mix[: cache.used, positions]
+        rows = np.vstack([mix_old @ a.T, p_old @ a.T])  # T_O Aᵀ over P_OO Aᵀ: the gains' coefficients and rows O
+        solved = np.linalg.solve(s, np.column_stack([rows.T, nu]))
+        if gate is not None and float(nu @ solved[:, -1]) > gate:
+            return None
+        gain = solved[:, :-1].T  # T_O Aᵀ S⁻¹ over P_OO Aᵀ S⁻¹
+        change = gain @ nu
+        cache.shift[: cache.used] += change[: cache.used]
+        cache.mix[: cache.used] -= gain[: cache.used] @ (a @ p_rows)
+        return change[cache.used:]
+
+    def _add_new(self, old, a, jac_new, residual, noise, new_rows, new_positions, delta_old) -> np.ndarray:
         """Append the new features with their exact mean and covariance columns.
 
         Rows of the new features: z_F = B x_O + C f + w_F, with w_F correlated
@@ -448,12 +672,15 @@ class InformationMap:
         c_inv = np.linalg.inv(c)  # block-diagonal 2×2 blocks of the new features, not the information matrix
         m = c_inv @ (b - gain @ a)
         rows_old = block_rows(old)
-        shift = c_inv @ (residual[new_rows] - gain @ residual[old_rows]) - m @ delta[rows_old]
+        shift = c_inv @ (residual[new_rows] - gain @ residual[old_rows]) - m @ delta_old
         means = new_positions.ravel() + shift
+        own = c_inv @ (r_ff - gain @ r_fo.T) @ c_inv.T
+        if self.factored:
+            return self._add_new_factored(old, m, means, own)
         size = 2 * self.n
         cols = self.cache.data
         p_old = cols[:size, self.cache.columns(old)] if m_old else np.zeros((size, 0))
-        new_block = m @ p_old[rows_old] @ m.T + c_inv @ (r_ff - gain @ r_fo.T) @ c_inv.T
+        new_block = m @ p_old[rows_old] @ m.T + own
         cross = -p_old @ m.T
         extension = -m @ cols[rows_old] if m_old else 0.0
         added = self._grow(means.reshape(-1, 2))
@@ -463,14 +690,43 @@ class InformationMap:
             self.cache.insert(landmark, full[:, 2 * j: 2 * j + 2])
         return added
 
+    def _add_new_factored(self, old: np.ndarray, m: np.ndarray, means: np.ndarray, own: np.ndarray) -> np.ndarray:
+        """:meth:`_add_new` on :class:`FactoredColumns`: the new rows of every base vector are −M times its old rows
+        (so every cached column gets −M P_O·), the new columns mix the old ones by −T_O Mᵀ, and two unit base
+        vectors per new feature carry its own noise C⁻¹ Σ_ε C⁻ᵀ."""
+        cache = self.cache
+        used = cache.used
+        base_rows = -(cache.base[:used, block_rows(old)] @ m.T)
+        mix_new = -(cache.mix[:used, cache.columns(old)] @ m.T) if old.size else np.zeros((used, m.shape[0]))
+        added = self._grow(means.reshape(-1, 2))
+        rows = block_rows(added)
+        cache.base[:used, rows] = base_rows
+        if base_rows.size:
+            cache.scale[:used] = np.maximum(cache.scale[:used], np.max(np.abs(base_rows), axis=1))
+        self._mean[rows] -= cache.shift[:used] @ base_rows  # the pending change does not concern the new rows
+        bases = cache.add_bases(rows.size)
+        cache.base[bases, rows] = 1.0
+        cache.scale[bases] = 1.0
+        positions = cache.new_slots(added.tolist())
+        cache.mix[:used, positions] = mix_new
+        cache.mix[np.ix_(bases, positions)] = 0.5 * (own + own.T)
+        return added
+
     def _grow(self, positions: np.ndarray) -> np.ndarray:
         """Append landmarks with zero information and the given estimates; return their indices."""
         start = self.n
         self.matrix.grow(positions.shape[0])
         self.vector = np.concatenate([self.vector, np.zeros(2 * positions.shape[0])])
-        self.mean = np.concatenate([self.mean, positions.ravel()])
+        self._mean = np.concatenate([self._mean, positions.ravel()])
         self.cache.resize_rows(2 * self.n)
         return np.arange(start, self.n)
+
+    def _evict(self, keep) -> None:
+        """Drop least recently used columns; compact the factored base when it holds too many unused vectors."""
+        self.cache.evict(keep=keep)
+        if self.factored and self.cache.wants_compaction(self.precision_loss):
+            self._mean = self.mean
+            self.cache.compact()
 
     def update_absolute(self, old: np.ndarray, old_positions: np.ndarray, new_positions: np.ndarray,
                         cov: np.ndarray) -> np.ndarray:
@@ -529,8 +785,9 @@ class InformationMap:
         positions = np.zeros((0, 2))
         if new.size:
             rows = 2 * (len(others) + np.arange(new.size)) + 1
-            positions = initialise(self.means[old[0]], self.means[old[1]], np.stack([z_map[rows], z_map[rows + 1]], -1))
-        predicted, jac = map_measurement(np.vstack([self.means[old], positions]))
+            reference = self.landmark_means(old[:2])
+            positions = initialise(reference[0], reference[1], np.stack([z_map[rows], z_map[rows + 1]], -1))
+        predicted, jac = map_measurement(np.vstack([self.landmark_means(old), positions]))
         gate = None
         if gate_probability is not None:
             gate = chi2_quantile(gate_probability, z_map.shape[0] - 2 * new.size)
@@ -551,8 +808,20 @@ class InformationMap:
 
         return apply
 
+    def maintain(self) -> int:
+        """Once per scan: :meth:`recover` on every ``check_every``-th call, or at once after updates the cached
+        columns did not follow (``track_columns`` off); return the iterations run.
+
+        Between checks the rank-k corrections keep the mean exact for the linearised updates, so
+        the check (one product with I, O(nnz)) only guards against drift."""
+        self._since_check += 1
+        if self._unchecked or self._since_check >= self.check_every:
+            return self.recover()
+        return 0
+
     def recover(self, max_iter: int | None = None) -> int:
         """Solve I X̂ = i by PCG warm-started at the current X̂ (§3.3); return the iterations run."""
+        self._since_check, self._unchecked = 0, False
         if self.n == 0:
             return 0
         self.matrix.prepare()
@@ -609,10 +878,11 @@ class InformationMap:
         start = np.zeros((size, 2 * k))
         cached = np.fromiter(self.cache.slot.keys(), np.int64, len(self.cache))
         diag_inverse = self.matrix.diagonal_inverse()
+        cached_means, missing_means = self.landmark_means(cached), self.landmark_means(missing_arr)
         for j, lm in enumerate(missing):
             if cached.size:
-                nearest = int(cached[np.argmin(np.sum((self.means[cached] - self.means[lm]) ** 2, axis=1))])
-                start[:, 2 * j: 2 * j + 2] = self.cache.data[:size, self.cache.columns([nearest])]
+                nearest = int(cached[np.argmin(np.sum((cached_means - missing_means[j]) ** 2, axis=1))])
+                start[:, 2 * j: 2 * j + 2] = self.cache.full(self.cache.columns([nearest]), size)
             else:
                 start[2 * lm: 2 * lm + 2, 2 * j: 2 * j + 2] = diag_inverse[lm]
         scale = np.abs(start[block_rows(missing_arr), np.arange(2 * k)])
@@ -629,6 +899,9 @@ class InformationMap:
         self.column_iterations = iterations
         self.column_iterations_total += iterations
         self.column_solves += k
+        if self.factored:
+            self.cache.insert_solved(missing, columns)
+            return
         for j, lm in enumerate(missing):
             self.cache.insert(lm, columns[:, 2 * j: 2 * j + 2])
 
@@ -638,16 +911,16 @@ class InformationMap:
         if landmarks.size == 0:
             return np.zeros((2 * self.n, 0))
         self._ensure_columns(landmarks)
-        columns = self.cache.data[: 2 * self.n, self.cache.columns(landmarks)].copy()
-        self.cache.evict(keep=landmarks)
+        columns = np.array(self.cache.full(self.cache.columns(landmarks), 2 * self.n))
+        self._evict(landmarks)
         return columns
 
     def joint_covariance(self, landmarks: np.ndarray) -> np.ndarray:
         """The (2k, 2k) covariance submatrix of ``landmarks`` (their columns solved or cached, only k rows read)."""
         landmarks = np.asarray(landmarks, np.int64)
         self._ensure_columns(landmarks)
-        sub = self.cache.data[np.ix_(block_rows(landmarks), self.cache.columns(landmarks))]
-        self.cache.evict(keep=landmarks)
+        sub = self.cache.rows(block_rows(landmarks), self.cache.columns(landmarks))
+        self._evict(landmarks)
         return 0.5 * (sub + sub.T)
 
     def marginals(self, landmarks: np.ndarray) -> np.ndarray:
@@ -664,9 +937,12 @@ class InformationMap:
         ids = np.fromiter(self.cache.slot.keys(), np.int64, len(self.cache))
         if ids.size == 0:
             return ids, np.zeros((0, 2, 2))
-        cols = self.cache.data[block_rows(ids)][:, self.cache.columns(ids)]
-        k = ids.size
-        covs = cols.reshape(k, 2, k, 2)[np.arange(k), :, np.arange(k), :]
+        if self.factored:
+            covs = self.cache.diagonal_blocks(ids)
+        else:
+            k = ids.size
+            cols = self.cache.rows(block_rows(ids), self.cache.columns(ids))
+            covs = cols.reshape(k, 2, k, 2)[np.arange(k), :, np.arange(k), :]
         return ids, 0.5 * (covs + np.swapaxes(covs, 1, 2))
 
     def all_marginals(self, batch: int = 256) -> np.ndarray:
@@ -691,4 +967,4 @@ class InformationMap:
         return float(error @ self.matrix.matvec(error))
 
     def memory_bytes(self) -> int:
-        return self.matrix.memory_bytes() + self.vector.nbytes + self.mean.nbytes + self.cache.data.nbytes
+        return self.matrix.memory_bytes() + self.vector.nbytes + self._mean.nbytes + self.cache.nbytes()

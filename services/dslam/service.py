@@ -12,6 +12,11 @@ means, marginal covariances of the landmarks near the robots, information
 matrix nnz, recovery iterations) and ``PoseEstimate`` on
 ``{prefix}/dslam/pose/{rid}`` after each scan. Stats on ``{prefix}/dslam/stats``
 carry the core's figures in ``extra``.
+
+With ``map`` (``--map FILE``, :mod:`schemas.mapfile`) the map starts from a saved one, its landmarks entered
+as prior information (:meth:`DSlam.load_landmarks`) and published from the first tick; a robot without a
+start pose is placed once it sees two of its landmarks (known association). With ``map_out`` the map is
+saved (atomically) every ``map_out_period_s`` and on exit.
 """
 
 from __future__ import annotations
@@ -28,11 +33,13 @@ from schemas.association import AssociationReply, AssociationRequest
 from schemas.codec import DecodeError
 from schemas.config import DslamSettings, add_settings_arguments, settings_from_args
 from schemas.contract import OdomEvent
+from schemas.mapfile import MapFileError
 from schemas.messages import MapEstimate, PoseEstimate, RobotInfo
 from schemas.transport import StreamPublisher
 from services.association.client import AssociationClient, AssociationRefused
 from services.dslam.config import DslamConfig
 from services.dslam.core import DSlam, in_process_associate
+from services.maps import MapSaver, load_prior, seed_estimator
 from services.runtime import ServiceShell
 
 log = logging.getLogger(__name__)
@@ -56,6 +63,12 @@ class DslamService(ServiceShell):
         self._pose_seq: Counter = Counter()
         self._map_seq = 0
         self._lock = asyncio.Lock()
+        prior = load_prior(settings.map)
+        if prior is not None:
+            seed_estimator(self.core, prior.view(), prior.hits(), self.core.config.association)
+        self.map_saver = MapSaver(settings.map_out, {"estimator": "dslam", "association": self.core.config.association,
+                                                     "service": "dslam", "from_map": settings.map},
+                                  settings.map_out_period_s)
 
     def setup(self, session: zenoh.Session) -> None:
         self.follow_robots()
@@ -127,6 +140,9 @@ class DslamService(ServiceShell):
         async with self._lock:
             message = self.map_message()
             self.extra = self._extra()
+            view = self.core.landmark_map() if self.map_saver.due() else None
+        if view is not None:
+            self.map_saver.save(view)
         self._map_pub.put(message)
         self._map_seq += 1
         self.published += 1
@@ -138,6 +154,7 @@ class DslamService(ServiceShell):
         self._map_pub.put(self.map_message())
         self.published += 1
         self.extra = self._extra()
+        self.map_saver.save(self.core.landmark_map())
         if self._client is not None:
             self._client.close()
 
@@ -147,4 +164,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    return DslamService(settings_from_args(DslamSettings, args)).serve()
+    settings = settings_from_args(DslamSettings, args)
+    try:
+        service = DslamService(settings)
+    except MapFileError as error:
+        log.error("cannot start: %s", error)
+        return 2
+    return service.serve()

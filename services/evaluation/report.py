@@ -70,7 +70,7 @@ def plot_map(path: Path, title: str, estimator: str, truth: dict[str, Trajectory
         if rid in estimated and len(estimated[rid]):
             e = transform_points(estimated[rid].poses, offset) if np.any(offset) else estimated[rid].poses
             where = f" at ({offset[0]:g}, {offset[1]:g})" if np.any(offset) else ""
-            ax.plot(e[:, 0], e[:, 1], color=color, lw=1.4, label=f"{rid} {estimator}{where}")
+            ax.plot(*break_at_jumps(e[:, :2]).T, color=color, lw=1.4, label=f"{rid} {estimator}{where}")
             ax.plot(e[0, 0], e[0, 1], "o", color=color, ms=5)
     if true_landmarks is not None and len(true_landmarks):
         ax.plot(true_landmarks[:, 0], true_landmarks[:, 1], "k+", ms=10, mew=1.8, label="true landmarks")
@@ -91,6 +91,17 @@ def plot_map(path: Path, title: str, estimator: str, truth: dict[str, Trajectory
     plt.close(fig)
 
 
+def break_at_jumps(xy: np.ndarray, factor: float = 20.0, floor_m: float = 2.0) -> np.ndarray:
+    """``xy`` ``(N, 2)`` with a NaN row inserted at every step longer than ``factor`` times the median step (and
+    ``floor_m``): a line plot then shows a global localization's jump from a guess to the found pose as a gap,
+    not as a long straight line."""
+    if len(xy) < 3:
+        return xy
+    step = np.hypot(*np.diff(xy, axis=0).T)
+    jumps = np.flatnonzero(step > max(floor_m, factor * float(np.median(step))))
+    return np.insert(np.asarray(xy, float), jumps + 1, np.nan, axis=0) if jumps.size else xy
+
+
 def plot_errors(path: Path, title: str, curves: dict[str, dict[str, dict]]) -> None:
     """Position error over time: one panel per estimator, one line per robot."""
     names = [n for n in sorted(curves) if curves[n]]
@@ -103,6 +114,12 @@ def plot_errors(path: Path, title: str, curves: dict[str, dict[str, dict]]) -> N
         for color, rid in zip(_colors(len(robots)), robots):
             c = curves[name][rid]
             ax.plot(c["stamps"] - start, c["position_error_m"], color=color, lw=1.0, label=rid)
+        errors = np.concatenate([np.asarray(curves[name][rid]["position_error_m"], float) for rid in robots])
+        errors = errors[np.isfinite(errors)]
+        if errors.size and errors.max() > 3.0 * np.percentile(errors, 90):  # a global start's first guesses
+            ax.set_ylim(0.0, 1.5 * np.percentile(errors, 90))
+            ax.text(0.99, 0.95, f"clipped: max {errors.max():.1f} m", transform=ax.transAxes, ha="right", va="top",
+                    fontsize=8)
         ax.set_ylabel("position error (m)")
         ax.set_title(name, fontsize=10)
         ax.grid(True, alpha=0.3)
@@ -116,6 +133,22 @@ def plot_errors(path: Path, title: str, curves: dict[str, dict[str, dict]]) -> N
 
 def _safe(name: str) -> str:
     return "".join(ch if ch.isalnum() or ch in "-_" else "_" for ch in name)
+
+
+REPORT_FILES = ("results.json", "metrics.json", "*.tum", "map_*.png", "errors.png")
+"""What a report folder holds; :func:`clear_report` removes exactly these."""
+
+
+def clear_report(folder: str | Path) -> int:
+    """Remove the files of an earlier report from ``folder`` (only the names :data:`REPORT_FILES` matches, so a
+    folder shared with other files keeps them); returns how many were removed."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        return 0
+    stale = {path for pattern in REPORT_FILES for path in folder.glob(pattern) if path.is_file()}
+    for path in stale:
+        path.unlink()
+    return len(stale)
 
 
 def write_report(folder: str | Path, metrics: dict, curves: dict, truth: dict[str, Trajectory],

@@ -73,6 +73,7 @@ class Evaluator(ServiceShell):
         self.maps: dict[str, tuple[np.ndarray, np.ndarray | None]] = {}
         self.world: WorldTruth | None = None
         self.report_paths: list[str] = []
+        self.mcl_unlocalized: set[str] = set()  # robots MCL reported on but has not localized (yet)
 
     def setup(self, session: zenoh.Session) -> None:
         prefix = self.settings.prefix
@@ -139,7 +140,11 @@ class Evaluator(ServiceShell):
             message = decode(payload, MclPose)
             if self._robot_in_key(key, message.robot_id, 1) and self._accept(message.robot_id, "mcl", message.seq,
                                                                               message.stamp, key):
-                self._series("mcl", message.robot_id).add(message.stamp, message.best_pose, message.best_cov)
+                if message.localized:  # before that the best pose is a guess: scoring it would say nothing
+                    self.mcl_unlocalized.discard(message.robot_id)
+                    self._series("mcl", message.robot_id).add(message.stamp, message.best_pose, message.best_cov)
+                elif not self.estimates.get("mcl", {}).get(message.robot_id):
+                    self.mcl_unlocalized.add(message.robot_id)
 
     @property
     def truth_offset(self) -> tuple[float, float]:
@@ -185,6 +190,7 @@ class Evaluator(ServiceShell):
         metrics["rejected"] = dict(self.rejected)
         metrics["missing"] = self.tracker.missing()
         metrics["truth_offset"] = list(self.truth_offset)
+        metrics["mcl_never_localized"] = sorted(self.mcl_unlocalized)
         truth, trajectories = self.collected()
         title = self.world.world if self.world is not None else "live fleet"
         written = write_report(self.settings.out, metrics, curves, truth, trajectories, self.maps,

@@ -4,7 +4,8 @@ The map comes from the ``source`` setting: ``central`` (the latest
 :class:`Estimate` on ``{prefix}/central/estimate``), ``dslam`` (the
 :class:`MapEstimate` on ``{prefix}/dslam/map``), ``truth`` (the
 :class:`WorldTruth` on ``{prefix}/world/truth``, asked for at start too) or
-``file:PATH`` (an ``(L, 2)`` array in a .npy or text file). A newer map
+``file:PATH`` (a map saved by ``--map-out``, :mod:`schemas.mapfile`, whose landmark ids, if it has them,
+are signatures as the scans' ids; or an ``(L, 2)`` array in a .npy or text file). A newer map
 replaces the old one at most every ``map_period_s``.
 
 Robots are followed through the shared roster (:meth:`ServiceShell.follow_robots`);
@@ -34,6 +35,7 @@ import numpy as np
 import zenoh
 
 from schemas.codec import decode, encode
+from schemas.mapfile import load_map
 from schemas.config import MclSettings, add_settings_arguments, settings_from_args
 from schemas.contract import OdomEvent
 from schemas.mcl import LocalizeReply, LocalizeRequest
@@ -66,6 +68,14 @@ def load_map_file(path: str) -> np.ndarray:
     return data
 
 
+def load_source_file(path: str) -> tuple[np.ndarray, np.ndarray | None]:
+    """(landmarks ``(L, 2)``, ids or None) of ``file:PATH``: a fleetslam-map .json file, else an array file."""
+    if Path(path).suffix == ".json":
+        view = load_map(path).view()
+        return view.means, view.ids
+    return load_map_file(path), None
+
+
 def hypotheses_message(mcl: MonteCarloLocalizer) -> tuple[np.ndarray, np.ndarray, list[PoseHypothesis]]:
     """(best pose, best covariance, hypotheses) of a filter, ready for a message."""
     found = mcl.hypotheses()
@@ -87,8 +97,8 @@ class MclService(ServiceShell):
         self.settings: MclSettings = settings
         self.source = settings.source.partition(":")[0]
         self.map_applied = float("-inf")
-        landmarks = load_map_file(settings.source.partition(":")[2]) if self.source == "file" else None
-        self.fleet = MclFleet(settings.core(MclConfig), landmarks)
+        landmarks, ids = load_source_file(settings.source.partition(":")[2]) if self.source == "file" else (None, None)
+        self.fleet = MclFleet(settings.core(MclConfig), landmarks, landmark_ids=ids)
         self.pose_pubs: dict[str, StreamPublisher] = {}
         self.pose_seq: dict[str, int] = {}  # kept when a robot leaves: its MclPose stream goes on where it stopped
 

@@ -111,3 +111,20 @@ def test_monitor_counts_malformed_payloads_and_keeps_running(router, processes, 
     processes.start("r1", *robot_args("r1", duration=1.0))
     wait_until(lambda: latest().messages_in.get("sample", 0) > 20, 20, what="the monitor to keep counting")
     assert monitor.poll() is None
+
+
+def test_connection_and_listening_failures_are_one_line_with_the_cause(router, processes):
+    """A robot with no router names the router it tried and how to start one; a second router on a busy port says
+    the port is taken. Neither prints a source path or a traceback."""
+    processes.env.update(FLEETSLAM_ZENOH_CONNECT="tcp/127.0.0.1:1", FLEETSLAM_CONNECT_TIMEOUT_S="1")
+    lonely = processes.start("lonely", "robot", "--world", "arena")
+    busy = processes.start("busy", "router", "--listen", router.endpoint)
+    for name, child in (("lonely", lonely), ("busy", busy)):
+        wait_until(lambda: child.poll() is not None, timeout=60, what=f"{name} to give up")
+        assert child.returncode != 0
+    robot_log, router_log = processes.log("lonely"), processes.log("busy")
+    assert "connecting to the zenoh router at tcp/127.0.0.1:1" in robot_log
+    assert "could not reach the zenoh router at tcp/127.0.0.1:1 within 1 s" in robot_log and "fleetslam router" in robot_log
+    assert f"cannot listen on {router.endpoint}" in router_log and "Address already in use" in router_log
+    for text in (robot_log, router_log):
+        assert ".rs:" not in text and "Traceback" not in text

@@ -254,6 +254,22 @@ def test_jcbb_kernel_searches_the_tree_like_the_reference(seed, max_nodes):
     assert any(truncated) == (max_nodes == 40)  # and the bound on the search, when it bites
 
 
+def test_jcbb_candidate_tables_order_like_the_reference_with_ties():
+    """Candidates by NIS (ties in landmark order), measurements by candidate count (ties in measurement order),
+    measurements without candidates left out."""
+    from services.association import kernels
+
+    gated = np.array([[True, True, False, True], [False, False, False, False], [True, False, True, False],
+                      [False, True, False, False]])
+    nis = np.array([[2.0, 1.0, 0.5, 1.0], [0.1, 0.1, 0.1, 0.1], [3.0, 9.0, 3.0, 1.0], [4.0, 0.2, 4.0, 4.0]])
+    table, counts, order = kernels.jcbb_candidates(gated, nis)
+    assert counts.tolist() == [3, 0, 2, 1]
+    assert table[0, :3].tolist() == [1, 3, 0] and table[2, :2].tolist() == [0, 2] and table[3, 0] == 1
+    assert order.tolist() == [3, 2, 0]
+    empty = kernels.jcbb_candidates(np.zeros((2, 3), bool), np.zeros((2, 3)))
+    assert empty[2].size == 0
+
+
 # --- the core: gating, costs, components, edge cases -------------------------------------------------
 
 

@@ -67,7 +67,8 @@ def _settings_classes() -> dict[str, type]:
     return {"router": config.RouterSettings, "robot": config.RobotSettings, "monitor": config.MonitorSettings,
             "demo": config.DemoSettings, "run": config.RunSettings, "evaluate": config.EvaluateSettings,
             "assoc": config.AssocSettings, "central": config.CentralSettings, "dslam": config.DslamSettings,
-            "mcl": config.MclSettings}
+            "mcl": config.MclSettings, "viz": config.VizSettings, "record": config.RecordSettings,
+            "replay": config.ReplaySettings}
 
 
 @pytest.mark.parametrize("command", list(COMMANDS))
@@ -85,3 +86,33 @@ def test_help_lists_the_choices_of_every_choice_flag(command):
     assert set(_settings_classes()) == set(COMMANDS)
     assert all(typing.get_origin(f.annotation) is not None or f.annotation is not None
                for f in settings_cls.model_fields.values())
+
+
+def test_demo_problems_flag_lagging_services_lost_messages_and_unlocalized_robots():
+    from services.launcher import problems
+
+    def stats(median, p99, queue, odom, scan):
+        return {"latency_ms_median": median, "latency_ms_p99": p99, "queue_depth": queue,
+                "messages_in": {"odom": odom, "scan": scan}}
+
+    summary = {
+        "elapsed_s": 10.0,
+        "monitor": {
+            "robots": {"r1": {"odom": 100, "scan": 100, "truth": 100, "missing": 0},
+                       "r2": {"odom": 100, "scan": 100, "truth": 100, "missing": 3}},
+            "services": {"central:a": stats(2.0, 20.0, 0, 200, 200), "dslam:b": stats(12000.0, 20000.0, 5, 150, 100),
+                         "mcl:c": stats(3.0, 40.0, 0, 195, 195), "assoc:d": stats(1.0, 2.0, 0, 0, 0)},
+        },
+        "metrics": {"mcl_never_localized": ["r6"]},
+    }
+    found = problems(summary)
+    assert found == [
+        "robot r2: 3 messages lost on the way (seq gaps seen by the monitor)",
+        "dslam lagged: latency median 12000 ms, p99 20000 ms",
+        "dslam had 5 messages queued at its last stats",
+        "dslam never processed about 150 of the 400 robot messages",
+        "MCL never localized robot r6: no error figure for it",
+    ]
+    healthy = {**summary, "metrics": {}, "monitor": {**summary["monitor"], "services": {"central:a": stats(2.0, 20.0, 0, 200, 200)},
+                                                      "robots": {"r1": summary["monitor"]["robots"]["r1"]}}}
+    assert problems(healthy) == []

@@ -36,7 +36,8 @@ def test_help_lists_every_installed_command():
     text = build_parser().format_help()
     for name in COMMANDS:
         assert name in text
-    assert set(COMMANDS) == {"router", "robot", "monitor", "demo", "run", "evaluate", "assoc", "central", "dslam", "mcl"}
+    assert set(COMMANDS) == {"router", "robot", "monitor", "demo", "run", "evaluate", "assoc", "central", "dslam", "mcl", "viz",
+                             "record", "replay"}
 
 
 def test_core_configurations_never_read_the_environment(monkeypatch):

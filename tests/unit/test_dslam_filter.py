@@ -61,9 +61,10 @@ def scan_sequence(seed: int, count: int = 60):
     return landmarks, scans
 
 
-def run_map(scans, cache_columns=64, noise=R):
+def run_map(scans, cache_columns=64, noise=R, columns="factored", check_every=1, precision_loss=100.0):
     """Phase I on the first scan, phase II on the rest (known ids)."""
-    m = InformationMap(tol=1e-10, column_tol=1e-12, column_max_iter=2000, cache_columns=cache_columns)
+    m = InformationMap(tol=1e-10, column_tol=1e-12, column_max_iter=2000, cache_columns=cache_columns,
+                       columns=columns, check_every=check_every, precision_loss=precision_loss)
     sensor = RangeBearingSensor()
     index_of = {}
     pose, z, seen = scans[0]
@@ -77,15 +78,16 @@ def run_map(scans, cache_columns=64, noise=R):
         done = m.update_scan(z, noise, mapped, [index_of[i] for i in seen[mapped].tolist()], new)
         if done is not None:
             index_of.update(zip(seen[new].tolist(), done[0].tolist()))
-        m.recover()
+        m.maintain()
     return m, index_of
 
 
+@pytest.mark.parametrize("columns", ["factored", "explicit"])
 @pytest.mark.parametrize("cache_columns", [64, 3])
-def test_recovery_equals_dense_solve(cache_columns):
+def test_recovery_equals_dense_solve(cache_columns, columns):
     """Mean, cached covariance columns and every marginal equal dense solves of I X = i, even with a tiny cache."""
     _, scans = scan_sequence(2)
-    m, _ = run_map(scans, cache_columns=cache_columns)
+    m, _ = run_map(scans, cache_columns=cache_columns, columns=columns)
     dense = m.matrix.tocsr().toarray()
     np.testing.assert_allclose(m.mean, np.linalg.solve(dense, m.vector), atol=1e-7)
     cov = np.linalg.inv(dense)  # the test's reference only
@@ -133,3 +135,57 @@ def test_map_nees_uses_the_information_matrix():
     m.update_absolute([], np.zeros((0, 2)), np.array([[1.0, 2.0], [3.0, 4.0]]), np.diag([0.5, 0.5, 2.0, 2.0]))
     truth = np.array([[0.0, 2.0], [3.0, 6.0]])
     assert m.normalised_error(truth) == pytest.approx(1.0 / 0.5 + 4.0 / 2.0)
+
+
+@pytest.mark.parametrize("cache_columns, check_every, precision_loss", [(64, 16, 100.0), (3, 1, 100.0), (8, 4, 1.0)])
+def test_factored_columns_follow_the_explicit_reference(cache_columns, check_every, precision_loss):
+    """The factored columns (B T) give the explicit reference's mean, columns and marginals on the same scans: with
+    a large cache, with a tiny one (evictions and base compactions), and compacting after every update."""
+    _, scans = scan_sequence(2)
+    explicit, _ = run_map(scans, cache_columns=cache_columns, columns="explicit")
+    factored, _ = run_map(scans, cache_columns=cache_columns, columns="factored", check_every=check_every,
+                          precision_loss=precision_loss)
+    assert factored.n == explicit.n and set(factored.cache.slot) == set(explicit.cache.slot)
+    np.testing.assert_allclose(factored.mean, explicit.mean, atol=1e-9)
+    landmarks = np.array(sorted(set(explicit.cache.slot) | {0}))  # landmark 0 solved afresh with a tiny cache
+    np.testing.assert_allclose(factored.covariance_columns(landmarks), explicit.covariance_columns(landmarks),
+                               atol=1e-12, rtol=1e-8)
+    ids, marginals = factored.cached_marginals()
+    reference_ids, reference = explicit.cached_marginals()
+    order = np.argsort(ids), np.argsort(reference_ids)
+    np.testing.assert_array_equal(ids[order[0]], reference_ids[order[1]])
+    np.testing.assert_allclose(marginals[order[0]], reference[order[1]], atol=1e-12, rtol=1e-8)
+    if precision_loss == 1.0:
+        assert factored.cache.used == 2 * len(factored.cache)  # compacted: the cached columns are the base
+    if cache_columns == 3:
+        assert factored.column_solves > 0
+
+
+def test_factored_update_keeps_the_mean_change_pending_and_exact():
+    """The mean change of a factored update is held as base coefficients (the stored mean untouched) until read;
+    the landmark means read meanwhile, and the mean read after, equal the dense solve of I X = i."""
+    _, scans = scan_sequence(6)
+    m, index_of = run_map(scans[:-1], check_every=1000)
+    pose, z, seen = scans[-1]
+    known = np.array([i in index_of for i in seen.tolist()], bool)
+    stored = m._mean.copy()
+    assert m.update_scan(z, R, np.flatnonzero(known), [index_of[i] for i in seen[known].tolist()],
+                         np.zeros(0, np.int64)) is not None
+    np.testing.assert_array_equal(m._mean, stored)
+    exact = np.linalg.solve(m.matrix.tocsr().toarray(), m.vector)
+    index = np.arange(m.n)
+    np.testing.assert_allclose(m.landmark_means(index).ravel(), exact, atol=1e-7)
+    assert np.max(np.abs(m.landmark_means(index).ravel() - stored)) > 1e-6  # the update did move the mean
+    np.testing.assert_allclose(m.mean, exact, atol=1e-7)
+    assert not np.any(m.cache.shift)
+
+
+def test_maintain_checks_the_mean_every_few_scans_and_after_untracked_updates():
+    m = InformationMap(check_every=3)
+    m.update_absolute([], np.zeros((0, 2)), np.array([[1.0, 2.0], [3.0, 4.0]]), np.eye(4))
+    m.vector[:2] += 1.0  # the mean no longer solves I X = i: a check would move it
+    assert [m.maintain() for _ in range(3)][:2] == [0, 0]
+    np.testing.assert_allclose(m.mean, np.linalg.solve(m.matrix.tocsr().toarray(), m.vector), atol=1e-9)
+    m.track_columns = False
+    m.update_absolute([0], np.array([[1.5, 2.5]]), np.zeros((0, 2)), np.eye(2))
+    assert m.maintain() > 0  # an update the columns did not follow: checked at once

@@ -184,3 +184,14 @@ def test_fleet_alignment_uses_one_transform_for_every_robot_and_the_antenna_poin
     shifted = dict(estimated, r2=Trajectory(stamps, estimated["r2"].poses + np.array([2.0, 0.0, 0.0])))
     errors = fleet_alignment(shifted, truth, truth_offset=offset)["ate_rmse_m"]
     assert errors["r2"] > 0.5 and errors["r1"] > 0.5
+
+
+def test_plotted_tracks_break_at_a_global_localization_jump():
+    from services.evaluation.report import break_at_jumps
+
+    track = np.column_stack([np.r_[np.linspace(0.0, 1.0, 20), np.linspace(30.0, 31.0, 20)], np.zeros(40)])
+    broken = break_at_jumps(track)
+    assert broken.shape == (41, 2) and np.isnan(broken[20]).all()
+    np.testing.assert_array_equal(broken[~np.isnan(broken[:, 0])], track)
+    smooth = np.column_stack([np.linspace(0.0, 10.0, 50), np.zeros(50)])
+    assert break_at_jumps(smooth) is smooth

@@ -2,6 +2,10 @@
 
 import json
 import math
+import os
+import signal
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -16,6 +20,7 @@ from schemas.contract import MapView, RunOptions
 from services.estimators import make_estimator, resolve_association
 from services.baselines.dead_reckoning import DeadReckoning
 from services.offline import run, run_estimator
+from tests.helpers import wait_until
 
 ROOT = data_root()
 needs_data = pytest.mark.skipif(ROOT is None, reason="real data sets not found (set FLEETSLAM_DATA or add ../shared/data)")
@@ -111,7 +116,7 @@ def make_constant(options, infos):
 def test_run_writes_the_json_fields_and_merges_extra_metrics(tmp_path, monkeypatch):
     monkeypatch.setitem(registry.ESTIMATORS, "odometry", make_constant)
     settings = RunSettings(dataset="sim:arena", estimator="odometry", duration=5.0, sim_robots=2,
-                           json_out=str(tmp_path / "out.json"), progress=False)
+                           json_out=str(tmp_path / "out.json"), out=None, progress=False)
     output = run(settings)
     written = json.loads((tmp_path / "out.json").read_text())
     assert written == output
@@ -149,7 +154,7 @@ def test_unknown_estimator_and_robot_are_clear_errors():
 
 @needs_data
 def test_car_park_dead_reckoning_scores_against_gps_at_the_antenna(tmp_path):
-    output = run(RunSettings(dataset="car-park:acfr_car_park", duration=30.0, progress=False))
+    output = run(RunSettings(dataset="car-park:acfr_car_park", duration=30.0, out=str(tmp_path / "report"), progress=False))
     assert output["gps_rmse_m"] is not None and output["gps_rmse_m"] < 1.0
     assert output["landmarks"]["missed"] == 15 and output["heading_rmse_rad"] == {}
     assert math.isfinite(output["ate_rmse_m"]["r1"])
@@ -165,11 +170,12 @@ def test_set_parses_estimator_settings_and_reaches_the_estimator(tmp_path):
         parse_estimator_settings("max_obs_range")
     out = tmp_path / "out.json"
     assert cli_main(["run", "--dataset", "sim:arena", "--estimator", "fastslam", "--robots", "r1", "--duration", "5",
-                     "--particles", "10", "--set", "max_obs_range=2.0", "--json", str(out), "--no-progress"]) == 0
+                     "--particles", "10", "--set", "max_obs_range=2.0", "--json", str(out), "--out", str(tmp_path / "a"),
+                     "--no-progress"]) == 0
     near = json.loads(out.read_text())
     assert near["settings"]["estimator_settings"] == "max_obs_range=2.0"
     assert cli_main(["run", "--dataset", "sim:arena", "--estimator", "fastslam", "--robots", "r1", "--duration", "5",
-                     "--particles", "10", "--json", str(out), "--no-progress"]) == 0
+                     "--particles", "10", "--json", str(out), "--out", str(tmp_path / "b"), "--no-progress"]) == 0
     assert near["landmarks"]["estimated"] < json.loads(out.read_text())["landmarks"]["estimated"]
 
 
@@ -190,3 +196,55 @@ def test_unknown_association_names_each_estimators_recommended_method(estimator,
     method = built.method if hasattr(built, "method") else built.config.association
     assert method == expected
     assert resolve_association(estimator, "nn") == "nn"
+
+
+def test_run_names_its_report_folder_and_clears_an_earlier_report(tmp_path, capsys):
+    report = tmp_path / "report"
+    report.mkdir()
+    (report / "fastslam_r9.tum").write_text("stale")
+    (report / "notes.txt").write_text("the user's")
+    assert cli_main(["run", "--dataset", "sim:arena", "--robots", "r1", "--duration", "2", "--out", str(report),
+                     "--no-progress"]) == 0
+    assert f"in{report}/" in "".join(capsys.readouterr().out.split())  # the console wraps long lines
+    assert not (report / "fastslam_r9.tum").exists() and (report / "notes.txt").read_text() == "the user's"
+    results = json.loads((report / "results.json").read_text())
+    assert results["robots"] == ["r1"] and "interrupted" not in results
+    assert RunSettings.model_fields["out"].default == "reports/run"  # a run always leaves its results somewhere
+
+
+def test_an_interrupted_run_scores_and_returns_what_was_computed():
+    data = simulate("arena", robots=2, seed=0, duration=20.0)
+    asked = []
+
+    def stop_after_a_while() -> bool:
+        asked.append(True)
+        return len(asked) > 150
+
+    cut = run_estimator(data, RunOptions(estimator="odometry"), should_stop=stop_after_a_while)
+    whole = run_estimator(data, RunOptions(estimator="odometry"))
+    assert cut.extra["interrupted"] is True and "interrupted" not in whole.extra
+    assert 0.0 < cut.data_s < 0.5 * whole.data_s
+    assert sum(cut.events.values()) == 150 and set(cut.trajectories) == {"r1", "r2"}
+
+
+def test_sigterm_during_fleetslam_run_saves_the_results_and_says_interrupted(tmp_path):
+    report, log = tmp_path / "report", tmp_path / "run.log"
+    with open(log, "w") as sink:
+        child = subprocess.Popen([sys.executable, "-m", "services.cli", "run", "--dataset", "sim:arena", "--duration",
+                                  "300", "--robots", "r1", "--estimator", "fastslam", "--particles", "3000", "--out",
+                                  str(report), "--no-progress"], stdout=sink, stderr=subprocess.STDOUT,
+                                 env={k: v for k, v in os.environ.items() if not k.startswith("FLEETSLAM_")})
+    try:
+        wait_until(lambda: "running fastslam on" in log.read_text() or child.poll() is not None, timeout=120,
+                   what="the run to start")
+        assert child.poll() is None, log.read_text()
+        child.send_signal(signal.SIGTERM)
+        child.wait(timeout=120)
+    finally:
+        if child.poll() is None:
+            child.kill()
+    output = log.read_text()
+    assert child.returncode == 130, output
+    assert "SIGTERM: stopping after the current event" in output and "interrupted after" in output
+    results = json.loads((report / "results.json").read_text())
+    assert results["interrupted"] is True and results["data_s"] < 300.0  # (the data cut: the test above)

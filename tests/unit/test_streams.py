@@ -40,3 +40,13 @@ def test_a_robot_that_left_and_starts_again_at_seq_0_is_a_new_run():
     assert t.new_run("r1", "odom", 0)
     assert t.received("r1", "odom") == 0 and t.check("r1", "odom", 0, 0.0) is Verdict.ACCEPT
     assert not t.new_run("r1", "odom", 0)  # once per return
+
+
+def test_an_observer_joining_late_counts_only_the_messages_lost_after_it_joined():
+    late = StreamTracker(missing_before_join=False)
+    filter_ = StreamTracker()
+    for tracker in (late, filter_):
+        for seq in (40, 41, 43):
+            assert tracker.check("r1", "scan", seq, float(seq)) == Verdict.ACCEPT
+    assert late.missing() == 1  # seq 42
+    assert filter_.missing() == 41  # seq 0..39 before it joined, and 42
