@@ -136,6 +136,12 @@ def map_from_view(view: MapView, source: dict[str, Any] | None = None, frame: st
         raise MapFileError(f"cannot save the map: {_first_problem(error)}") from None
 
 
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
 def save_map(path: str | Path, view: MapView, source: dict[str, Any] | None = None, frame: str = "world",
              hits: np.ndarray | None = None) -> MapFile:
     """Write the map atomically to ``path`` (temporary file in the same folder, fsync, rename); the model written."""
@@ -146,6 +152,7 @@ def save_map(path: str | Path, view: MapView, source: dict[str, Any] | None = No
     try:
         folder.mkdir(parents=True, exist_ok=True)
         handle, temporary = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=folder)
+        os.chmod(temporary, 0o666 & ~_umask())  # mkstemp makes it private; a map file is as readable as any other
         try:
             with os.fdopen(handle, "w", encoding="utf-8") as out:
                 out.write(text)

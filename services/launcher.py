@@ -45,8 +45,8 @@ class ServiceSpec:
 
 SERVICES: list[ServiceSpec] = [
     ServiceSpec("assoc"),
-    ServiceSpec("central"),
-    ServiceSpec("dslam", ["--association", "auto"]),
+    ServiceSpec("central", ["--map-out", "{out}/maps/central.json"]),
+    ServiceSpec("dslam", ["--association", "auto", "--map-out", "{out}/maps/dslam.json"]),
     ServiceSpec("mcl"),
     ServiceSpec("evaluate", ["--out", "{out}/report"], stats_name="eval"),
 ]
@@ -159,6 +159,8 @@ def run_demo(settings: DemoSettings, shutdown: Shutdown, console: Console) -> di
     out = Path(settings.out)
     out.mkdir(parents=True, exist_ok=True)
     cleared = clear_report(out / "report")
+    for stale in (out / "maps").glob("*.json"):  # the maps of an earlier demo
+        stale.unlink()
     if cleared:
         log.info("removed %d files of an earlier demo report from %s", cleared, out / "report")
     fleet = Fleet(settings, out)
@@ -304,8 +306,10 @@ def print_summary(summary: dict, console: Console, settings: DemoSettings) -> No
             console.print(f"  - {line}")
     else:
         console.print("[green]no problems[/]: every service kept up, no message was lost, every robot was localized")
-    report = Path(settings.out) / "report"
+    report, maps = Path(settings.out) / "report", Path(settings.out) / "maps"
+    saved = ", ".join(sorted(p.name for p in maps.glob("*.json"))) or "none"
     console.print(f"plots (map_*.png, errors.png), TUM trajectories (*.tum) and metrics.json in {report}/; "
+                  f"saved maps in {maps}/ ({saved}; start a service from one with --map FILE); "
                   f"logs in {settings.out}/logs; this summary in {settings.out}/demo.json")
     if settings.record:
         done = summary.get("exit_codes", {}).get("record") == 0 and Path(settings.record).is_file()

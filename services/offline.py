@@ -97,6 +97,8 @@ def run_estimator(dataset: Dataset, options: RunOptions, robots: list[str] | Non
     if any(info.start_pose is None for info in infos) and hasattr(estimator, "place_robot"):
         placer = FleetPlacer(estimator, infos, MclConfig(seed=options.seed),
                              use_signatures=options.association == "known")
+    elif any(info.start_pose is None for info in infos) and options.estimator == "dslam":
+        log.info("dslam places robots without a start pose itself, once they see two mapped landmarks by id")
     elif any(info.start_pose is None for info in infos) and options.estimator not in ("mcl", "odometry"):
         log.warning("%s cannot place robots without a start pose: they stay out", options.estimator)
     samples: dict[str, tuple[list, list, list]] = {rid: ([], [], []) for rid in chosen}
