@@ -20,11 +20,11 @@ $(BIN)/python:
 QUIET_EDITABLE := PYTHONWARNINGS="ignore:Editable installation"
 
 $(VENV)/.installed: $(BIN)/python pyproject.toml
-	$(QUIET_EDITABLE) $(BIN)/python -m pip install --quiet -e .
+	$(QUIET_EDITABLE) $(BIN)/python -m pip install --quiet -e '.[viz]'
 	touch $@
 
 $(VENV)/.installed-dev: $(BIN)/python pyproject.toml
-	$(QUIET_EDITABLE) $(BIN)/python -m pip install --quiet -e '.[dev]'
+	$(QUIET_EDITABLE) $(BIN)/python -m pip install --quiet -e '.[dev,viz]'
 	touch $@ $(VENV)/.installed
 
 venv: $(VENV)/.installed

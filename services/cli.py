@@ -89,7 +89,7 @@ COMMANDS: dict[str, tuple[Callable[[], ModuleType], str]] = {
     "robot": (_robot, "run one robot: simulated in a named world, or replaying a data set"),
     "monitor": (_monitor, "live console of robots, message rates, gaps, rejections and service stats"),
     "demo": (_demo, "start a router, robots, the monitor and every service; print what was measured"),
-    "run": (_run, "offline: feed a data set straight into an estimator, no Zenoh; JSON results"),
+    "run": (_run, "offline: feed a data set straight into an estimator, no Zenoh; results and plots in reports/run/"),
     "record": (_record, "record every message under the prefix to an MCAP file (ROS 2, Foxglove, Rerun read it)"),
     "replay": (_replay, "publish the robots of an MCAP recording again as live robots"),
     "evaluate": (_evaluate, "live evaluator: compare estimates with truth, write a report folder"),

@@ -326,6 +326,12 @@ def main(args: argparse.Namespace) -> int:
     settings = settings_from_args(DemoSettings, args)
     console = Console()
     shutdown = Shutdown()
+    if settings.viz:
+        from services.viz import rerun_missing
+
+        if missing := rerun_missing():
+            log.error("demo --viz: %s", missing)
+            return 2
     try:
         summary = run_demo(settings, shutdown, console)
     except RuntimeError as exc:

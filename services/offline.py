@@ -244,6 +244,11 @@ def run(settings: RunSettings, console: Console | None = None, should_stop: Call
     from services.evaluation.metrics import Trajectory, fleet_alignment, score_estimates
     from services.evaluation.report import clean_json, clear_report, write_report
 
+    if settings.rerun:
+        from services.viz import rerun_missing
+
+        if missing := rerun_missing():
+            raise ValueError(f"--rerun: {missing}")
     dataset = load(settings)
     robots = settings.robot_ids.split(",") if settings.robot_ids else None
     options = run_options(settings, dataset)

@@ -17,6 +17,10 @@ if TYPE_CHECKING:
 
 def weights(logw: np.ndarray) -> np.ndarray:
     """Normalised weights of log-weights ``logw`` (uniform when none is finite)."""
+    top = logw.max(initial=-np.inf)
+    if np.isfinite(top):  # the common case, in three array operations: exp(−∞ − top) is already 0
+        w = np.exp(logw - top)
+        return w / w.sum()
     finite = np.isfinite(logw)
     if not finite.any():
         return np.full(logw.size, 1.0 / logw.size)

@@ -154,7 +154,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
+    from services.viz import rerun_missing
+
     settings = settings_from_args(VizSettings, args)
+    if missing := rerun_missing():
+        log.error("viz: %s", missing)
+        return 2
     try:
         viz = Viz(settings)
     except ValueError as exc:

@@ -199,3 +199,21 @@ def test_fleetslam_run_rerun_writes_a_recording_and_says_so(tmp_path, capsys):
     assert rows_by_entity(path)["/world/robots/r1/odometry/pose"] > 5
     assert cli_main(["run", "--dataset", "sim:arena", "--rerun", str(tmp_path / "x.mcap")]) == 2
     assert "--rerun" in capsys.readouterr().err
+
+
+def test_without_rerun_the_viz_commands_say_which_extra_to_install(monkeypatch, tmp_path, capfd):
+    """rerun-sdk is the optional viz extra: without it each Rerun entry point ends with one line naming it."""
+    import services.viz
+    from services.cli import main as cli_main
+
+    monkeypatch.setattr(services.viz, "find_spec", lambda name: None)
+    assert services.viz.rerun_missing().startswith("rerun-sdk is not installed: pip install 'fleetslam[viz]'")
+    assert cli_main(["viz", "--save", str(tmp_path / "x.rrd")]) == 2
+    assert cli_main(["run", "--dataset", "sim:arena", "--duration", "1", "--rerun", str(tmp_path / "x.rrd"),
+                     "--out", str(tmp_path / "report"), "--no-progress"]) == 2
+    assert cli_main(["demo", "--viz", "--out", str(tmp_path / "demo")]) == 2
+    output = capfd.readouterr()
+    errors = [line for line in (output.out + output.err).splitlines() if "ERROR" in line]
+    assert len(errors) == 3 and all("fleetslam[viz]" in line for line in errors), errors
+    assert "Traceback" not in output.out + output.err
+    assert not (tmp_path / "report").exists() and not (tmp_path / "demo").exists()
