@@ -45,6 +45,14 @@ class DslamConfig(CoreConfig):
     column_tol: float = Field(1e-9, gt=0, description="covariance-column recovery tolerance, relative to the landmark's variance")
     column_max_iter: int = Field(100, ge=1, description="PCG iterations of a covariance-column solve before a fresh sparse LU solve finishes it")
     refactor_iterations: int = Field(15, ge=1, description="a column solve slower than this many iterations makes the next one factorise I afresh")
+    column_solver: Literal["corrected", "pcg"] = Field(
+        "corrected", description="a covariance column not cached is one solve with the stored sparse LU factor of an "
+        "earlier I, made exact for the updates since by the cached columns of the landmarks they touched "
+        "(corrected: no iterations, no refactorisation while those stay cached), or block PCG preconditioned by that "
+        "factor, made afresh when it has grown stale (pcg: the reference)")
+    column_correction_limit: int = Field(
+        64, ge=0, description="corrected: landmarks touched since the factorisation kept cached (pinned) for the "
+        "correction; beyond this many the next column solve factorises I afresh")
     column_cache: int = Field(64, ge=1, description="covariance columns kept to warm-start the next solves (landmarks)")
     covariance_columns: Literal["factored", "explicit"] = Field(
         "factored", description="cached covariance columns kept as full-length base vectors times a small mixing "

@@ -149,7 +149,8 @@ class DSlam:
         s = self.config
         self.map = InformationMap(s.recovery_tol, s.recovery_max_iter, s.column_tol, s.column_max_iter, s.column_cache,
                                   refactor_iterations=s.refactor_iterations, columns=s.covariance_columns,
-                                  check_every=s.recovery_check_every)
+                                  check_every=s.recovery_check_every, column_solver=s.column_solver,
+                                  correction_limit=s.column_correction_limit)
         self.associator = associator or in_process_associate
         self.ids: list[int] = []
         self.index_of: dict[int, int] = {}
@@ -560,6 +561,7 @@ class DSlam:
         if information_map.factored != (s.covariance_columns == "factored"):
             information_map.use_columns(s.covariance_columns, s.column_cache)
         information_map.check_every = s.recovery_check_every
+        information_map.column_solver, information_map.correction_limit = s.column_solver, s.column_correction_limit
         self.map = information_map
         self.ids, self.index_of, self.tentative = [], {}, {}
         self._register(list(keys), np.arange(information_map.n))

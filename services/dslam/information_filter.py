@@ -15,9 +15,11 @@ blocks created since the last rebuild), and the information vector i beside it.
 - Recovery: the mean and the covariance columns of the landmarks near the
   robots follow each update by its rank-k correction (a warm start that is
   exact for the linearised update), and PCG warm-started there checks the
-  mean against I X̂ = i; columns not cached are solved by block PCG preconditioned
-  by a stored sparse LU factor of an earlier I (made again when it has grown
-  stale). Never an inverse of I.
+  mean against I X̂ = i; columns not cached are one solve with a stored sparse
+  LU factor of an earlier I, made exact by the cached columns of the landmarks
+  the updates since have touched (``column_solver="corrected"``), or, the
+  reference, block PCG preconditioned by that factor (made again when it has
+  grown stale). Never an inverse of I.
 """
 
 from __future__ import annotations
@@ -245,6 +247,7 @@ class _LandmarkSlots:
         self.capacity = capacity
         self.slot: OrderedDict[int, int] = OrderedDict()
         self._free: list[int] = []
+        self.pinned: set[int] = set()  # never evicted (the corrected column solves need their columns)
 
     def __contains__(self, landmark: int) -> bool:
         return landmark in self.slot
@@ -308,13 +311,14 @@ class ColumnCache(_LandmarkSlots):
 
         The capacity grows to three times the largest request, so that a sensor
         that sees many landmarks does not solve their columns anew each scan.
+        Pinned landmarks stay too (beyond the capacity).
         """
         keep = {int(i) for i in keep}
         self.capacity = max(self.capacity, 3 * len(keep))
         for landmark in list(self.slot):
             if len(self.slot) <= self.capacity:
                 break
-            if landmark not in keep:
+            if landmark not in keep and landmark not in self.pinned:
                 self._free.append(self.slot.pop(landmark))
 
 
@@ -416,14 +420,27 @@ class FactoredColumns(_LandmarkSlots):
         positions = self.new_slots(landmarks)
         self.mix[bases, positions] = 1.0
 
+    def insert_corrected(self, landmarks: list[int], solved: np.ndarray, positions: np.ndarray,
+                         coefficients: np.ndarray) -> None:
+        """Store the columns solved − P[:, cached at ``positions``] ``coefficients`` of ``landmarks``: ``solved``
+        (2n, 2k) becomes new base vectors, the correction only mixes the cached columns' coefficients."""
+        correction = self.mix[: self.used, positions] @ coefficients
+        used = self.used
+        bases = self.add_bases(solved.shape[1])
+        self.base[bases, : self.size] = solved.T
+        self.scale[bases] = np.max(np.abs(solved), axis=0)
+        new = self.new_slots(landmarks)
+        self.mix[bases, new] = 1.0
+        self.mix[:used, new] = -correction
+
     def evict(self, keep=()) -> None:
-        """As :meth:`ColumnCache.evict`; the columns dropped are zeroed (their base vectors stay until compaction)."""
+        """As :meth:`ColumnCache.evict` (pinned landmarks stay); the columns dropped are zeroed (their base vectors stay until compaction)."""
         keep = {int(i) for i in keep}
         self.capacity = max(self.capacity, 3 * len(keep))
         for landmark in list(self.slot):
             if len(self.slot) <= self.capacity:
                 break
-            if landmark not in keep:
+            if landmark not in keep and landmark not in self.pinned:
                 slot = self.slot.pop(landmark)
                 self.mix[:, 2 * slot: 2 * slot + 2] = 0.0
                 self._free.append(slot)
@@ -479,9 +496,15 @@ class InformationMap:
     def __init__(self, tol: float = 1e-5, max_iter: int = 200, column_tol: float = 1e-9,
                  column_max_iter: int = 100, cache_columns: int = 64, track_columns: bool = True,
                  refactor_iterations: int = 15, columns: str = "factored", check_every: int = 1,
-                 precision_loss: float = 100.0):
+                 precision_loss: float = 100.0, column_solver: str = "corrected", correction_limit: int = 64):
         if columns not in ("factored", "explicit"):
             raise ValueError(f"columns must be factored or explicit, not {columns!r}")
+        if column_solver not in ("corrected", "pcg"):
+            raise ValueError(f"column_solver must be corrected or pcg, not {column_solver!r}")
+        self.column_solver = column_solver
+        self.correction_limit = correction_limit
+        self._delta: dict[tuple[int, int], np.ndarray] = {}  # I − (the factored I), by 2×2 block
+        self._touched: dict[int, None] = {}  # landmarks whose rows of I changed since the factorisation
         self.matrix = BlockSparseMatrix()
         self.track_columns = track_columns
         self.refactor_iterations = refactor_iterations
@@ -543,6 +566,8 @@ class InformationMap:
         self.factored = columns == "factored"
         self.cache = FactoredColumns(capacity) if self.factored else ColumnCache(capacity)
         self.cache.resize_rows(2 * self.n)
+        self._factor = None  # the new cache lacks the touched columns a corrected solve needs
+        self._forget_changes()
 
     # ---------------------------------------------------------------- updates
     def update(self, old: np.ndarray, jacobian: np.ndarray, residual: np.ndarray, noise: np.ndarray,
@@ -599,7 +624,10 @@ class InformationMap:
         chain = np.concatenate([old, added])
         weighted = np.linalg.solve(noise, np.column_stack([jacobian, residual + jacobian @ linearised]))
         product = jacobian.T @ weighted
-        self.matrix.add(chain, 0.5 * (product[:, :-1] + product[:, :-1].T))
+        dense = 0.5 * (product[:, :-1] + product[:, :-1].T)
+        self.matrix.add(chain, dense)
+        if self.column_solver == "corrected" and self._factor is not None:
+            self._record_change(chain, dense)
         self.vector[block_rows(chain)] += product[:, -1]
         self.cache.touch(chain)
         self._evict(chain)
@@ -841,6 +869,36 @@ class InformationMap:
                                                 diag_pivot_thresh=0.0, options={"SymmetricMode": True})
         self._factor_size = 2 * self.n
         self.factorisations += 1
+        self._forget_changes()
+
+    def _forget_changes(self) -> None:
+        """Start recording the changes of I afresh (a new factor, or a cache without the touched columns)."""
+        self._delta, self._touched = {}, {}
+        self.cache.pinned = set()
+
+    def _record_change(self, chain: np.ndarray, dense: np.ndarray) -> None:
+        """Add the (2m, 2m) information ``dense`` over the landmarks ``chain`` to the change since the factorisation
+        and pin their columns; past ``correction_limit`` touched landmarks, drop the factor (made afresh when next needed)."""
+        idx = [int(i) for i in chain]
+        m = len(idx)
+        blocks = dense.reshape(m, 2, m, 2)
+        for a, i in enumerate(idx):
+            for b, j in enumerate(idx):
+                previous = self._delta.get((i, j))
+                self._delta[(i, j)] = blocks[a, :, b, :] if previous is None else previous + blocks[a, :, b, :]
+            self._touched[i] = None
+        self.cache.pinned.update(idx)
+        if len(self._touched) > self.correction_limit:
+            self._factor = None
+            self._forget_changes()
+
+    def _change_matrix(self, touched: np.ndarray) -> np.ndarray:
+        """The recorded change of I on the rows and columns of ``touched`` (dense, 2u × 2u)."""
+        where = {int(t): k for k, t in enumerate(touched)}
+        change = np.zeros((touched.size, 2, touched.size, 2))
+        for (i, j), block in self._delta.items():
+            change[where[i], :, where[j], :] = block
+        return change.reshape(2 * touched.size, 2 * touched.size)
 
     def solve_exactly(self) -> None:
         """Recover the mean by one sparse LU solve (after a map built in bulk); the factor is kept."""
@@ -860,7 +918,7 @@ class InformationMap:
         return apply
 
     def _ensure_columns(self, landmarks: np.ndarray) -> None:
-        """Solve the covariance columns of ``landmarks`` not in the cache.
+        """Solve the covariance columns of ``landmarks`` not in the cache (:meth:`_solve_corrected`, or the reference:).
 
         Block PCG warm-started from the column of the nearest cached landmark,
         preconditioned by a stored sparse LU factor of I (made afresh when it has
@@ -869,6 +927,9 @@ class InformationMap:
         missing = [int(i) for i in landmarks if int(i) not in self.cache]
         self.cache.touch([int(i) for i in landmarks if int(i) in self.cache])
         if not missing:
+            return
+        if self.column_solver == "corrected":
+            self._solve_corrected(missing)
             return
         missing_arr = np.array(missing, np.int64)
         size, k = 2 * self.n, len(missing)
@@ -902,6 +963,37 @@ class InformationMap:
         if self.factored:
             self.cache.insert_solved(missing, columns)
             return
+        for j, lm in enumerate(missing):
+            self.cache.insert(lm, columns[:, 2 * j: 2 * j + 2])
+
+    def _solve_corrected(self, missing: list[int]) -> None:
+        """Covariance columns of ``missing`` (not cached) by one solve with the stored factor, made exact.
+
+        The factor is of an earlier I₀; since then I = I₀ + ΔI with ΔI non-zero only on the landmarks U touched by
+        the updates. For b = I₀⁻¹ e_j (the solve), I b = e_j + ΔI b, so I⁻¹ e_j = b − P[:, U] (ΔI b)[U]: the
+        cached columns of U (pinned since they were touched) correct b exactly, without iterations. All of a
+        scan's columns are one multi-column solve. The factor is made afresh only when there is none (or a
+        touched landmark's column is not cached, after updates the columns did not follow).
+        """
+        touched = np.fromiter(self._touched, np.int64, len(self._touched))
+        missing_arr = np.array(missing, np.int64)
+        if (self._factor is None or any(int(t) not in self.cache for t in touched)
+                or 2 * int(missing_arr.max()) + 2 > self._factor_size):
+            self.factorise()
+            touched = np.zeros(0, np.int64)
+        size, known, k = 2 * self.n, self._factor_size, len(missing)
+        rhs = np.zeros((known, 2 * k))
+        rhs[block_rows(missing_arr), np.arange(2 * k)] = 1.0
+        solved = np.zeros((size, 2 * k))
+        solved[:known] = self._factor.solve(rhs)
+        coefficients = self._change_matrix(touched) @ solved[block_rows(touched)]
+        positions = self.cache.columns(touched) if touched.size else np.zeros(0, np.int64)
+        self.column_iterations = 0
+        self.column_solves += k
+        if self.factored:
+            self.cache.insert_corrected(missing, solved, positions, coefficients)
+            return
+        columns = solved - self.cache.full(positions, size) @ coefficients
         for j, lm in enumerate(missing):
             self.cache.insert(lm, columns[:, 2 * j: 2 * j + 2])
 
