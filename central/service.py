@@ -60,7 +60,7 @@ class CentralService(ServiceShell):
     """Order every robot's events, feed the filter, publish estimates and answer state queries."""
 
     name = "central"
-    uses_kernels = True
+    uses_kernels = ("fastslam", "association")  # shared association runs JCBB
 
     def __init__(self, settings: CentralSettings, instance: str | None = None):
         super().__init__(settings, instance)

@@ -51,7 +51,7 @@ class ServiceShell:
 
     name = "service"
     tick_period_s: float | None = None
-    uses_kernels = False  # warm the numba kernels (services.compiled) up before the first subscription
+    uses_kernels: tuple[str, ...] = ()  # numba kernel groups (services.compiled) warmed up before the first subscription
 
     def __init__(self, settings: FleetSettings, instance: str | None = None):
         self.settings = settings
@@ -332,7 +332,7 @@ class ServiceShell:
         self._stop = asyncio.Event()
         previous_handlers = self._install_signal_handlers()
         if self.uses_kernels:
-            warm_up_s = await asyncio.to_thread(compiled.warm_up)
+            warm_up_s = await asyncio.to_thread(compiled.warm_up, self.uses_kernels)
             self.extra["kernel_warm_up_s"] = warm_up_s
             log.info("%s: kernels ready in %.2f s (%s)", self.name, warm_up_s,
                      "numba" if compiled.AVAILABLE else "numpy references: numba is not installed")

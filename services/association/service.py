@@ -42,7 +42,7 @@ class AssocService(ServiceShell):
     """The association queryable: decode, validate, :func:`associate`, encode, reply."""
 
     name = "assoc"
-    uses_kernels = True
+    uses_kernels = ("association",)
 
     def __init__(self, settings: AssocSettings, instance: str | None = None):
         super().__init__(settings, instance or f"assoc-{os.getpid()}-{uuid.uuid4().hex[:6]}")

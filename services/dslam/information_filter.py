@@ -265,6 +265,19 @@ class _LandmarkSlots:
             if int(i) in self.slot:
                 self.slot.move_to_end(int(i))
 
+    def _release_beyond_capacity(self, keep) -> list[int]:
+        """Forget the least recently used landmarks beyond the capacity, never those in ``keep`` nor pinned ones;
+        their slots. The capacity grows to three times the largest request."""
+        keep = {int(i) for i in keep}
+        self.capacity = max(self.capacity, 3 * len(keep))
+        released = []
+        for landmark in list(self.slot):
+            if len(self.slot) <= self.capacity:
+                break
+            if landmark not in keep and landmark not in self.pinned:
+                released.append(self.slot.pop(landmark))
+        return released
+
 
 class ColumnCache(_LandmarkSlots):
     """Covariance columns (2n, 2) of recently used landmarks, in one dense array, least recently used first out."""
@@ -313,13 +326,7 @@ class ColumnCache(_LandmarkSlots):
         that sees many landmarks does not solve their columns anew each scan.
         Pinned landmarks stay too (beyond the capacity).
         """
-        keep = {int(i) for i in keep}
-        self.capacity = max(self.capacity, 3 * len(keep))
-        for landmark in list(self.slot):
-            if len(self.slot) <= self.capacity:
-                break
-            if landmark not in keep and landmark not in self.pinned:
-                self._free.append(self.slot.pop(landmark))
+        self._free.extend(self._release_beyond_capacity(keep))
 
 
 class FactoredColumns(_LandmarkSlots):
@@ -435,15 +442,9 @@ class FactoredColumns(_LandmarkSlots):
 
     def evict(self, keep=()) -> None:
         """As :meth:`ColumnCache.evict` (pinned landmarks stay); the columns dropped are zeroed (their base vectors stay until compaction)."""
-        keep = {int(i) for i in keep}
-        self.capacity = max(self.capacity, 3 * len(keep))
-        for landmark in list(self.slot):
-            if len(self.slot) <= self.capacity:
-                break
-            if landmark not in keep and landmark not in self.pinned:
-                slot = self.slot.pop(landmark)
-                self.mix[:, 2 * slot: 2 * slot + 2] = 0.0
-                self._free.append(slot)
+        for slot in self._release_beyond_capacity(keep):
+            self.mix[:, 2 * slot: 2 * slot + 2] = 0.0
+            self._free.append(slot)
 
     def precision_loss(self) -> float:
         """How much larger the terms of B T are than the variances it gives (cached columns): the factor by which

@@ -49,7 +49,7 @@ class DslamService(ServiceShell):
     """One D-SLAM map fed by every robot of the fleet."""
 
     name = "dslam"
-    uses_kernels = True
+    uses_kernels = ("association",)  # JCBB when it associates in-process
 
     def __init__(self, settings: DslamSettings, instance: str | None = None):
         super().__init__(settings, instance)

@@ -90,7 +90,7 @@ class MclService(ServiceShell):
     """Localizes robots with unknown start poses against the chosen map; answers localization queries."""
 
     name = "mcl"
-    uses_kernels = True
+    uses_kernels = ("mcl",)
 
     def __init__(self, settings: MclSettings, instance: str | None = None):
         super().__init__(settings, instance)

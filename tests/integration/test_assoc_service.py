@@ -65,7 +65,7 @@ def start_two_instances(processes, zsession, prefix):
     for name in ("assoc1", "assoc2"):
         processes.start(name, "assoc")
     client = AssociationClient(zsession, Keys(prefix), timeout=5.0)
-    wait_until(lambda: len(client.instances) >= 2, 20, what="two association instances")
+    wait_until(lambda: len(client.instances) >= 2, 60, what="two association instances")  # a fresh clone compiles first
     return client
 
 

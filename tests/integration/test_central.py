@@ -42,7 +42,7 @@ def test_three_robots_one_map(router, processes, zsession, prefix):
     estimates = Collector(zsession, keys.central_estimate)
     stats = Collector(zsession, keys.stats("central"))
     processes.start("central", "central", "--association", "nn", "--particles", "50", "--estimate-rate-hz", "4")
-    wait_until(lambda: stats.count() > 0, 20, what="the central service's first stats")
+    wait_until(lambda: stats.count() > 0, 60, what="the central service's first stats")
     robots = [processes.start(rid, *robot_args(rid)) for rid in ROBOTS]
     for process in robots:
         assert process.wait(timeout=60) == 0
@@ -81,7 +81,7 @@ def test_robot_with_unknown_start_waits_for_mcl(router, processes, zsession, pre
     keys = Keys(prefix)
     stats = Collector(zsession, keys.stats("central"))
     processes.start("central", "central", "--association", "known", "--particles", "30", "--estimate-rate-hz", "4")
-    wait_until(lambda: stats.count() > 0, 20, what="the central service's first stats")
+    wait_until(lambda: stats.count() > 0, 60, what="the central service's first stats")
     processes.start("r1", *robot_args("r1"))
     lost = processes.start("r2", *robot_args("r2", "--unknown-start"))
 
@@ -122,7 +122,7 @@ def test_a_robot_that_leaves_and_runs_again_rejoins_from_its_start(router, proce
     estimates = Collector(zsession, keys.central_estimate)
     stats = Collector(zsession, keys.stats("central"))
     processes.start("central", "central", "--association", "known", "--particles", "30", "--estimate-rate-hz", "4")
-    wait_until(lambda: stats.count() > 0, 20, what="the central service's first stats")
+    wait_until(lambda: stats.count() > 0, 60, what="the central service's first stats")
     log = simulate("arena", seed=0, duration=4.0, robot_ids=["r1"]).robots["r1"]
     per_run = len(log.odom_stamp) + len(log.scan_stamp)
     for turn in (1, 2):

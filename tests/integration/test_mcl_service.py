@@ -39,7 +39,7 @@ def test_robot_with_unknown_start_pose_is_localized(processes, zsession, prefix)
     infos = Collector(zsession, keys.info("r4"))
     stats = Collector(zsession, keys.stats("mcl"))
     processes.start("mcl", "mcl", "--source", "truth", "--particles", "1000")
-    wait_until(lambda: stats.count() > 0, 20, what="the mcl service's stats")
+    wait_until(lambda: stats.count() > 0, 60, what="the mcl service's stats")
     processes.start("r4", "robot", "--id", "r4", "--world", "office", "--unknown-start", "--seed", "3",
                     "--speedup", "4", "--duration", "24", "--start-delay", "0.5")
 
@@ -95,7 +95,7 @@ def test_unknown_robot_is_localized_in_the_central_map_and_merged(processes, zse
     stats = Collector(zsession, keys.stats("mcl"))
     processes.start("central", "central", "--particles", "30")
     processes.start("mcl", "mcl", "--source", "central", "--map-period-s", "0.5")
-    wait_until(lambda: stats.count() > 0, 20, what="the mcl service's stats")
+    wait_until(lambda: stats.count() > 0, 60, what="the mcl service's stats")
     processes.start("r1", "robot", "--id", "r1", "--world", "office", "--seed", "5", "--speedup", "3", "--duration", "30")
     processes.start("r7", "robot", "--id", "r7", "--world", "office", "--seed", "5", "--unknown-start", "--speedup", "3",
                     "--duration", "30", "--start-delay", "2")
@@ -120,7 +120,7 @@ def test_a_robot_that_leaves_and_runs_again_is_localized_again(processes, zsessi
     truth = Collector(zsession, keys.truth("r4"))
     stats = Collector(zsession, keys.stats("mcl"))
     processes.start("mcl", "mcl", "--source", "truth", "--stats-period-s", "0.3")
-    wait_until(lambda: stats.count() > 0, 20, what="the mcl service's stats")
+    wait_until(lambda: stats.count() > 0, 60, what="the mcl service's stats")
     run = ("robot", "--id", "r4", "--world", "office", "--unknown-start", "--seed", "3", "--speedup", "4",
            "--duration", "8", "--start-delay", "0.5")
     assert processes.start("r4-run1", *run).wait(timeout=60) == 0

@@ -22,7 +22,7 @@ pytestmark = pytest.mark.integration
 ROOT = data_root()
 FOLDER = None if ROOT is None else ROOT / "utias_mrclam" / "MRCLAM_Dataset6"
 DATA_S = 150.0
-SPEEDUP = 10.0
+SPEEDUP = 6.0  # MR.CLAM odometry is about 67 Hz a robot: at 10x, MCL's global localization lagged on a loaded machine
 
 
 @pytest.mark.skipif(FOLDER is None or not FOLDER.is_dir(),
@@ -33,7 +33,7 @@ def test_mrclam_robots_without_start_poses_are_anchored_placed_and_merged(proces
     stats = Collector(zsession, keys.stats("mcl"))
     processes.start("central", "central", "--association", "known", "--particles", "30", "--estimate-rate-hz", "4")
     processes.start("mcl", "mcl", "--source", "central", "--map-period-s", "0.5")
-    wait_until(lambda: stats.count() > 0, 20, what="the mcl service's stats")
+    wait_until(lambda: stats.count() > 0, 60, what="the mcl service's stats")
     robots = []
     for n in (3, 2):  # r2 starts once r3 anchors the frame (its replay clock starts then: it joins a little later)
         robots.append(processes.start(f"r{n}", "robot", "--replay", f"mrclam:{FOLDER}:{n}", "--unknown-start",

@@ -26,7 +26,7 @@ def test_central_publishes_the_loaded_map_before_any_robot_and_saves_it_on_sigte
     central = processes.start("central", "central", "--association", "known", "--particles", "20",
                               "--estimate-rate-hz", "5", "--map", str(tmp_path / "in.json"), "--map-out", str(out),
                               "--map-out-period-s", "0")
-    wait_until(lambda: estimates.count() > 0, 30, what="the central service's first estimate")
+    wait_until(lambda: estimates.count() > 0, 60, what="the central service's first estimate")
     first = estimates.decoded(Estimate)[0]
     assert first.robots == []  # no robot yet: the map alone
     order = np.argsort(first.landmark_ids)

@@ -24,7 +24,7 @@ def test_viz_records_every_robots_truth_and_the_central_estimate(router, process
         return any(key.split("/")[-2] == name for key, _ in stats.snapshot())
 
     processes.start("central", "central", "--association", "known", "--particles", "20", "--estimate-rate-hz", "5")
-    wait_until(lambda: service_ready("central"), 30, what="the central service's first stats")
+    wait_until(lambda: service_ready("central"), 60, what="the central service's first stats")
     recording = tmp_path / "fleet.rrd"
     viz = processes.start("viz", "viz", "--save", str(recording), "--duration", "10")
     wait_until(lambda: service_ready("viz"), 15, what="the viz's first stats")
