@@ -155,18 +155,36 @@ class StreamPublisher:
 
 
 class Shutdown:
-    """A stop flag set by SIGINT/SIGTERM (or by code); install once per process from the main thread."""
+    """A stop flag set by SIGINT/SIGTERM (or by code); install once per process from the main thread.
 
-    def __init__(self, install: bool = True):
+    ``notice`` is logged (after the signal's name) when the first signal arrives; with ``second_interrupts``
+    a second signal raises KeyboardInterrupt (for work that stops at its next check: asked twice, leave now).
+    :meth:`restore` puts back the handlers it replaced.
+    """
+
+    def __init__(self, install: bool = True, notice: str | None = None, second_interrupts: bool = False):
         self.event = threading.Event()
         self.signal_name: str | None = None
+        self.notice = notice
+        self.second_interrupts = second_interrupts
+        self._previous: dict = {}
         if install and threading.current_thread() is threading.main_thread():
             for sig in (signal.SIGINT, signal.SIGTERM):
-                signal.signal(sig, self._handle)
+                self._previous[sig] = signal.signal(sig, self._handle)
 
     def _handle(self, signum, _frame) -> None:
+        if self.second_interrupts and self.event.is_set():
+            raise KeyboardInterrupt
         self.signal_name = signal.Signals(signum).name
         self.event.set()
+        if self.notice:
+            log.warning("%s: %s", self.signal_name, self.notice)
+
+    def restore(self) -> None:
+        """Put back the signal handlers this replaced (a command run inside a longer-lived process)."""
+        for sig, handler in self._previous.items():
+            signal.signal(sig, handler)
+        self._previous = {}
 
     def set(self) -> None:
         self.event.set()

@@ -17,13 +17,11 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import signal
-import threading
 import time
 from collections import Counter
 from dataclasses import dataclass, field
-from typing import Callable
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 from rich.console import Console
@@ -345,17 +343,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def main(args: argparse.Namespace) -> int:
     settings = settings_from_args(RunSettings, args)
+    from schemas.transport import Shutdown  # the signal flag every command uses (no session is opened)
+
     console = Console()
-    stop = threading.Event()
-
-    def request_stop(signum, _frame) -> None:
-        if stop.is_set():  # asked twice: leave now
-            raise KeyboardInterrupt
-        stop.set()
-        log.warning("%s: stopping after the current event; what was computed is scored and saved",
-                    signal.Signals(signum).name)
-
-    previous = {sig: signal.signal(sig, request_stop) for sig in (signal.SIGINT, signal.SIGTERM)}
+    stop = Shutdown(notice="stopping after the current event; what was computed is scored and saved",
+                    second_interrupts=True)
     try:
         output = run(settings, should_stop=stop.is_set)
     except SettingsError:
@@ -364,8 +356,7 @@ def main(args: argparse.Namespace) -> int:
         log.error("cannot run: %s", exc)
         return 2
     finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
+        stop.restore()
     print_results(output, console)
     if settings.json_out:
         console.print(f"results in {settings.json_out}")
