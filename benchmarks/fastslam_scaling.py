@@ -45,10 +45,8 @@ def prefilled(world: GridWorld, particles: int, association: str, seed: int) -> 
     rng = np.random.default_rng([seed, world.n])
     means = world.landmarks + rng.normal(0.0, LANDMARK_STD, world.landmarks.shape)
     ids = np.arange(world.n)
-    slots = slam.map.allocate(world.n)
-    slam.map.write(slots, means, np.broadcast_to(np.eye(2) * LANDMARK_STD**2, (world.n, 2, 2)))
-    slam.map.exist[slots], slam.map.hits[slots] = slam.config.exist_max, slam.config.confirm_hits  # all confirmed
-    slam.map.label[slots], slam.map.valid[slots] = ids, True
+    slots = slam.map.add(means, np.broadcast_to(np.eye(2) * LANDMARK_STD**2, (world.n, 2, 2)), slam.config.exist_max,
+                         slam.config.confirm_hits, ids)  # every landmark confirmed
     slam.known_slots = dict(zip(ids.tolist(), slots.tolist()))
     slam.next_landmark_id = world.n
     return slam

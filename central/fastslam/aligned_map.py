@@ -81,6 +81,16 @@ class AlignedMap:
         self.hits[slots], self.exist[slots], self.label[slots], self.valid[slots] = 0, 0.0, -1, False
         return slots
 
+    def add(self, mean: np.ndarray, cov: np.ndarray, exist: float, hits, labels: np.ndarray) -> np.ndarray:
+        """New landmarks ``labels`` ``(m,)`` with Gaussians ``mean``, ``cov`` (per particle ``(P, m, ...)``, or one for
+        every particle ``(m, ...)``: :meth:`write`), existence score ``exist`` and ``hits`` (a count or ``(m,)``,
+        kept within int32); returns their slots."""
+        slots = self.allocate(len(labels))
+        self.write(slots, mean, cov)
+        self.exist[slots], self.hits[slots] = exist, np.minimum(hits, np.iinfo(np.int32).max)
+        self.label[slots], self.valid[slots] = labels, True
+        return slots
+
     def release(self, slots: np.ndarray) -> None:
         """Drop the landmarks in ``slots`` from every particle; their slots go back to :meth:`allocate`."""
         for slot in np.asarray(slots, np.int64).ravel().tolist():

@@ -134,15 +134,11 @@ def known_update_reference(slam: FastSlam, robot: RobotState, slots: np.ndarray,
 def create_known(slam: FastSlam, robot: RobotState, z: np.ndarray, r: np.ndarray, ids: np.ndarray) -> None:
     """New landmarks ``ids`` (not in the map) where detections ``z`` ``(m, 2)`` put them, in every particle: one slot
     each, the same in all particles, the sensor noise ``r`` carried into the map."""
-    slots = slam.map.allocate(ids.size)
-    for lid, slot in zip(ids.tolist(), slots.tolist()):
-        slam.known_slots[int(lid)] = int(slot)
     pose = slam.pose[:, robot.index][:, None, :]
     mean = robot.sensor.inverse(pose, z[None])
     _, g = robot.sensor.inverse_jacobians(pose, z[None])
-    slam.map.write(slots, mean, sandwich2(g, r))
-    slam.map.exist[slots], slam.map.hits[slots] = slam.config.exist_init, 1
-    slam.map.label[slots], slam.map.valid[slots] = ids, True
+    slots = slam.map.add(mean, sandwich2(g, r), slam.config.exist_init, 1, ids)
+    slam.known_slots.update(zip(ids.tolist(), slots.tolist()))
     slam.counts["landmarks_created"] += slam.pose.shape[0] * ids.size
 
 

@@ -107,10 +107,7 @@ class FastSlam:
         if len(set(ids.tolist())) != ids.size or set(ids.tolist()) & set(self.known_slots):
             raise ValueError("landmark ids repeat or are already in the map")
         if ids.size and isinstance(self.map, AlignedMap):
-            slots = self.map.allocate(ids.size)
-            self.map.write(slots, means, covs)
-            self.map.exist[slots], self.map.hits[slots] = self.config.exist_max, np.minimum(hits, 2**31 - 1)
-            self.map.label[slots], self.map.valid[slots] = ids, True
+            slots = self.map.add(means, covs, self.config.exist_max, hits, ids)
             self.known_slots.update(zip(ids.tolist(), slots.tolist()))
             self.next_landmark_id = max(self.next_landmark_id, int(ids.max()) + 1)
         elif ids.size:  # nn, mht: every particle's own map gets a copy
