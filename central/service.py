@@ -47,9 +47,8 @@ from central.fastslam.core import FastSlam
 from schemas.codec import decode, encode
 from schemas.config import CentralSettings, add_settings_arguments, settings_from_args
 from schemas.contract import OdomEvent
-from schemas.mapfile import MapFileError
 from schemas.messages import Estimate, MclPose, RobotEstimate, RobotInfo
-from services.maps import MapSaver, load_prior, seed_estimator
+from services.maps import MapSaver, seed_from_file, serve_mapping_service
 from services.roster import ReorderBuffer, StreamEvent
 from services.runtime import ServiceShell
 
@@ -74,9 +73,7 @@ class CentralService(ServiceShell):
         self.estimate_seq = 0
         self.last_stamp = 0.0
         self.announced_waiting: dict[str, float] = {}  # robots announced without a pose: when (wall clock)
-        prior = load_prior(settings.map)
-        self.prior_landmarks = 0 if prior is None else seed_estimator(self.slam, prior.view(), prior.hits(),
-                                                                      self.slam.config.association)
+        self.prior_landmarks = seed_from_file(self.slam, settings.map, self.slam.config.association)
         self.map_saver = MapSaver(settings.map_out, {
             "estimator": "fastslam", "association": self.slam.config.association,
             "particles": self.slam.config.particles, "seed": self.slam.config.seed, "service": "central",
@@ -238,10 +235,4 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    settings = settings_from_args(CentralSettings, args)
-    try:
-        service = CentralService(settings)
-    except MapFileError as error:
-        log.error("cannot start: %s", error)
-        return 2
-    return service.serve()
+    return serve_mapping_service(lambda: CentralService(settings_from_args(CentralSettings, args)))

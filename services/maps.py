@@ -56,6 +56,23 @@ def seed_from_options(estimator, options: RunOptions) -> None:
     log.info("%s starts from a saved map of %d landmarks", options.estimator, loaded)
 
 
+def seed_from_file(estimator, path: str | None, association: str) -> int:
+    """Start a service's estimator from the saved map at ``path`` (nothing without one); the landmarks loaded
+    (:class:`MapFileError` when the file is refused)."""
+    prior = load_prior(path)
+    return 0 if prior is None else seed_estimator(estimator, prior.view(), prior.hits(), association)
+
+
+def serve_mapping_service(build) -> int:
+    """Build a mapping service (``build()``) and serve it; a refused ``--map`` file ends it with one line (exit 2)."""
+    try:
+        service = build()
+    except MapFileError as error:
+        log.error("cannot start: %s", error)
+        return 2
+    return service.serve()
+
+
 def load_prior(path: str | None) -> MapFile | None:
     """The saved map at ``path`` (None without one), logged; :class:`MapFileError` when it is refused."""
     if not path:

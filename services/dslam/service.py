@@ -33,13 +33,12 @@ from schemas.association import AssociationReply, AssociationRequest
 from schemas.codec import DecodeError
 from schemas.config import DslamSettings, add_settings_arguments, settings_from_args
 from schemas.contract import OdomEvent
-from schemas.mapfile import MapFileError
 from schemas.messages import MapEstimate, PoseEstimate, RobotInfo
 from schemas.transport import StreamPublisher
 from services.association.client import AssociationClient, AssociationRefused
 from services.dslam.config import DslamConfig
 from services.dslam.core import DSlam, in_process_associate
-from services.maps import MapSaver, load_prior, seed_estimator
+from services.maps import MapSaver, seed_from_file, serve_mapping_service
 from services.runtime import ServiceShell
 
 log = logging.getLogger(__name__)
@@ -63,9 +62,7 @@ class DslamService(ServiceShell):
         self._pose_seq: Counter = Counter()
         self._map_seq = 0
         self._lock = asyncio.Lock()
-        prior = load_prior(settings.map)
-        if prior is not None:
-            seed_estimator(self.core, prior.view(), prior.hits(), self.core.config.association)
+        seed_from_file(self.core, settings.map, self.core.config.association)
         self.map_saver = MapSaver(settings.map_out, {"estimator": "dslam", "association": self.core.config.association,
                                                      "service": "dslam", "from_map": settings.map},
                                   settings.map_out_period_s)
@@ -164,10 +161,4 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    settings = settings_from_args(DslamSettings, args)
-    try:
-        service = DslamService(settings)
-    except MapFileError as error:
-        log.error("cannot start: %s", error)
-        return 2
-    return service.serve()
+    return serve_mapping_service(lambda: DslamService(settings_from_args(DslamSettings, args)))
