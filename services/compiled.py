@@ -8,6 +8,7 @@ the references usable).
 
 from __future__ import annotations
 
+import math
 import time
 
 try:
@@ -21,6 +22,12 @@ AVAILABLE = numba is not None
 def njit(function):
     """Compile ``function`` in nopython mode, cached on disk, without the GIL (or leave it as it is)."""
     return numba.njit(cache=True, nogil=True)(function) if AVAILABLE else function
+
+
+@njit
+def wrap_angle(angle):
+    """An angle wrapped to [−π, π) inside a kernel: the floor form of :func:`robots.models.wrap_angle`."""
+    return angle - 2.0 * math.pi * math.floor((angle + math.pi) / (2.0 * math.pi))
 
 
 KERNEL_GROUPS = ("association", "mcl", "fastslam")

@@ -252,9 +252,9 @@ def run(settings: RunSettings, console: Console | None = None, should_stop: Call
     options = run_options(settings, dataset)
     result = run_estimator(dataset, options, robots, settings.duration, settings.sample_period_s,
                            progress=settings.progress, start_poses=settings.start_poses, should_stop=should_stop)
-    if settings.map_out:
-        save_run_map(settings, result, robots or list(dataset.robots))
     chosen = robots or list(dataset.robots)
+    if settings.map_out:
+        save_run_map(settings, result, chosen)
     truth = {rid: Trajectory(dataset.robots[rid].truth_stamp, dataset.robots[rid].truth_pose) for rid in chosen
              if dataset.robots[rid].truth_stamp.size}
     name = settings.estimator

@@ -201,11 +201,11 @@ class FastSlam:
         out = {}
         for rid, robot in self.robots.items():
             pose = self.pose[:, robot.index]
-            extra = np.zeros((3, 3))
             pending = motion.pending_motion(robot, self.config)
             if self.config.compiled:
                 out[rid] = kernels.weighted_pose(pose, w, pending)
                 continue
+            extra = np.zeros((3, 3))
             if pending is not None:
                 extra = np.einsum("p,pij->ij", w, sandwich(compose_jacobian(pose[:, 2]), pending[1]))
                 pose = se2_compose(pose, pending[0])

@@ -27,16 +27,8 @@ import math
 import numpy as np
 
 from robots.models import AckermannModel, UnicycleModel
-from services.compiled import AVAILABLE, njit
-
-TWO_PI = 2.0 * math.pi
-LOG_2PI = math.log(2.0 * math.pi)
-
-
-@njit
-def _wrap(angle):
-    return angle - TWO_PI * math.floor((angle + math.pi) / TWO_PI)
-
+from robots.gaussian import LOG_2PI
+from services.compiled import AVAILABLE, njit, wrap_angle
 
 @njit
 def known_update_kernel(pool_mean, pool_cov, table, block, exist, hits, pose, a, b, slots, z, r, exist_hit,
@@ -72,7 +64,7 @@ def known_update_kernel(pool_mean, pool_cov, table, block, exist, hits, pose, a,
             safe = det if abs(det) > 1e-300 else 1e-300
             i00, i01, i10, i11 = s11 / safe, -s01 / safe, -s10 / safe, s00 / safe
             n0 = z[j, 0] - distance
-            n1 = _wrap(z[j, 1] - _wrap(math.atan2(dy, dx) - theta))
+            n1 = wrap_angle(z[j, 1] - wrap_angle(math.atan2(dy, dx) - theta))
             u00, u01 = m00 * h00 + m01 * h01, m00 * h10 + m01 * h11  # Σ Hᵀ
             u10, u11 = m10 * h00 + m11 * h01, m10 * h10 + m11 * h11
             g00, g01 = u00 * i00 + u01 * i10, u00 * i01 + u01 * i11  # K = Σ Hᵀ S⁻¹
@@ -156,13 +148,13 @@ def integrate_controls_kernel(ackermann, wheelbase, encoder_offset, controls, dt
         else:
             sinc, dsinc = math.sin(h) / h, (h * math.cos(h) - math.sin(h)) / (h * h)
         chord = v * dt * sinc
-        step_x, step_y, step_theta = chord * math.cos(h), chord * math.sin(h), _wrap(w * dt)  # the arc from the origin
+        step_x, step_y, step_theta = chord * math.cos(h), chord * math.sin(h), wrap_angle(w * dt)  # the arc from the origin
         heading = heading_sum
         c, s = math.cos(heading), math.sin(heading)
         path[k + 1, 0] = path[k, 0] + (c * step_x - s * step_y)
         path[k + 1, 1] = path[k, 1] + (s * step_x + c * step_y)
         heading_sum += step_theta
-        path[k + 1, 2] = _wrap(heading_sum)
+        path[k + 1, 2] = wrap_angle(heading_sum)
         alpha = path[k, 2] + h
         ca, sa = math.cos(alpha), math.sin(alpha)
         dd_dw = v * dt * dsinc * 0.5 * dt
@@ -231,7 +223,7 @@ def weighted_pose_kernel(pose, w, delta, delta_cov, moved):
             extra[2, 0] += wp * (q20 * c - q21 * s)
             extra[2, 1] += wp * (q20 * s + q21 * c)
             extra[2, 2] += wp * q22
-            x, y, theta = x + c * delta[0] - s * delta[1], y + s * delta[0] + c * delta[1], _wrap(theta + delta[2])
+            x, y, theta = x + c * delta[0] - s * delta[1], y + s * delta[0] + c * delta[1], wrap_angle(theta + delta[2])
         moved_pose[p, 0], moved_pose[p, 1], moved_pose[p, 2] = x, y, theta
     sum_sin, sum_cos, mean_x, mean_y = 0.0, 0.0, 0.0, 0.0
     for p in range(count):
@@ -243,7 +235,7 @@ def weighted_pose_kernel(pose, w, delta, delta_cov, moved):
     cov = np.zeros((3, 3))
     for p in range(count):
         d0, d1 = moved_pose[p, 0] - mean[0], moved_pose[p, 1] - mean[1]
-        d2 = _wrap(moved_pose[p, 2] - mean[2])
+        d2 = wrap_angle(moved_pose[p, 2] - mean[2])
         wp = w[p]
         cov[0, 0] += wp * d0 * d0
         cov[0, 1] += wp * d0 * d1
@@ -366,7 +358,7 @@ def shared_gating_kernel(pose, a, b, mean, cov, tentative, spread, drift, r, z):
     for k in range(count):
         dx, dy = mean[k, 0] - px, mean[k, 1] - py
         zhat[k, 0] = math.hypot(dx, dy)
-        zhat[k, 1] = _wrap(math.atan2(dy, dx) - theta)
+        zhat[k, 1] = wrap_angle(math.atan2(dy, dx) - theta)
         q = max(dx * dx + dy * dy, 1e-18)
         distance = math.sqrt(q)
         h00, h01, h10, h11 = dx / distance, dy / distance, -dy / q, dx / q
@@ -398,7 +390,7 @@ def shared_gating_kernel(pose, a, b, mean, cov, tentative, spread, drift, r, z):
     for i in range(z.shape[0]):
         for k in range(count):
             n0 = z[i, 0] - zhat[k, 0]
-            n1 = _wrap(z[i, 1] - zhat[k, 1])
+            n1 = wrap_angle(z[i, 1] - zhat[k, 1])
             nu[i, k, 0], nu[i, k, 1] = n0, n1
             d2[i, k] = s_inv[k, 0, 0] * n0 * n0 + (s_inv[k, 0, 1] + s_inv[k, 1, 0]) * n0 * n1 + s_inv[k, 1, 1] * n1 * n1
     return zhat, h_x, own, nu, d2

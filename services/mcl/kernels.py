@@ -22,7 +22,7 @@ import math
 
 import numpy as np
 
-from services.compiled import AVAILABLE, njit
+from services.compiled import AVAILABLE, njit, wrap_angle
 
 
 @njit
@@ -127,8 +127,7 @@ def merge_cells_kernel(cells, ny, turns, steps, mean_xy, mean_theta, merge_xy, m
                 continue
             dx = mean_xy[a, 0] - mean_xy[b, 0]
             dy = mean_xy[a, 1] - mean_xy[b, 1]
-            dt = mean_theta[a] - mean_theta[b]
-            dt = dt - 2.0 * math.pi * math.floor((dt + math.pi) / (2.0 * math.pi))
+            dt = wrap_angle(mean_theta[a] - mean_theta[b])
             if math.sqrt(dx * dx + dy * dy) <= merge_xy and abs(dt) <= merge_theta:
                 ra, rb = _root(parent, a), _root(parent, b)
                 if ra != rb:
