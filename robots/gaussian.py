@@ -4,6 +4,8 @@ augment). One copy, imported by FastSLAM, D-SLAM, the EKF baseline and MCL."""
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from robots.models import wrap_angle
@@ -44,6 +46,19 @@ def sandwich2(a: np.ndarray, m: np.ndarray) -> np.ndarray:
     out[..., 0, 1] = out[..., 1, 0] = t00 * a10 + t01 * a11
     out[..., 1, 1] = t10 * a10 + t11 * a11
     return out
+
+
+def ellipse_outlines(means: np.ndarray, covs: np.ndarray, probability: float = 0.95, points: int = 36) -> np.ndarray:
+    """Closed outlines ``(n, points, 2)`` of the ``probability`` confidence ellipses of 2-D Gaussians (a covariance
+    that is not positive semi-definite is clipped to its non-negative part): for plots and viewers."""
+    from scipy.stats import chi2  # only plots and viewers draw ellipses: the filters need not load scipy.stats
+
+    scale = math.sqrt(chi2.ppf(probability, 2))
+    values, vectors = np.linalg.eigh(0.5 * (covs + np.swapaxes(covs, -1, -2)))
+    radii = scale * np.sqrt(np.clip(values, 0.0, None))
+    angle = np.linspace(0.0, 2 * math.pi, points)
+    circle = np.stack([np.cos(angle), np.sin(angle)], -1)
+    return means[:, None, :] + np.einsum("nij,nj,pj->npi", vectors, radii, circle)
 
 
 def valid_cov2(cov: np.ndarray) -> bool:

@@ -23,8 +23,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.collections import LineCollection  # noqa: E402
-from scipy.stats import chi2  # noqa: E402
 
+from robots.gaussian import ellipse_outlines  # noqa: E402
 from robots.models import transform_points  # noqa: E402
 from services.evaluation.metrics import Trajectory  # noqa: E402
 
@@ -36,16 +36,6 @@ def write_tum(path: Path, trajectory: Trajectory) -> None:
     zeros = np.zeros(len(trajectory))
     table = np.column_stack([trajectory.stamps, poses[:, 0], poses[:, 1], zeros, zeros, zeros, np.sin(half), np.cos(half)])
     np.savetxt(path, table, fmt="%.6f", header="timestamp tx ty tz qx qy qz qw", comments="# ")
-
-
-def ellipse_lines(means: np.ndarray, covs: np.ndarray, probability: float = 0.95, points: int = 36) -> np.ndarray:
-    """Outlines ``(n, points, 2)`` of the ``probability`` confidence ellipses of 2-D Gaussians."""
-    scale = math.sqrt(chi2.ppf(probability, 2))
-    values, vectors = np.linalg.eigh(0.5 * (covs + np.swapaxes(covs, -1, -2)))
-    radii = scale * np.sqrt(np.clip(values, 0.0, None))
-    angle = np.linspace(0.0, 2 * math.pi, points)
-    circle = np.stack([np.cos(angle), np.sin(angle)], -1)
-    return means[:, None, :] + np.einsum("nij,nj,pj->npi", vectors, radii, circle)
 
 
 def _colors(count: int):
@@ -77,7 +67,7 @@ def plot_map(path: Path, title: str, estimator: str, truth: dict[str, Trajectory
     if len(means):
         ax.plot(means[:, 0], means[:, 1], ".", color="crimson", ms=4, label=f"{estimator} landmarks")
         if covs is not None and len(covs) == len(means):
-            outlines = ellipse_lines(means, covs)
+            outlines = ellipse_outlines(means, covs)
             ax.add_collection(LineCollection(outlines, colors="crimson", linewidths=0.6, alpha=0.7,
                                              label="95 % ellipses"))
     ax.set_aspect("equal", adjustable="datalim")

@@ -27,8 +27,8 @@ from typing import Callable, Iterable, Iterator
 import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
-from scipy.stats import chi2
 
+from robots.gaussian import ellipse_outlines
 from schemas.messages import Estimate, GroundTruth, MapEstimate, MclPose, PoseEstimate, RobotInfo, ServiceStats, WorldTruth
 from services.viz.config import VizConfig
 
@@ -95,21 +95,10 @@ def stats_path(service: str, instance: str) -> str:
     return f"stats/{rr.escape_entity_path_part(service)}/{rr.escape_entity_path_part(instance)}/latency_ms"
 
 
-def ellipse_scale(confidence: float) -> float:
-    """Semi-axis factor (in standard deviations) of the ``confidence`` region of a 2-D Gaussian."""
-    return float(math.sqrt(chi2.ppf(confidence, 2)))
-
-
 def covariance_ellipses(means: np.ndarray, covs: np.ndarray, confidence: float, vertices: int) -> np.ndarray:
-    """Closed polygons ``(L, vertices + 1, 2)`` of each landmark's ``confidence`` ellipse (vectorised; a covariance
-    that is not positive semi-definite is clipped to its non-negative part)."""
-    means = np.asarray(means, float).reshape(-1, 2)
-    covs = np.asarray(covs, float).reshape(-1, 2, 2)
-    values, vectors = np.linalg.eigh(0.5 * (covs + np.swapaxes(covs, 1, 2)))
-    axes = np.sqrt(np.clip(values, 0.0, None)) * ellipse_scale(confidence)  # (L, 2)
-    angle = np.linspace(0.0, 2.0 * np.pi, vertices + 1)
-    circle = np.stack([np.cos(angle), np.sin(angle)], axis=-1)  # (V+1, 2)
-    return means[:, None, :] + np.einsum("lij,vj->lvi", vectors * axes[:, None, :], circle)
+    """Closed polygons ``(L, vertices + 1, 2)`` of each landmark's ``confidence`` ellipse."""
+    return ellipse_outlines(np.asarray(means, float).reshape(-1, 2), np.asarray(covs, float).reshape(-1, 2, 2),
+                            confidence, vertices + 1)
 
 
 def pose_archetype(poses: np.ndarray, colour, arrow_m: float, labels: list[str] | None = None,
