@@ -22,13 +22,14 @@ from rich.table import Table
 
 from schemas.codec import decode
 from schemas.config import MonitorSettings, add_settings_arguments, settings_from_args
-from schemas.messages import GroundTruth, Odometry, RobotInfo, Scan, ServiceStats
+from schemas.messages import RobotInfo, ServiceStats
+from schemas.recording import KIND_MODELS, ROBOT_KINDS
 from schemas.streams import StreamTracker, Verdict
 from services.runtime import ServiceShell
 
 log = logging.getLogger("fleetslam.monitor")
 
-ROBOT_MESSAGES = {"info": RobotInfo, "odom": Odometry, "scan": Scan, "truth": GroundTruth}
+ROBOT_MESSAGES = {kind: KIND_MODELS[kind] for kind in ROBOT_KINDS}  # the model each robot stream carries
 
 
 class Monitor(ServiceShell):
