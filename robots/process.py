@@ -14,7 +14,6 @@ import argparse
 import logging
 import time
 
-import zenoh
 
 from robots.dataset import Dataset, RobotLog
 from schemas.contract import OdomEvent, ScanEvent, TruthEvent
@@ -23,7 +22,7 @@ from schemas.codec import encode
 from schemas.config import RobotSettings, add_settings_arguments, settings_from_args
 from schemas.keys import Keys
 from schemas.messages import WorldTruth
-from schemas.transport import ConnectError, Shutdown, StreamPublisher, session_scope
+from schemas.transport import ConnectError, Shutdown, StreamPublisher, answer_with, session_scope, undeclare_all
 
 log = logging.getLogger("fleetslam.robot")
 
@@ -76,11 +75,11 @@ def run(settings: RobotSettings, shutdown: Shutdown) -> dict[str, int]:
         token = session.liveliness().declare_token(keys.alive(rid))
         pubs = {name: StreamPublisher(session, keys.robot(rid, name), cache=settings.publisher_cache)
                 for name in ("info", "odom", "scan", "truth")}
-        answer_info = session.declare_queryable(keys.info(rid), lambda q: q.reply(keys.info(rid), info_payload))
+        answer_info = answer_with(session, keys.info(rid), info_payload)
         answer_world = None
         world_pub = None
         if world_payload is not None:
-            answer_world = session.declare_queryable(keys.world_truth, lambda q: q.reply(keys.world_truth, world_payload))
+            answer_world = answer_with(session, keys.world_truth, world_payload)
             world_pub = StreamPublisher(session, keys.world_truth)
         try:
             shutdown.wait(settings.start_delay)
@@ -113,12 +112,7 @@ def run(settings: RobotSettings, shutdown: Shutdown) -> dict[str, int]:
                     next_info += settings.info_period_s
             log.info("robot %s done: %s", rid, ", ".join(f"{k} {v}" for k, v in counts.items()))
         finally:
-            for entity in [*pubs.values(), answer_info, answer_world, world_pub, token]:
-                if entity is not None:
-                    try:
-                        entity.undeclare()
-                    except zenoh.ZError:
-                        pass
+            undeclare_all([*pubs.values(), answer_info, answer_world, world_pub, token])
     return counts
 
 

@@ -154,6 +154,23 @@ class StreamPublisher:
             log.debug("publisher undeclare failed", exc_info=True)
 
 
+def answer_with(session: zenoh.Session, key: str, payload: bytes):
+    """A queryable answering every query on ``key`` with ``payload``, on that concrete key (what a late joiner
+    asks a robot for: its RobotInfo, the world truth)."""
+    return session.declare_queryable(key, lambda query: query.reply(key, payload))
+
+
+def undeclare_all(entities) -> None:
+    """Undeclare publishers, queryables and liveliness tokens (None skipped), ignoring those already gone."""
+    for entity in entities:
+        if entity is None:
+            continue
+        try:
+            entity.undeclare()
+        except zenoh.ZError:
+            pass
+
+
 class Shutdown:
     """A stop flag set by SIGINT/SIGTERM (or by code); install once per process from the main thread.
 

@@ -19,7 +19,6 @@ import time
 from collections import Counter
 from dataclasses import dataclass, field
 
-import zenoh
 
 from schemas.codec import DecodeError, decode
 from schemas.config import ReplaySettings, add_settings_arguments, settings_from_args
@@ -27,7 +26,7 @@ from schemas.keys import Keys
 from schemas.mcap_file import Recording, read_recording
 from schemas.messages import RobotInfo
 from schemas.recording import RecordingError, robot_of, topic_kind
-from schemas.transport import ConnectError, Shutdown, StreamPublisher, session_scope
+from schemas.transport import ConnectError, Shutdown, StreamPublisher, answer_with, session_scope, undeclare_all
 
 log = logging.getLogger("fleetslam.replay")
 
@@ -111,13 +110,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_settings_arguments(parser, ReplaySettings)
 
 
-def _undeclare(entity) -> None:
-    try:
-        entity.undeclare()
-    except zenoh.ZError:
-        pass
-
-
 def publish(plan: ReplayPlan, settings: ReplaySettings, shutdown: Shutdown) -> Counter:
     """Publish the plan as live robots; the count of messages published per stream."""
     keys = Keys(settings.prefix)
@@ -127,15 +119,12 @@ def publish(plan: ReplayPlan, settings: ReplaySettings, shutdown: Shutdown) -> C
         pubs = {(rid, stream): StreamPublisher(session, keys.robot(rid, stream))
                 for rid in plan.infos for stream in REPLAYED_STREAMS}
         declared: list = list(pubs.values())
-        for rid, payload in plan.infos.items():
-            declared.append(session.declare_queryable(
-                keys.info(rid), lambda query, k=keys.info(rid), p=payload: query.reply(k, p)))
+        declared += [answer_with(session, keys.info(rid), payload) for rid, payload in plan.infos.items()]
         world_pub = None
         if plan.world is not None:
             world_pub = StreamPublisher(session, keys.world_truth)
             declared.append(world_pub)
-            declared.append(session.declare_queryable(
-                keys.world_truth, lambda query: query.reply(keys.world_truth, plan.world)))
+            declared.append(answer_with(session, keys.world_truth, plan.world))
         try:
             shutdown.wait(settings.start_delay)
             for rid, payload in plan.infos.items():
@@ -154,15 +143,14 @@ def publish(plan: ReplayPlan, settings: ReplaySettings, shutdown: Shutdown) -> C
                 pubs[(item.robot_id, item.stream)].put(item.data)
                 counts[item.stream] += 1
                 if plan.last_index[item.robot_id] == k:
-                    _undeclare(tokens.pop(item.robot_id))
+                    undeclare_all([tokens.pop(item.robot_id)])
                     log.info("robot %s done", item.robot_id)
                 if time.monotonic() >= next_progress:
                     log.info("replay: %.1f of %.1f recorded s; %s", item.offset_s, plan.span_s,
                              ", ".join(f"{s} {n}" for s, n in sorted(counts.items())))
                     next_progress = time.monotonic() + settings.progress_period_s
         finally:
-            for entity in [*declared, *tokens.values()]:
-                _undeclare(entity)
+            undeclare_all([*declared, *tokens.values()])
     return counts
 
 
