@@ -40,7 +40,6 @@ FORMAT = "fleetslam-map"
 VERSION = 1
 
 
-
 class MapFileError(ValueError):
     """A map file that cannot be read or written; the message is one line with the path and the reason."""
 
