@@ -6,14 +6,14 @@ liveliness, RobotInfo asked for when a token appears, streams checked for
 order, new runs recognised) and every robot's odometry and scans go into one
 filter (:class:`central.fastslam.FastSlam`):
 
-- Across robots, events wait in a :class:`~services.roster.ReorderBuffer` at
-  most ``reorder_window_s`` (wall time) and are released in stamp order once
-  every live robot's stream has passed their stamp.
+- Across robots, events wait in the shell's :class:`~services.roster.ReorderBuffer` at
+  most ``reorder_window_s`` (wall time) and are handled in stamp order once
+  every stream of every live robot has passed their stamp.
 - When no robot has been placed ``anchor_after_s`` after the first robot without a start pose was
   announced, that robot anchors the world frame at the origin (``anchor_first``; the offline runner anchors
   the first robot to scan).
 - Any other robot whose start pose is unknown waits (its events held by the roster,
-  at most ``waiting_messages``) until ``{prefix}/mcl/{rid}/pose`` (MclPose)
+  at most ``waiting_mb`` of them) until ``{prefix}/mcl/{rid}/pose`` (MclPose)
   says ``localized``; it enters at MCL's best pose and covariance, and its
   held events older than that pose are dropped (counted).
 - A robot whose first odometry message arrives with seq > 0 (the service
@@ -49,7 +49,7 @@ from schemas.config import CentralSettings, add_settings_arguments, settings_fro
 from schemas.contract import OdomEvent
 from schemas.messages import Estimate, MclPose, RobotEstimate, RobotInfo
 from services.maps import MapSaver, seed_from_file, serve_mapping_service
-from services.roster import ReorderBuffer, StreamEvent
+from services.roster import StreamEvent
 from services.runtime import ServiceShell
 
 log = logging.getLogger("fleetslam.central")
@@ -66,9 +66,7 @@ class CentralService(ServiceShell):
         self.settings: CentralSettings = settings
         self.tick_period_s = 1.0 / settings.estimate_rate_hz
         self.slam = FastSlam(settings.core(FastSlamConfig))
-        self.reorder = ReorderBuffer(settings.reorder_window_s)
         self.processed: dict[str, int] = defaultdict(int)
-        self.hold_ms: deque[float] = deque(maxlen=5000)
         self.compute_ms: deque[float] = deque(maxlen=5000)
         self.estimate_seq = 0
         self.last_stamp = 0.0
@@ -111,13 +109,17 @@ class CentralService(ServiceShell):
             await self.admit(rid)
 
     async def robot_event(self, event: StreamEvent) -> None:
-        self.reorder.push(event)
-        self._release(flush=False)
+        """Into the filter, in stamp order across every robot."""
+        started = time.perf_counter()
+        accepted = self.slam.on_odometry(event) if isinstance(event, OdomEvent) else self.slam.on_scan(event)
+        self.compute_ms.append((time.perf_counter() - started) * 1e3)
+        if accepted:
+            self.processed[event.robot_id] += 1
+            self.last_stamp = max(self.last_stamp, event.stamp)
 
     def robot_new_run(self, robot_id: str) -> None:
         """It leaves the filter (the landmarks it mapped stay) and rejoins from its RobotInfo."""
         self.slam.remove_robot(robot_id)
-        self.reorder.drop_robot(robot_id)
         self.announced_waiting.pop(robot_id, None)
 
     def robot_joined_late(self, robot_id: str) -> None:
@@ -127,8 +129,32 @@ class CentralService(ServiceShell):
             self.roster.hold(robot_id)
             log.info("robot %s waits for a pose from MCL", robot_id)
 
-    def robot_left(self, robot_id: str) -> None:
-        self._release(flush=False)
+    def robot_lost_odometry(self, robot_id: str) -> None:
+        """Its pose no longer follows it: it leaves the filter (the landmarks it mapped stay) and waits for MCL to
+        place it again (MCL localizes a robot whose odometry was lost, whatever its start pose)."""
+        if self.slam.unplace(robot_id) is not None:
+            self.roster.hold(robot_id)
+            self.announced_waiting.setdefault(robot_id, time.monotonic())
+            log.info("robot %s waits for a pose from MCL", robot_id)
+
+    # ------------------------------------------------------------ checkpoints
+    def checkpoint_state(self) -> dict:
+        return {"slam": self.slam, "processed": self.processed,
+                "estimate_seq": self.estimate_seq, "last_stamp": self.last_stamp,
+                "waiting_robots": sorted(self.announced_waiting)}
+
+    def restore_state(self, state: dict) -> None:
+        """The filter (particles, maps, random generator); robots waiting for a pose wait afresh."""
+        self.slam = state["slam"]
+        self.processed.update(state["processed"])
+        self.estimate_seq = state["estimate_seq"]
+        self.last_stamp = state["last_stamp"]
+        now = time.monotonic()
+        self.announced_waiting = {rid: now for rid in state["waiting_robots"]}
+
+    def checkpoint_summary(self) -> dict:
+        return {"robots": self.slam.robot_count, "landmarks_best": int(self.slam.stats()["landmarks_best"]),
+                "processed": int(sum(self.processed.values())), "stamp": round(self.last_stamp, 3)}
 
     # ------------------------------------------------------------ handling
     async def handle(self, tag: str, key: str, payload) -> None:
@@ -136,7 +162,7 @@ class CentralService(ServiceShell):
             self._answer_state(payload)
         elif tag == "mcl":
             await self._on_mcl(decode(payload, MclPose), key)
-        self._release(flush=False)
+        await self.release_events()
 
     async def _on_mcl(self, message: MclPose, key: str) -> None:
         rid = message.robot_id
@@ -150,18 +176,6 @@ class CentralService(ServiceShell):
             await self.admit(rid, after=message.stamp)
         else:
             self.reject("bad_placement", f"MCL pose of {rid}")
-
-    def _release(self, flush: bool) -> None:
-        """Process the events the reorder buffer releases (every one when ``flush``)."""
-        live = [rid for rid in self.roster.alive_ids() if self.slam.has_robot(rid)]
-        for event, arrived in self.reorder.release(live, flush):
-            started = time.perf_counter()
-            self.hold_ms.append((started - arrived) * 1e3)
-            accepted = self.slam.on_odometry(event) if isinstance(event, OdomEvent) else self.slam.on_scan(event)
-            self.compute_ms.append((time.perf_counter() - started) * 1e3)
-            if accepted:
-                self.processed[event.robot_id] += 1
-                self.last_stamp = max(self.last_stamp, event.stamp)
 
     # ------------------------------------------------------------ output
     def estimate(self, publish: bool = True) -> Estimate | None:
@@ -198,13 +212,11 @@ class CentralService(ServiceShell):
 
     def _update_stats(self) -> None:
         self.extra.update({k: v for k, v in self.slam.stats().items()})
-        self.extra["buffered"] = float(len(self.reorder))
         self.extra["processed"] = float(sum(self.processed.values()))
-        for name, values in (("hold_ms", self.hold_ms), ("compute_ms", self.compute_ms)):
-            if values:
-                array = np.asarray(values)
-                self.extra[f"{name}_median"] = float(np.median(array))
-                self.extra[f"{name}_p99"] = float(np.percentile(array, 99))
+        if self.compute_ms:
+            array = np.asarray(self.compute_ms)
+            self.extra["compute_ms_median"] = float(np.median(array))
+            self.extra["compute_ms_p99"] = float(np.percentile(array, 99))
 
     def _publish_estimate(self) -> None:
         message = self.estimate()
@@ -214,7 +226,7 @@ class CentralService(ServiceShell):
 
     async def tick(self) -> None:
         await self._anchor()
-        self._release(flush=False)
+        await self.release_events()
         self._update_stats()
         if self.slam.robot_count or self.prior_landmarks:
             self._publish_estimate()
@@ -222,7 +234,6 @@ class CentralService(ServiceShell):
             self.map_saver.save(self.slam.landmark_map())
 
     def on_stop(self) -> None:
-        self._release(flush=True)
         self._update_stats()
         if self.slam.robot_count or self.prior_landmarks:
             self._publish_estimate()

@@ -64,6 +64,12 @@ class RobotLog:
         stamps = [a[-1] for a in (self.odom_stamp, self.scan_stamp) if a.size]
         return float(max(stamps)) if stamps else 0.0
 
+    def stream_rates(self) -> dict[str, float]:
+        """Messages per second of data time of each stream over the whole log (what a publisher cache is sized by)."""
+        span = max(self.end_stamp - self.start_stamp, 1e-3)
+        return {"odom": self.odom_stamp.size / span, "scan": self.scan_stamp.size / span,
+                "truth": self.truth_stamp.size / span}
+
     def scan(self, s: int) -> ScanEvent:
         lo, hi = self.scan_offsets[s], self.scan_offsets[s + 1]
         robot_ids, robot_r, robot_b = [], np.zeros(0), np.zeros(0)

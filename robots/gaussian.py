@@ -5,12 +5,21 @@ augment). One copy, imported by FastSLAM, D-SLAM, the EKF baseline and MCL."""
 from __future__ import annotations
 
 import math
+from functools import lru_cache
 
 import numpy as np
+import scipy.special
 
 from robots.models import wrap_angle
 
 LOG_2PI = float(np.log(2.0 * np.pi))
+
+
+@lru_cache(maxsize=256)
+def chi2_quantile(probability: float, dof: int) -> float:
+    """The chi-square quantile ε with P(τ ≤ ε) = ``probability`` for ``dof`` degrees of freedom (9.21 for 0.99 and
+    2 dof): every association gate. Through ``scipy.special`` (``scipy.stats`` takes half a second to import)."""
+    return float(scipy.special.chdtri(dof, 1.0 - probability))
 
 
 def inv2(s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -5,7 +5,11 @@ its RobotInfo (again every second, and to late joiners through a queryable),
 the world's true map once on ``{prefix}/world/truth`` (and to late joiners),
 then its odometry, scans and truth in time order, paced at real time divided
 by ``--speedup``. Publishers are reliable with congestion control BLOCK, so
-nothing is dropped silently. SIGINT/SIGTERM stop it cleanly.
+nothing is dropped silently, and advanced: each caches ``outage_budget_s`` of
+its stream and sends heartbeats, so a receiver that was cut off, restarted or
+late recovers what it missed; after its last message the robot keeps them
+``linger_s`` (at most 1 s when stopped by a signal) for a receiver that missed
+the tail. SIGINT/SIGTERM stop it cleanly.
 """
 
 from __future__ import annotations
@@ -22,7 +26,8 @@ from schemas.codec import encode
 from schemas.config import RobotSettings, add_settings_arguments, settings_from_args
 from schemas.keys import Keys
 from schemas.messages import WorldTruth
-from schemas.transport import ConnectError, Shutdown, StreamPublisher, answer_with, session_scope, undeclare_all
+from schemas.transport import (ConnectError, Shutdown, StreamPublisher, answer_with, cache_samples, linger_time,
+                               session_scope, undeclare_all)
 
 log = logging.getLogger("fleetslam.robot")
 
@@ -73,7 +78,9 @@ def run(settings: RobotSettings, shutdown: Shutdown) -> dict[str, int]:
     counts = {"odom": 0, "scan": 0, "truth": 0}
     with session_scope(settings) as session:
         token = session.liveliness().declare_token(keys.alive(rid))
-        pubs = {name: StreamPublisher(session, keys.robot(rid, name), cache=settings.publisher_cache)
+        rates = {**robot.stream_rates(), "info": 1.0 / settings.info_period_s}
+        pubs = {name: StreamPublisher(session, keys.robot(rid, name),
+                                      cache=cache_samples(settings, rates[name] * settings.speedup))
                 for name in ("info", "odom", "scan", "truth")}
         answer_info = answer_with(session, keys.info(rid), info_payload)
         answer_world = None
@@ -111,6 +118,11 @@ def run(settings: RobotSettings, shutdown: Shutdown) -> dict[str, int]:
                     pubs["info"].put(info_payload)
                     next_info += settings.info_period_s
             log.info("robot %s done: %s", rid, ", ".join(f"{k} {v}" for k, v in counts.items()))
+            linger_s = linger_time(settings.linger_s, shutdown.is_set())
+            if linger_s > 0:
+                log.info("robot %s keeps its caches %g s more for receivers that missed its last messages", rid,
+                         linger_s)
+                time.sleep(linger_s)
         finally:
             undeclare_all([*pubs.values(), answer_info, answer_world, world_pub, token])
     return counts

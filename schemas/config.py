@@ -59,18 +59,25 @@ class FleetSettings(ProcessSettings):
     tls_root_ca: str | None = Field(None, description="CA certificate (PEM) to verify the router; enables tls/ endpoints")
     tls_cert: str | None = Field(None, description="client certificate (PEM) for mutual TLS")
     tls_key: str | None = Field(None, description="client private key (PEM) for mutual TLS")
-    publisher_cache: int = Field(
-        0, ge=0, description="samples an advanced publisher keeps for recovery by late or cut-off subscribers (0: plain publisher)"
+    publisher_cache: int | None = Field(
+        None, ge=0, description="samples each advanced publisher keeps for receivers that were cut off, restarted or "
+        "late (default: the stream's rate times outage_budget_s; 0: a plain publisher, nothing to recover)"
     )
+    outage_budget_s: float = Field(
+        60.0, gt=0, description="longest outage (link cut, router or service restart) that loses nothing: the "
+        "publishers' caches hold this many wall seconds of their streams (s)")
     subscriber_recovery: bool = Field(
-        False, description="subscribe robot streams through an advanced subscriber that recovers samples missed "
-        "during a link cut or router restart from the publishers' caches (needs publisher_cache > 0 on the robots)"
+        True, description="subscribe robot streams through an advanced subscriber that fetches what it missed (late "
+        "start, link cut, router restart, its own restart) from the publishers' caches; heartbeats tell it of a lost tail"
     )
     stats_period_s: float = Field(1.0, gt=0, description="period of the stats publication (s)")
     info_timeout_s: float = Field(2.0, gt=0, description="how long a query for a robot's RobotInfo waits for its answer, "
                                   "and how long before a robot still unannounced is asked again (s)")
-    waiting_messages: int = Field(2000, ge=1, description="messages of a robot kept while it waits to join (for its "
-                                  "RobotInfo, or for a pose from MCL); the oldest go, counted, past this")
+    reorder_window_s: float = Field(0.1, ge=0, le=10, description="longest wall time a robot message waits for the "
+                                    "other streams (the robot's own, other robots') so that events are handled in time "
+                                    "order, also when a link cut or restart recovers one stream later (0: as they come)")
+    waiting_mb: float = Field(256.0, gt=0, description="megabytes of a robot's messages kept while it waits to join "
+                              "(for its RobotInfo, or for a pose from MCL); the oldest go, counted, past this")
     log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = Field("INFO", description="log level")
 
 
@@ -107,6 +114,8 @@ class RobotSettings(FleetSettings):
     clutter_rate: float | None = Field(None, ge=0, description="override the world's clutter (false detections per scan)")
     replay: str | None = Field(None, description="replay a data set instead: mrclam:PATH:N, victoria-park:PATH, car-park:PATH")
     info_period_s: float = Field(1.0, gt=0, description="period of the RobotInfo re-publication (s)")
+    linger_s: float = Field(2.0, ge=0, description="wall seconds the robot keeps its publishers (their caches and "
+                            "heartbeats) after its last message, so a receiver cut off just before can recover the tail")
 
 
 class MonitorSettings(FleetSettings):
@@ -173,6 +182,9 @@ class ReplaySettings(FleetSettings):
     start_s: float = Field(0.0, ge=0, description="skip this many seconds from the start of the recording")
     start_delay: float = Field(0.5, ge=0, description="wall seconds to wait after declaring, so subscribers can match")
     progress_period_s: float = Field(5.0, gt=0, description="period of the progress line in the log (s)")
+    linger_s: float = Field(2.0, ge=0, description="wall seconds the replayed robots keep their publishers (their "
+                            "caches and heartbeats) after the last message, so a receiver cut off just before can "
+                            "recover the tail")
 
 
 def _json_value(text: str) -> Any:
@@ -258,7 +270,17 @@ def settings_from_args(settings_cls: type[S], args: argparse.Namespace, **overri
     return build_settings(settings_cls, **{**overrides, **given})
 
 
-class MclSettings(FleetSettings, MclConfig):
+class CheckpointSettings(BaseModel):
+    """The crash-safe state flags of the stateful services (``fleetslam central``, ``dslam``, ``mcl``)."""
+
+    state_dir: str | None = Field(
+        None, description="folder for this service's checkpoints (the whole filter state with its random generator, "
+        "the robots' RobotInfo and last seq), written atomically every checkpoint_period_s and on exit; on start the "
+        "service resumes from the newest valid one and recovers the rest from the robots' publisher caches")
+    checkpoint_period_s: float = Field(1.0, gt=0, description="with state_dir: period of the checkpoints (s)")
+
+
+class MclSettings(FleetSettings, MclConfig, CheckpointSettings):
     """``fleetslam mcl``: localize robots against a map; publish hypotheses; answer one-shot localization queries."""
 
     source: str = Field(
@@ -284,7 +306,7 @@ class SavedMapSettings(BaseModel):
     map_out_period_s: float = Field(30.0, ge=0, description="with map_out: rewrite the map file this often (s; 0: on exit only)")
 
 
-class DslamSettings(FleetSettings, DslamConfig, SavedMapSettings):
+class DslamSettings(FleetSettings, DslamConfig, SavedMapSettings, CheckpointSettings):
     """``fleetslam dslam``: one D-SLAM map fed by every robot; association through the queryable."""
 
     assoc_timeout_s: float = Field(0.5, gt=0, description="how long to wait for the association queryable (s)")
@@ -376,12 +398,10 @@ class AssocSettings(FleetSettings):
     duration: float | None = Field(None, gt=0, description="stop after this many seconds (default: until SIGINT/SIGTERM)")
 
 
-class CentralSettings(FleetSettings, FastSlamConfig, SavedMapSettings):
+class CentralSettings(FleetSettings, FastSlamConfig, SavedMapSettings, CheckpointSettings):
     """``fleetslam central``: the central multi-robot FastSLAM service (every robot in one filter)."""
 
     estimate_rate_hz: float = Field(2.0, gt=0, le=100, description="rate of the estimate publication on {prefix}/central/estimate")
-    reorder_window_s: float = Field(0.1, ge=0, le=10, description="longest wall time a message waits for other robots' "
-                                    "streams so that robots are processed in time order (0: as they come)")
     anchor_first: bool = Field(
         True, description="when no robot is placed anchor_after_s after the first robot without a start pose was "
         "announced, it anchors the world frame at the origin (DESIGN §3); the others wait for MCL")

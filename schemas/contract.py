@@ -19,6 +19,8 @@ pydantic-settings, no service.
 
 from __future__ import annotations
 
+import dataclasses
+
 from dataclasses import dataclass, field
 from typing import Any, Protocol, TypeVar
 
@@ -103,6 +105,12 @@ Event = OdomEvent | ScanEvent | TruthEvent
 def stream_event(message: Odometry | Scan) -> OdomEvent | ScanEvent:
     """The core's event for a decoded stream message."""
     return OdomEvent.from_message(message) if isinstance(message, Odometry) else ScanEvent.from_message(message)
+
+
+def event_nbytes(event: OdomEvent | ScanEvent) -> int:
+    """Roughly the memory an event holds: its arrays plus a fixed overhead (what waiting buffers are sized by)."""
+    values = (getattr(event, f.name) for f in dataclasses.fields(event))
+    return 256 + sum(value.nbytes for value in values if isinstance(value, np.ndarray))
 
 
 # ---------------------------------------------------------------- what cores return

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import re
 import signal
 import threading
@@ -122,8 +123,27 @@ def session_scope(settings: FleetSettings, mode: str = "client", listen: str | N
             log.debug("session close failed", exc_info=True)
 
 
+def cache_samples(settings: FleetSettings, rate_hz: float) -> int:
+    """How many samples a publisher of ``rate_hz`` (wall-clock messages per second) caches: the setting
+    ``publisher_cache`` when given, else enough for ``outage_budget_s`` of the stream (at least 16)."""
+    if settings.publisher_cache is not None:
+        return settings.publisher_cache
+    return max(16, math.ceil(rate_hz * settings.outage_budget_s))
+
+
+def linger_time(configured_s: float, stopped_by_signal: bool) -> float:
+    """How long a robot keeps its publishers (caches, heartbeats) after its last message, for a receiver that missed
+    the tail: ``configured_s``, but at most 1 s (two heartbeats) when a signal stopped it, so it exits promptly."""
+    return min(configured_s, 1.0) if stopped_by_signal else configured_s
+
+
 class StreamPublisher:
-    """Reliable, congestion-control BLOCK publisher of fleetslam messages on one key."""
+    """Reliable, congestion-control BLOCK publisher of fleetslam messages on one key.
+
+    With ``cache`` > 0 it is an advanced publisher: it keeps the last ``cache`` samples for receivers that
+    missed them (late, cut off, restarted) and sends a heartbeat every 0.5 s with its last sequence number,
+    so a receiver learns of a lost tail even when nothing follows it.
+    """
 
     def __init__(self, session: zenoh.Session, key: str, cache: int = 0):
         self.key = key

@@ -4,6 +4,16 @@ Shows the robots alive (liveliness), each robot's message counts and rates per
 stream, seq gaps, rejected messages by reason (malformed payloads, wrong
 schema, duplicates, time going backwards...), every service's latest stats
 and the other keys seen. A malformed payload is counted, never fatal.
+
+A robot whose liveliness token went away and whose streams start again at
+seq 0 is a new run of it, recognised as the services recognise it
+(:meth:`~schemas.streams.StreamTracker.leave` and
+:meth:`~schemas.streams.StreamTracker.new_run`), not a burst of out-of-order
+messages. Its ``restarts`` go up by one; its message counts and seq gaps
+(``missing``) go on adding up over its runs, so that they compare with the
+services' own counts of messages taken in (``fleetslam demo`` does). A robot
+whose streams go back to seq 0 while its token stays is not a new run: those
+messages are refused as out of order.
 """
 
 from __future__ import annotations
@@ -45,6 +55,7 @@ class Monitor(ServiceShell):
         self.alive: dict[str, bool] = {}
         self.infos: dict[str, RobotInfo] = {}
         self.counts: dict[str, Counter] = defaultdict(Counter)
+        self.missing_in_earlier_runs: Counter = Counter()  # seq gaps of runs the tracker forgot (robot id -> count)
         self.arrivals: dict[tuple[str, str], deque] = defaultdict(lambda: deque(maxlen=5000))
         self.services: dict[str, ServiceStats] = {}
         self.topics: Counter = Counter()
@@ -70,6 +81,7 @@ class Monitor(ServiceShell):
         if tag == "alive":
             self.alive[key] = payload == b"1"
             if payload == b"0":
+                self.tracker.leave(key)
                 log.info("robot %s left (liveliness lost)", key)
             return
         parsed = self.keys.parse_robot_key(key)
@@ -93,12 +105,27 @@ class Monitor(ServiceShell):
             self.infos[robot_id] = message
             self.counts[robot_id]["info"] += 1
             return
+        if message.seq == 0:  # perhaps a new run: keep its robot's seq gaps before the tracker forgets them
+            missing = self.tracker.missing(robot_id)
+            if self.tracker.new_run(robot_id, stream, message.seq):
+                self.new_run(robot_id, missing)
         verdict = self.tracker.check(robot_id, stream, message.seq, message.stamp)
         if verdict is not Verdict.ACCEPT:
             self.reject(verdict.value, f"{key} seq {message.seq}")
             return
         self.counts[robot_id][stream] += 1
         self.arrivals[(robot_id, stream)].append(time.monotonic())
+
+    def new_run(self, robot_id: str, missing: int) -> None:
+        """A robot that left started again at seq 0 (the tracker forgot its streams): count the restart and keep
+        the ``missing`` messages of the run that ended."""
+        self.counts[robot_id]["restarts"] += 1
+        self.missing_in_earlier_runs[robot_id] += missing
+        log.info("robot %s started a new run", robot_id)
+
+    def missing(self, robot_id: str) -> int:
+        """Messages of the robot lost on the way (seq gaps), over all its runs."""
+        return self.tracker.missing(robot_id) + self.missing_in_earlier_runs[robot_id]
 
     def rate(self, robot_id: str, stream: str) -> float:
         times = self.arrivals.get((robot_id, stream))
@@ -110,7 +137,8 @@ class Monitor(ServiceShell):
 
     def render(self) -> Group:
         robots = Table(title="robots", expand=False)
-        for column in ("robot", "alive", "source", "odom", "scan", "truth", "odom Hz", "scan Hz", "missing"):
+        for column in ("robot", "alive", "source", "odom", "scan", "truth", "odom Hz", "scan Hz", "missing",
+                       "restarts"):
             robots.add_column(column, justify="right" if column not in ("robot", "source") else "left")
         for rid in sorted(set(self.counts) | set(self.alive) | set(self.infos)):
             c = self.counts[rid]
@@ -118,7 +146,8 @@ class Monitor(ServiceShell):
             robots.add_row(
                 rid, "yes" if self.alive.get(rid) else "no", info.source if info else "?",
                 str(c["odom"]), str(c["scan"]), str(c["truth"]),
-                f"{self.rate(rid, 'odom'):.1f}", f"{self.rate(rid, 'scan'):.1f}", str(self.tracker.missing(rid)),
+                f"{self.rate(rid, 'odom'):.1f}", f"{self.rate(rid, 'scan'):.1f}", str(self.missing(rid)),
+                str(c["restarts"]),
             )
         rejected = Table(title="rejected")
         rejected.add_column("reason")
@@ -141,17 +170,18 @@ class Monitor(ServiceShell):
             for rid in sorted(self.counts):
                 c = self.counts[rid]
                 print(f"monitor {rid} alive={self.alive.get(rid, False)} odom={c['odom']} scan={c['scan']} "
-                      f"truth={c['truth']} missing={self.tracker.missing(rid)}", flush=True)
+                      f"truth={c['truth']} missing={self.missing(rid)} restarts={c['restarts']}", flush=True)
             if self.rejected:
                 print(f"monitor rejected {dict(self.rejected)}", flush=True)
 
     def summary(self) -> dict:
         return {
             "robots": {
-                rid: {**{s: self.counts[rid][s] for s in ("info", "odom", "scan", "truth")},
-                      "missing": self.tracker.missing(rid), "alive": self.alive.get(rid, False)}
+                rid: {**{s: self.counts[rid][s] for s in ("info", "odom", "scan", "truth", "restarts")},
+                      "missing": self.missing(rid), "alive": self.alive.get(rid, False)}
                 for rid in sorted(self.counts)
             },
+            "robot_restarts": sum(counts["restarts"] for counts in self.counts.values()),
             "rejected": dict(self.rejected),
             "services": {name: s.model_dump(mode="json") for name, s in self.services.items()},
             "topics": dict(self.topics),

@@ -26,7 +26,8 @@ from schemas.keys import Keys
 from schemas.mcap_file import Recording, read_recording
 from schemas.messages import RobotInfo
 from schemas.recording import RecordingError, robot_of, topic_kind
-from schemas.transport import ConnectError, Shutdown, StreamPublisher, answer_with, session_scope, undeclare_all
+from schemas.transport import (ConnectError, Shutdown, StreamPublisher, answer_with, cache_samples, linger_time,
+                               session_scope, undeclare_all)
 
 log = logging.getLogger("fleetslam.replay")
 
@@ -116,7 +117,10 @@ def publish(plan: ReplayPlan, settings: ReplaySettings, shutdown: Shutdown) -> C
     counts: Counter = Counter()
     with session_scope(settings) as session:
         tokens = {rid: session.liveliness().declare_token(keys.alive(rid)) for rid in plan.infos}
-        pubs = {(rid, stream): StreamPublisher(session, keys.robot(rid, stream))
+        sent = Counter((item.robot_id, item.stream) for item in plan.items)
+        wall_span_s = max(plan.span_s, 1.0) / settings.speedup
+        pubs = {(rid, stream): StreamPublisher(session, keys.robot(rid, stream),
+                                               cache=cache_samples(settings, sent[(rid, stream)] / wall_span_s))
                 for rid in plan.infos for stream in REPLAYED_STREAMS}
         declared: list = list(pubs.values())
         declared += [answer_with(session, keys.info(rid), payload) for rid, payload in plan.infos.items()]
@@ -149,6 +153,10 @@ def publish(plan: ReplayPlan, settings: ReplaySettings, shutdown: Shutdown) -> C
                     log.info("replay: %.1f of %.1f recorded s; %s", item.offset_s, plan.span_s,
                              ", ".join(f"{s} {n}" for s, n in sorted(counts.items())))
                     next_progress = time.monotonic() + settings.progress_period_s
+            linger_s = linger_time(settings.linger_s, shutdown.is_set())
+            if linger_s > 0:
+                log.info("replay: keeping the caches %g s more for receivers that missed the last messages", linger_s)
+                time.sleep(linger_s)
         finally:
             undeclare_all([*declared, *tokens.values()])
     return counts

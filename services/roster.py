@@ -8,12 +8,19 @@ into the core's event:
 - the message's robot id must match its key, and its stream must be in order
   (:class:`~schemas.streams.StreamTracker`: duplicates, out-of-order and time
   going backwards are refused with the reason, gaps counted);
-- a robot that left (its token went away) and starts again at seq 0 is a new
-  run: the roster forgets its RobotInfo and the service resets what it holds
-  of it; a robot back after a link cut goes on with its seq numbers;
-- a robot's events wait (at most ``waiting_limit``, the oldest dropped and
-  counted) until it has announced itself and the service admits it — at once,
-  or later (central waits for MCL to place a robot with no start pose);
+- a robot whose stream starts again at seq 0 from another Zenoh session (a
+  restarted process), or, the session unknown, after its token went away, is
+  a new run: the roster forgets its RobotInfo and the service resets what it
+  holds of it; a robot back after a link cut goes on with its seq numbers;
+- a robot's events wait (at most ``waiting_bytes`` of them, the oldest dropped
+  and counted) until it has announced itself and the service admits it — at
+  once, or later (central waits for MCL to place a robot with no start pose);
+- a gap in a stream (messages lost for good: more than the publishers' caches
+  held) is reported with the message after it, so the service can re-place the
+  robot;
+- after a service restart from a checkpoint (:meth:`Roster.resume`), what the
+  publishers' caches send again up to the checkpointed seq of each stream is
+  recognised as already held and counted (``already_held``), not refused;
 - it says when to ask a robot for its RobotInfo: when its token appears, and
   again every ``info_timeout_s`` while its messages come unannounced.
 
@@ -24,13 +31,12 @@ holding each at most a wall-time window.
 from __future__ import annotations
 
 import heapq
-import itertools
 import time
 from collections import Counter, deque
 from dataclasses import dataclass, field
 from typing import Callable
 
-from schemas.contract import OdomEvent, ScanEvent, stream_event
+from schemas.contract import OdomEvent, ScanEvent, event_nbytes, stream_event
 from schemas.messages import Odometry, RobotInfo, Scan
 from schemas.streams import StreamTracker, Verdict
 
@@ -45,6 +51,7 @@ class Member:
     alive: bool = False
     admitted: bool = False
     waiting: deque = field(default_factory=deque)
+    waiting_bytes: int = 0
     asked_at: float = float("-inf")
 
 
@@ -52,26 +59,30 @@ class Member:
 class Arrival:
     """What became of one stream message: its event (None when refused or held), or the reason it was refused;
     whether it started a new run of its robot, whether the robot joined late (its first odometry has seq > 0),
-    and whether the robot should be asked for its RobotInfo now."""
+    how many messages of the stream were lost just before it (``gap``), and whether the robot should be asked for
+    its RobotInfo now."""
 
     event: StreamEvent | None = None
     refused: tuple[str, str] | None = None
     new_run: bool = False
     late: bool = False
+    gap: int = 0
     ask_info: bool = False
 
 
 class Roster:
     """Membership of every robot a service hears of (see the module docstring)."""
 
-    def __init__(self, waiting_limit: int = 2000, info_timeout_s: float = 2.0,
+    def __init__(self, waiting_bytes: int = 256 << 20, info_timeout_s: float = 2.0,
                  clock: Callable[[], float] = time.monotonic):
-        self.waiting_limit = waiting_limit
+        self.waiting_bytes = waiting_bytes
         self.info_timeout_s = info_timeout_s
         self.clock = clock
         self.tracker = StreamTracker()
         self.members: dict[str, Member] = {}
         self.counts: Counter = Counter()
+        self.resumed: dict[tuple[str, str], int] = {}  # (robot, stream) → last seq held by the checkpoint resumed from
+        self.sources: dict[tuple[str, str], str] = {}  # (robot, stream) → the Zenoh session that publishes it
 
     # ------------------------------------------------------------ queries
     def member(self, robot_id: str) -> Member:
@@ -93,6 +104,15 @@ class Roster:
 
     def missing(self) -> int:
         return self.tracker.missing()
+
+    def resume(self) -> None:
+        """This roster was just restored from a checkpoint in a new process: no robot has been asked for its
+        RobotInfo yet, and what the publishers' caches send again up to each stream's seq in the checkpoint is
+        already held (counted as ``already_held``, not refused). Robots stay alive as they were until the service
+        has looked at the tokens again (:meth:`on_gone` for those that went meanwhile)."""
+        for member in self.members.values():
+            member.asked_at = float("-inf")
+        self.resumed = {key: state.last_seq for key, state in self.tracker.streams.items()}
 
     # ------------------------------------------------------------ liveliness
     def on_alive(self, robot_id: str) -> bool:
@@ -127,6 +147,7 @@ class Roster:
         member.admitted = True
         held = list(member.waiting)
         member.waiting.clear()
+        member.waiting_bytes = 0
         kept = held if after is None else [event for event in held if event.stamp > after]
         return kept, len(held) - len(kept)
 
@@ -135,20 +156,30 @@ class Roster:
         self.member(robot_id).admitted = False
 
     # ------------------------------------------------------------ streams
-    def on_stream(self, key_robot_id: str, stream: str, message: Odometry | Scan) -> Arrival:
-        """Check one stream message and say what to do with it (see :class:`Arrival`)."""
+    def on_stream(self, key_robot_id: str, stream: str, message: Odometry | Scan, source: str | None = None) -> Arrival:
+        """Check one stream message and say what to do with it (see :class:`Arrival`). ``source``: the Zenoh
+        session that published it, when known (a robot process restarted is another session)."""
         if message.robot_id != key_robot_id:
             return Arrival(refused=("robot_id_mismatch", f"{message.robot_id} on the {stream} key of {key_robot_id}"))
         arrival = Arrival()
         member = self.member(key_robot_id)
-        if self.tracker.new_run(key_robot_id, stream, message.seq):
+        known = self.sources.get((key_robot_id, stream))
+        same_source = source is None or known is None or source == known
+        if message.seq <= self.resumed.get((key_robot_id, stream), -1) and same_source:
+            self.counts["already_held"] += 1
+            return arrival
+        if self._new_run(key_robot_id, stream, message.seq, same_source):
             self._forget_run(key_robot_id)
             member = self.member(key_robot_id)
             arrival.new_run = True
+        missing_before = self.tracker.missing(key_robot_id)
         verdict = self.tracker.check(key_robot_id, stream, message.seq, message.stamp)
         if verdict is not Verdict.ACCEPT:
             arrival.refused = (verdict.value, f"{key_robot_id}/{stream} seq {message.seq}")
             return arrival
+        arrival.gap = self.tracker.missing(key_robot_id) - missing_before
+        if source is not None:
+            self.sources[(key_robot_id, stream)] = source
         if stream == "odom" and message.seq > 0 and self.tracker.received(key_robot_id, "odom") == 1:
             arrival.late = True
             self.counts["robots_joined_late"] += 1
@@ -161,17 +192,33 @@ class Roster:
         return arrival
 
     def keep(self, event: StreamEvent) -> tuple[str, str] | None:
-        """Hold an event of a robot not admitted (yet, or again); past ``waiting_limit`` the oldest held event
-        goes and the refusal reason is returned."""
+        """Hold an event of a robot not admitted (yet, or again); past ``waiting_bytes`` the oldest held events
+        go and the refusal reason is returned (once, with how many went)."""
         member = self.member(event.robot_id)
-        refused = None
-        if len(member.waiting) >= self.waiting_limit:
-            member.waiting.popleft()
-            refused = ("waiting_overflow", f"{event.robot_id} has {self.waiting_limit} messages waiting to join")
         member.waiting.append(event)
-        return refused
+        member.waiting_bytes += event_nbytes(event)
+        dropped = 0
+        while member.waiting_bytes > self.waiting_bytes and len(member.waiting) > 1:
+            member.waiting_bytes -= event_nbytes(member.waiting.popleft())
+            dropped += 1
+        if not dropped:
+            return None
+        self.counts["waiting_dropped"] += dropped
+        return ("waiting_overflow", f"{event.robot_id} holds {self.waiting_bytes / 2**20:g} MB of messages waiting "
+                f"to join; its {dropped} oldest went")
+
+    def _new_run(self, robot_id: str, stream: str, seq: int, same_source: bool) -> bool:
+        """A new run of the robot: its stream starts again at seq 0 from another session than before, or (the
+        session unknown) after its token went away."""
+        if seq == 0 and not same_source and self.tracker.received(robot_id, stream) > 0:
+            self.tracker.left.discard(robot_id)
+            self.tracker.forget(robot_id)
+            return True
+        return self.tracker.new_run(robot_id, stream, seq) if same_source else False
 
     def _forget_run(self, robot_id: str) -> None:
+        self.resumed = {key: seq for key, seq in self.resumed.items() if key[0] != robot_id}
+        self.sources = {key: source for key, source in self.sources.items() if key[0] != robot_id}
         alive = self.members[robot_id].alive if robot_id in self.members else False
         self.members[robot_id] = Member(alive=alive)
         self.counts["robot_restarts"] += 1
@@ -187,51 +234,102 @@ class Roster:
 @dataclass(order=True)
 class _Held:
     stamp: float
+    rank: int  # at equal stamps odometry (0) before scans (1): a control ends at its stamp
     order: int
     arrived: float = field(compare=False)
     event: StreamEvent = field(compare=False)
 
 
 class ReorderBuffer:
-    """Releases events of several robots in stamp order.
+    """Releases the events of several robots in stamp order.
 
-    An event is released once every live robot's stream has passed its stamp (the watermark: the oldest of
-    the live robots' newest stamps), or once it has waited ``window_s`` of wall time (0: at once), or on
-    :meth:`release` with ``flush``.
+    An event waits for the streams (odometry and scans, per robot) of the live robots whose newest stamp is still
+    behind it, each as long as that stream is heard from:
+
+    - the other stream of its own robot, up to ``recovery_window_s`` of silence (5 s): a robot's odometry always
+      runs up to its scans, so a scan waits for it while it is being recovered (after a link cut or a router
+      restart one stream of a robot may come back seconds after the other), and its robot's later events with it,
+      while the other robots' events go on;
+    - the other robots' streams, up to ``window_s`` of silence (0: no waiting);
+    - after a restart from a checkpoint (:meth:`restart_clock`), every known stream, up to ``recovery_window_s``:
+      the time the publishers' caches take to send what was missed.
+
+    :meth:`release` with ``flush`` releases everything.
     """
 
-    def __init__(self, window_s: float, clock: Callable[[], float] = time.perf_counter):
+    def __init__(self, window_s: float, clock: Callable[[], float] = time.perf_counter,
+                 recovery_window_s: float = 5.0):
         self.window_s = window_s
+        self.recovery_window_s = recovery_window_s
         self.clock = clock
         self._heap: list[_Held] = []
-        self._order = itertools.count()
-        self.newest: dict[str, float] = {}
+        self._order = 0  # ties in stamp go out in arrival order
+        self.newest: dict[tuple[str, str], float] = {}  # (robot, stream) → newest stamp pushed
+        self.heard: dict[tuple[str, str], float] = {}  # (robot, stream) → wall time of its last push
+        self.resuming: set[tuple[str, str]] = set()  # streams not heard from since a restart
 
     def __len__(self) -> int:
         return len(self._heap)
 
     def push(self, event: StreamEvent, arrived: float | None = None) -> None:
-        self.newest[event.robot_id] = max(self.newest.get(event.robot_id, float("-inf")), event.stamp)
-        heapq.heappush(self._heap, _Held(event.stamp, next(self._order), self.clock() if arrived is None else arrived,
+        stream = (event.robot_id, "odom" if isinstance(event, OdomEvent) else "scan")
+        arrived = self.clock() if arrived is None else arrived
+        self.newest[stream] = max(self.newest.get(stream, float("-inf")), event.stamp)
+        self.heard[stream] = arrived
+        self.resuming.discard(stream)
+        self._order += 1
+        heapq.heappush(self._heap, _Held(event.stamp, 0 if isinstance(event, OdomEvent) else 1, self._order, arrived,
                                          event))
 
+    def restart_clock(self) -> None:
+        """Restored from a checkpoint in a new process (whose clock started afresh): held events arrived now, and
+        every known stream is waited for ``recovery_window_s`` from now."""
+        now = self.clock()
+        for held in self._heap:
+            held.arrived = now
+        self.heard = {stream: now for stream in self.newest}
+        self.resuming = set(self.newest)
+
     def drop_robot(self, robot_id: str) -> None:
-        """Forget a robot's held events and its newest stamp (a new run of it)."""
+        """Forget a robot's held events and its streams (a new run of it)."""
         self._heap = [held for held in self._heap if held.event.robot_id != robot_id]
         heapq.heapify(self._heap)
-        self.newest.pop(robot_id, None)
+        for table in (self.newest, self.heard):
+            for stream in [stream for stream in table if stream[0] == robot_id]:
+                del table[stream]
+        self.resuming = {stream for stream in self.resuming if stream[0] != robot_id}
+
+    def _waited_for(self, stream: tuple[str, str], own: bool, now: float) -> bool:
+        """Is ``stream`` still waited for: heard from within its patience?"""
+        patience = self.recovery_window_s if own or stream in self.resuming else self.window_s
+        return now - self.heard.get(stream, float("-inf")) < patience
 
     def release(self, live: list[str], flush: bool = False) -> list[tuple[StreamEvent, float]]:
-        """(event, arrival time) of every event due now, oldest stamp first. ``live``: the robots whose streams
-        the watermark waits for (alive and taken in)."""
-        stamps = [self.newest[rid] for rid in live if rid in self.newest]
-        watermark = min(stamps) if stamps else float("inf")
-        deadline = self.clock() - self.window_s
-        out = []
+        """(event, arrival time) of every event due now, oldest stamp first within each robot. ``live``: the
+        robots whose streams are waited for (alive and taken in)."""
+        if flush or self.window_s == 0:
+            out = [(held.event, held.arrived) for held in sorted(self._heap)]
+            self._heap = []
+            return out
+        live = set(live)
+        now = self.clock()
+        streams = [(stamp, stream) for stream, stamp in self.newest.items() if stream[0] in live]
+        out, kept, waiting_robots = [], [], set()
         while self._heap:
-            held = self._heap[0]
-            if not (flush or self.window_s == 0 or held.stamp <= watermark or held.arrived <= deadline):
+            held = heapq.heappop(self._heap)
+            rid = held.event.robot_id
+            if rid in waiting_robots:
+                kept.append(held)
+                continue
+            behind = [(stream, stream[0] == rid) for stamp, stream in streams if stamp < held.stamp]
+            if any(own and self._waited_for(stream, True, now) for stream, own in behind):
+                waiting_robots.add(rid)  # its own other stream is being recovered: it waits, the others go on
+                kept.append(held)
+                continue
+            if any(not own and self._waited_for(stream, False, now) for stream, own in behind):
+                kept.append(held)
                 break
-            heapq.heappop(self._heap)
             out.append((held.event, held.arrived))
+        for held in kept:
+            heapq.heappush(self._heap, held)
         return out

@@ -17,6 +17,17 @@ class Router:
     env: dict[str, str]
 
 
+def pytest_addoption(parser):
+    parser.addoption("--crash-seed", type=int, default=20261123,
+                     help="seed of the kill moments of tests/integration/test_crash_restart.py "
+                     "(benchmarks/crash_restart.py runs it over many seeds)")
+
+
+@pytest.fixture
+def crash_seed(request) -> int:
+    return request.config.getoption("--crash-seed")
+
+
 @pytest.fixture(autouse=True)
 def clean_environment(monkeypatch):
     """Every test starts from a clean environment: no ``FLEETSLAM_*`` variable of the caller reaches it (and

@@ -24,14 +24,13 @@ from __future__ import annotations
 from collections import Counter
 
 import numpy as np
-from scipy.stats import chi2
 
 from central.fastslam import association, kernels, lifecycle, motion, proposal, resampling, robot_detections, shared
 from central.fastslam.config import FastSlamConfig
 from central.fastslam.aligned_map import AlignedMap
 from central.fastslam.landmarks import LandmarkMap
 from central.fastslam.lifecycle import RobotState
-from robots.gaussian import sandwich, valid_cov2
+from robots.gaussian import chi2_quantile, sandwich, valid_cov2
 from robots.models import compose_jacobian, se2_compose, wrap_angle
 from schemas.contract import MapView, OdomEvent, RunOptions, ScanEvent, build_config
 from schemas.messages import RobotInfo
@@ -62,8 +61,8 @@ class FastSlam:
         self.tentative_misses: dict[int, int] = {}  # shared association: misses of tentative landmarks
         self.rejected: Counter = Counter()
         self.counts: Counter = Counter()
-        self.gate = float(chi2.ppf(config.gate_probability, 2))
-        self.new_gate = float(chi2.ppf(config.new_landmark_probability, 2))
+        self.gate = chi2_quantile(config.gate_probability, 2)
+        self.new_gate = chi2_quantile(config.new_landmark_probability, 2)
         self.best_hint = 0  # the particle that inherited the heaviest one at the last resampling
         for info in infos:
             self.add_robot(info)

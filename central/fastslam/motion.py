@@ -52,6 +52,8 @@ def take_control(slam: FastSlam, robot: RobotState, event: OdomEvent) -> bool:
     cov = robot.scaled_cov
     if span > 0.0:
         buffer(robot, control, span, cov)
+    elif stamp < robot.pose_time:  # a scan after it was handled first: its motion was extrapolated instead
+        slam.counts["controls_late"] += 1
     robot.pose_time = max(robot.pose_time, stamp)
     robot.last_control, robot.last_cov = control, cov
     if robot.pending_s >= slam.config.max_batch_s:

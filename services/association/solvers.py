@@ -22,14 +22,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from functools import lru_cache
 from typing import Callable
 
 import numpy as np
 from scipy import sparse
 from scipy.optimize import linear_sum_assignment, linprog
-from scipy.stats import chi2
 
+from robots.gaussian import chi2_quantile
 from services.association import kernels
 
 Pairs = tuple[np.ndarray, np.ndarray]
@@ -38,10 +37,7 @@ LpSolver = Callable[[np.ndarray, np.ndarray, np.ndarray, int, int], tuple[np.nda
 _EMPTY = np.zeros(0, np.int64)
 
 
-@lru_cache(maxsize=256)
-def gate_value(probability: float, dof: int) -> float:
-    """The chi-square gate ε with P(τ ≤ ε) = ``probability`` for ``dof`` degrees of freedom (9.21 for 0.99, 2 dof)."""
-    return float(chi2.ppf(probability, dof))
+gate_value = chi2_quantile  # the chi-square gate ε with P(τ ≤ ε) = probability for dof degrees of freedom
 
 
 def solve_nn(nis: np.ndarray, cost: np.ndarray) -> Pairs:

@@ -39,9 +39,8 @@ from typing import Callable
 
 import numpy as np
 import scipy.linalg
-from scipy.stats import chi2
 
-from robots.gaussian import inv2
+from robots.gaussian import chi2_quantile, inv2
 from robots.models import in_field_of_view, robot_models, wrap_angle
 from schemas.association import NEW, AssociationReply, AssociationRequest
 from schemas.contract import MapView, OdomEvent, RunOptions, ScanEvent, SettingsError, build_config
@@ -53,7 +52,7 @@ from services.dslam.localization import localize, observation_estimate, pose_fro
 from services.dslam.recast import scan_points
 
 MAPPED, TENTATIVE, FRESH, CLUTTER = 0, 1, 2, 3
-LOCALIZATION_GATE = float(chi2.ppf(1 - 1e-6, 3))  # prediction and observation estimate cannot both be right
+LOCALIZATION_GATE = chi2_quantile(1 - 1e-6, 3)  # prediction and observation estimate cannot both be right
 
 Associator = Callable[[AssociationRequest, str], AssociationReply]
 
@@ -176,6 +175,22 @@ class DSlam:
     def remove_robot(self, rid: str) -> None:
         """Forget a robot's localization (its map contributions stay); nothing if it is unknown."""
         self.robots.pop(rid, None)
+
+    def lose_pose(self, rid: str) -> None:
+        """The robot's odometry was lost for good: its pose is unknown until it is localized against the map again,
+        as a robot whose start was missed (counted as ``lost_pose``)."""
+        robot = self.robots.get(rid)
+        if robot is not None and robot.pose is not None:
+            robot.pose = robot.cov = None
+            robot.localized = False
+            robot.local = None
+            self.counts["lost_pose"] += 1
+
+    def __getstate__(self) -> dict:
+        """Pickled (a checkpoint) without its associator, which may be a service's method: the restorer sets it."""
+        state = dict(self.__dict__)
+        state["associator"] = in_process_associate
+        return state
 
     def robot_pose(self, rid: str) -> tuple[np.ndarray, np.ndarray] | None:
         """(pose, covariance) of a robot, or None while it is unknown or not localized."""

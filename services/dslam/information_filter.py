@@ -25,21 +25,14 @@ blocks created since the last rebuild), and the information vector i beside it.
 from __future__ import annotations
 
 from collections import OrderedDict
-from functools import lru_cache
 
 import numpy as np
 import scipy.linalg.blas
 import scipy.sparse as sp
 import scipy.sparse.linalg
-from scipy.stats import chi2
 
-from robots.gaussian import inv2
+from robots.gaussian import chi2_quantile, inv2
 from services.dslam.recast import choose_reference, initialise, innovation, map_measurement, recast_points, scan_points
-
-
-@lru_cache(maxsize=256)
-def chi2_quantile(probability: float, dof: int) -> float:
-    return float(chi2.ppf(probability, dof))
 
 
 def rank_k_update(target: np.ndarray, left: np.ndarray, right: np.ndarray) -> None:
@@ -859,6 +852,13 @@ class InformationMap:
         self.recovery_iterations = iterations
         self.recovery_unconverged += not converged
         return iterations
+
+    def __getstate__(self) -> dict:
+        """Pickled without the sparse LU factor (SuperLU does not pickle): a restored map factorises afresh when it
+        next needs the factor, so its covariance columns agree with the original's to the solver's tolerance."""
+        state = dict(self.__dict__)
+        state["_factor"], state["_factor_size"] = None, 0
+        return state
 
     def factorise(self) -> None:
         """Sparse LU factorisation of the current I (symmetric ordering, diagonal pivots: a Cholesky in effect).

@@ -100,6 +100,31 @@ class DslamService(ServiceShell):
         """Its old pose no longer applies; its RobotInfo says where the new run starts (the map stays)."""
         self.core.remove_robot(robot_id)
 
+    def robot_lost_odometry(self, robot_id: str) -> None:
+        """Its pose is unknown until it is localized against the map again (:meth:`DSlam.lose_pose`)."""
+        self.core.lose_pose(robot_id)
+
+    # ------------------------------------------------------------ checkpoints
+    def checkpoint_state(self) -> dict:
+        return {"core": self.core, "assoc_counts": self.assoc_counts, "pose_seq": self._pose_seq,
+                "map_seq": self._map_seq}
+
+    def restore_state(self, state: dict) -> None:
+        self.core = state["core"]
+        self.core.associator = self.associate
+        self.assoc_counts.update(state["assoc_counts"])
+        self._pose_seq.update(state["pose_seq"])
+        self._map_seq = state["map_seq"]
+        self.extra = self._extra()
+
+    def checkpoint_summary(self) -> dict:
+        return {"robots": len(self.core.robots), "landmarks": len(self.core.ids)}
+
+    async def snapshot(self) -> bytes:
+        """Taken with the map lock held: no scan is half-fused in a worker thread meanwhile."""
+        async with self._lock:
+            return await super().snapshot()
+
     async def robot_event(self, event) -> None:
         """Odometry in the loop; scans in a worker thread with the map lock held, then the robot's pose."""
         if isinstance(event, OdomEvent):

@@ -9,12 +9,34 @@ the ``extra`` of its ServiceStats on ``{prefix}/eval/stats``, and on exit
 writes the report folder (:mod:`services.evaluation.report`). The scoring and
 plotting modules (scipy, matplotlib) are imported on first use, so that every
 ``fleetslam`` command, which imports this module for its flags, starts fast.
+
+A robot that is stopped and started again replays its log from the start: a
+new run, whose truth starts again at seq 0 and whose stamps go back. The
+evaluator follows the robots' liveliness and recognises a new run as the
+services do (:meth:`~schemas.streams.StreamTracker.leave`, then
+:meth:`~schemas.streams.StreamTracker.new_run` on the truth's seq 0). The
+run that ended is then set aside whole, its truth and every estimator's
+trajectory of the robot together, under the label ``{robot}#run{n}`` (n = 1
+for its first run), and scored as a robot of its own; the new run fills
+fresh trajectories under the robot's id, so the old run's truth is never
+compared with the new run's estimates. An estimator's stream of that robot
+(D-SLAM and MCL go on with their seq numbers) may then go back in time once:
+the tracker forgot the robot's streams, and it counts seq gaps only from the
+first message it hears of a stream (the evaluator observes a running fleet).
+An estimate of the old run that arrives after the new run began (central
+publishes its whole state at a steady rate) lands in the new trajectory but
+is dropped when the new run's estimates, earlier in time, follow it: a
+trajectory that goes back in time keeps only its samples before that time.
+A robot whose truth goes back to seq 0 while its token stays is not a new
+run: those messages are refused as out of order.
 """
 
 from __future__ import annotations
 
 import argparse
+import bisect
 import logging
+from collections import Counter
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -31,7 +53,8 @@ log = logging.getLogger("fleetslam.evaluate")
 
 @dataclass
 class Series:
-    """A growing trajectory; when it reaches ``limit`` samples every other one is dropped (the span stays)."""
+    """A growing trajectory; when it reaches ``limit`` samples every other one is dropped (the span stays).
+    Its stamps only go forward (:meth:`add`)."""
 
     limit: int
     stamps: list[float] = field(default_factory=list)
@@ -39,6 +62,11 @@ class Series:
     covs: list[np.ndarray] = field(default_factory=list)
 
     def add(self, stamp: float, pose: np.ndarray, cov: np.ndarray | None = None) -> None:
+        """Append a sample; one at the stamp of the last replaces it, and one before the last drops the samples
+        after it (they belong to an earlier run of the robot: see the module docstring)."""
+        if self.stamps and stamp < self.stamps[-1]:
+            kept = bisect.bisect_left(self.stamps, stamp)
+            del self.stamps[kept:], self.poses[kept:], self.covs[kept:]
         if self.stamps and stamp == self.stamps[-1]:
             self.poses[-1] = pose
             if cov is not None and self.covs:
@@ -67,7 +95,9 @@ class Evaluator(ServiceShell):
         super().__init__(settings)
         self.settings: EvaluateSettings = settings
         self.tick_period_s = settings.stats_period_s
-        self.tracker = StreamTracker()
+        self.tracker = StreamTracker(missing_before_join=False)  # an observer: it counts the gaps after it joined
+        self.runs_ended: Counter = Counter()  # robot id -> runs of it set aside (new runs recognised)
+        self.missing_in_earlier_runs = 0  # seq gaps of the streams the tracker forgot at a new run
         self.truth: dict[str, Series] = {}
         self.estimates: dict[str, dict[str, Series]] = {}
         self.maps: dict[str, tuple[np.ndarray, np.ndarray | None]] = {}
@@ -83,7 +113,14 @@ class Evaluator(ServiceShell):
         self.subscribe(self.keys.dslam_map, "dslam_map")
         self.subscribe(f"{prefix}/dslam/pose/*", "dslam_pose")
         self.subscribe(f"{prefix}/mcl/*/pose", "mcl")
+        self._declared.append(
+            session.liveliness().declare_subscriber(self.keys.alive_any, self._on_liveliness, history=True)
+        )
         session.get(self.keys.world_truth, self._on_world_reply)
+
+    def _on_liveliness(self, sample: zenoh.Sample) -> None:
+        if sample.kind == zenoh.SampleKind.DELETE:
+            self.enqueue("gone", str(sample.key_expr), b"")
 
     def _on_world_reply(self, reply: zenoh.Reply) -> None:
         if reply.ok is not None:
@@ -91,6 +128,20 @@ class Evaluator(ServiceShell):
 
     def _series(self, estimator: str, robot_id: str) -> Series:
         return self.estimates.setdefault(estimator, {}).setdefault(robot_id, Series(self.settings.max_samples))
+
+    def new_run(self, robot_id: str, missing: int) -> None:
+        """A robot that left started again at seq 0 (the tracker forgot its streams, which had ``missing``
+        messages): set its run that ended aside (see the module docstring)."""
+        self.runs_ended[robot_id] += 1
+        self.missing_in_earlier_runs += missing
+        label = f"{robot_id}#run{self.runs_ended[robot_id]}"
+        for series in (self.truth, *self.estimates.values()):
+            if robot_id in series:
+                series[label] = series.pop(robot_id)
+        if robot_id in self.mcl_unlocalized:
+            self.mcl_unlocalized.remove(robot_id)
+            self.mcl_unlocalized.add(label)
+        log.info("robot %s started a new run; its run that ended is scored as %s", robot_id, label)
 
     def _accept(self, robot_id: str, stream: str, seq: int, stamp: float, key: str) -> bool:
         verdict = self.tracker.check(robot_id, stream, seq, stamp)
@@ -108,10 +159,19 @@ class Evaluator(ServiceShell):
         return True
 
     async def handle(self, tag: str, key: str, payload: bytes) -> None:
-        if tag == "truth":
+        if tag == "gone":
+            parsed = self.keys.parse_robot_key(key)
+            if parsed is not None:
+                self.tracker.leave(parsed[0])
+        elif tag == "truth":
             message = decode(payload, GroundTruth)
-            if self._robot_in_key(key, message.robot_id, 1) and self._accept(message.robot_id, "truth", message.seq,
-                                                                              message.stamp, key):
+            if not self._robot_in_key(key, message.robot_id, 1):
+                return
+            if message.seq == 0:  # perhaps a new run: keep its robot's seq gaps before the tracker forgets them
+                missing = self.tracker.missing(message.robot_id)
+                if self.tracker.new_run(message.robot_id, "truth", message.seq):
+                    self.new_run(message.robot_id, missing)
+            if self._accept(message.robot_id, "truth", message.seq, message.stamp, key):
                 pose = message.pose if message.heading_known else np.array([*message.pose[:2], np.nan])
                 self.truth.setdefault(message.robot_id, Series(self.settings.max_samples)).add(message.stamp, pose)
         elif tag == "world":
@@ -171,7 +231,9 @@ class Evaluator(ServiceShell):
 
     async def tick(self) -> None:
         metrics, _ = self.score()
-        extra: dict[str, float] = {"robots_with_truth": float(len(self.truth))}
+        restarts = sum(self.runs_ended.values())
+        extra: dict[str, float] = {"robots_with_truth": float(len(self.truth) - restarts),  # not the runs set aside
+                                   "robot_restarts": float(restarts)}
         for name, entry in metrics["summary"].items():
             for rid, value in entry["ate_rmse_m"].items():
                 if value is not None:
@@ -188,7 +250,8 @@ class Evaluator(ServiceShell):
         metrics, curves = self.score()
         metrics["messages_in"] = dict(self.messages_in)
         metrics["rejected"] = dict(self.rejected)
-        metrics["missing"] = self.tracker.missing()
+        metrics["missing"] = self.tracker.missing() + self.missing_in_earlier_runs
+        metrics["robot_restarts"] = dict(self.runs_ended)
         metrics["truth_offset"] = list(self.truth_offset)
         metrics["mcl_never_localized"] = sorted(self.mcl_unlocalized)
         truth, trajectories = self.collected()

@@ -17,12 +17,12 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy.stats import norm
+import scipy.special
 
 
 def normal_quantile(delta: float) -> float:
     """z_(1−δ): the upper 1 − δ quantile of the standard normal distribution."""
-    return float(norm.ppf(1.0 - delta))
+    return float(scipy.special.ndtri(1.0 - delta))
 
 
 def kld_sample_size(bins, epsilon: float, delta: float) -> np.ndarray:

@@ -168,13 +168,37 @@ class MclService(ServiceShell):
         if info.start_pose is None or self.settings.all_robots:
             log.info("localizing robot %s (%s start pose)", rid, "unknown" if info.start_pose is None else "known")
             self.fleet.add_robot(info)
-            self.pose_pubs.setdefault(rid, self.publisher(self.keys.mcl_pose(rid)))
+            self._pose_pub(rid)
         await self.admit(rid)
         self._refresh_extra()
 
     def robot_new_run(self, robot_id: str) -> None:
         """Localized from scratch once its new run announces itself (its MclPose stream goes on)."""
         self.fleet.remove_robot(robot_id)
+
+    def robot_lost_odometry(self, robot_id: str) -> None:
+        """Its odometry was lost for good: localized globally afresh, whatever its start pose (the central service
+        waits for this to place it again)."""
+        info = self.roster.info(robot_id)
+        if info is None:
+            return
+        log.info("robot %s lost odometry: global localization again", robot_id)
+        self.fleet.remove_robot(robot_id)
+        self.fleet.add_robot(info.model_copy(update={"start_pose": None, "start_pose_cov": None}))
+        self.extra["robots_relocalized"] = self.extra.get("robots_relocalized", 0.0) + 1.0
+
+    # ------------------------------------------------------------ checkpoints
+    def checkpoint_state(self) -> dict:
+        return {"fleet": self.fleet, "pose_seq": self.pose_seq}
+
+    def restore_state(self, state: dict) -> None:
+        """The filters (particles, random generators) and the map; each tracked robot gets its publisher back."""
+        self.fleet = state["fleet"]
+        self.pose_seq = dict(state["pose_seq"])
+        self._refresh_extra()
+
+    def checkpoint_summary(self) -> dict:
+        return {"robots": len(self.fleet.robots), "localized": self.fleet.localized_count()}
 
     async def robot_event(self, event) -> None:
         state = self.fleet.robots.get(event.robot_id)
@@ -198,13 +222,19 @@ class MclService(ServiceShell):
             self._publish(event.robot_id, state, event.stamp)
         self._refresh_extra()
 
+    def _pose_pub(self, rid: str) -> StreamPublisher:
+        """The publisher of a robot's MclPose, declared on first use."""
+        if rid not in self.pose_pubs:
+            self.pose_pubs[rid] = self.publisher(self.keys.mcl_pose(rid))
+        return self.pose_pubs[rid]
+
     def _publish(self, rid: str, state: RobotState, stamp: float) -> None:
         mcl = state.mcl
         best, cov, hypotheses = hypotheses_message(mcl)
         seq = self.pose_seq.get(rid, 0)
         message = MclPose(robot_id=rid, seq=seq, stamp=stamp, best_pose=best, best_cov=cov,
                           localized=mcl.localized, hypotheses=hypotheses, particles=mcl.count, variant=mcl.variant)
-        self.pose_pubs[rid].put(message)
+        self._pose_pub(rid).put(message)
         self.pose_seq[rid] = seq + 1
         self.published += 1
 

@@ -83,9 +83,13 @@ def test_every_service_is_a_fleetslam_command_configured_by_its_environment(comp
         robots = [n for n, s in services.items() if s["command"] == ["robot"]]
         expected = 5 if words else 3
         assert len(robots) == expected, robots
-        assert all(int(services[r]["environment"]["FLEETSLAM_PUBLISHER_CACHE"]) > 0 for r in robots)
-        assert all(services[n]["environment"].get("FLEETSLAM_SUBSCRIBER_RECOVERY") == "true"
-                   for n in services if n not in robots and n != "router")
+        # nothing lost by default: no service turns the publisher caches or the subscriber recovery off
+        assert all(services[n]["environment"].get("FLEETSLAM_PUBLISHER_CACHE", "1") != "0" for n in services)
+        assert all(services[n]["environment"].get("FLEETSLAM_SUBSCRIBER_RECOVERY", "true") == "true" for n in services)
+        for name in ("central", "dslam", "mcl"):  # crash-safe state on a volume
+            assert services[name]["environment"]["FLEETSLAM_STATE_DIR"] == f"/state/{name}"
+            assert any(v["target"] == "/state" and v["source"] == "state" for v in services[name]["volumes"])
+        assert "state" in project["volumes"]
         assert any(v["target"] == "/reports" and v["source"] == "reports" for v in services["evaluate"]["volumes"])
         assert "reports" in project["volumes"]
         if words:

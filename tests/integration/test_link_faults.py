@@ -1,9 +1,9 @@
 """No observation lost across a 15 s link cut and a router restart.
 
 The compose fleet's router and three robots run in their own network
-namespaces (their commands and environment from docker-compose.yml: robots
-publish through the advanced publisher with a cache, FLEETSLAM_PUBLISHER_CACHE;
-services subscribe with recovery, FLEETSLAM_SUBSCRIBER_RECOVERY), with the
+namespaces (their commands and environment from docker-compose.yml, which
+keeps the defaults: robots publish through advanced publishers whose caches
+hold outage_budget_s of their streams, services subscribe with recovery), with the
 central service when it is installed. A receiver built on the services' shell
 (tests/integration/observer.py, with recovery on) records every sample. Then:
 

@@ -3,7 +3,7 @@ late join, refusals; and the cross-robot reorder buffer."""
 
 import numpy as np
 
-from schemas.contract import OdomEvent, ScanEvent
+from schemas.contract import OdomEvent, ScanEvent, event_nbytes, stream_event
 from schemas.messages import Odometry, RobotInfo, Scan, SensorSpec
 from services.roster import ReorderBuffer, Roster
 
@@ -33,7 +33,7 @@ def scan(seq, rid="r1"):
 
 def test_messages_wait_for_the_announcement_and_flow_in_order_once_admitted():
     clock = Clock()
-    roster = Roster(waiting_limit=10, info_timeout_s=2.0, clock=clock)
+    roster = Roster(waiting_bytes=1 << 20, info_timeout_s=2.0, clock=clock)
     assert roster.on_alive("r1") is True  # ask for its RobotInfo at once
     first = roster.on_stream("r1", "odom", odom(0))
     assert first.event is None and first.refused is None and first.ask_info is False  # asked a moment ago
@@ -61,12 +61,56 @@ def test_refusals_carry_their_reason_and_never_reach_the_service():
     assert roster.missing() == 5  # seq 0-4 never came
 
 
-def test_waiting_is_bounded_and_the_overflow_counted():
-    roster = Roster(waiting_limit=3)
+def test_waiting_is_bounded_in_bytes_and_the_overflow_counted():
+    size = event_nbytes(stream_event(odom(0)))
+    roster = Roster(waiting_bytes=3 * size)
     reasons = [roster.on_stream("r1", "odom", odom(k)).refused for k in range(5)]
     assert reasons[:3] == [None, None, None] and all(r[0] == "waiting_overflow" for r in reasons[3:])
+    assert roster.counts["waiting_dropped"] == 2
     roster.on_info("r1", info())
     assert [e.seq for e in roster.admit("r1")[0]] == [2, 3, 4]
+    assert roster.member("r1").waiting_bytes == 0
+
+
+def test_a_big_scan_pushes_out_as_many_small_messages_as_its_bytes_need():
+    roster = Roster(waiting_bytes=4000)
+    for k in range(5):
+        roster.on_stream("r1", "odom", odom(k))
+    big = Scan(robot_id="r1", seq=0, stamp=0.5, ranges=np.ones(150), bearings=np.zeros(150), noise_cov=np.eye(2) * 1e-3)
+    assert roster.on_stream("r1", "scan", big).refused[0] == "waiting_overflow"
+    held = roster.member("r1").waiting
+    assert sum(event_nbytes(e) for e in held) <= 4000 and isinstance(held[-1], ScanEvent)
+    assert roster.counts["waiting_dropped"] == 5 - (len(held) - 1)
+
+
+def test_a_gap_is_reported_with_the_message_after_it():
+    roster = Roster()
+    roster.on_info("r1", info())
+    roster.admit("r1")
+    assert roster.on_stream("r1", "odom", odom(0)).gap == 0
+    assert roster.on_stream("r1", "odom", odom(1)).gap == 0
+    assert roster.on_stream("r1", "odom", odom(5)).gap == 3
+    assert roster.on_stream("r1", "odom", odom(6)).gap == 0
+
+
+def test_after_resuming_what_the_caches_send_again_is_already_held_not_refused():
+    import pickle
+
+    roster = Roster()
+    roster.on_alive("r1")
+    roster.on_info("r1", info())
+    roster.admit("r1")
+    for k in range(6):
+        roster.on_stream("r1", "odom", odom(k))
+    restored = pickle.loads(pickle.dumps(roster))
+    restored.resume()
+    assert restored.alive_ids() == ["r1"] and restored.is_admitted("r1")
+    again = [restored.on_stream("r1", "odom", odom(k)) for k in range(6)]  # the cache from seq 0
+    assert all(a.event is None and a.refused is None for a in again)
+    assert restored.counts["already_held"] == 6 and not restored.tracker.rejected
+    after = restored.on_stream("r1", "odom", odom(6))
+    assert after.event is not None and after.event.seq == 6 and after.gap == 0
+    assert restored.on_stream("r1", "odom", odom(6)).refused[0] == "duplicate"  # past the checkpoint: a real duplicate
 
 
 def test_a_new_run_after_leaving_is_told_and_a_return_after_a_link_cut_is_not():
@@ -118,3 +162,67 @@ def test_reorder_buffer_releases_by_watermark_window_and_flush():
     buffer.push(event("r1", 2.5))
     buffer.drop_robot("r2")
     assert [e.robot_id for e, _ in buffer.release(live=["r1", "r2"], flush=True)] == ["r1"]
+
+
+def test_reorder_buffer_waits_for_each_stream_of_a_robot():
+    """After a link cut the scans of a robot may be recovered before its odometry: a scan waits for the odometry
+    stream to pass its stamp (within the window), so a robot's events are handled in time order."""
+    clock = Clock()
+    buffer = ReorderBuffer(window_s=0.1, clock=clock)
+    buffer.push(event("r1", 1.0))
+    buffer.push(ScanEvent("r1", 0, 2.0, np.ones(1), np.zeros(1), None, np.eye(2) * 1e-3))
+    assert [e.stamp for e, _ in buffer.release(live=["r1"])] == [1.0]  # odometry has reached 1.0 only
+    buffer.push(event("r1", 1.9))
+    buffer.push(event("r1", 2.1))
+    released = buffer.release(live=["r1"])
+    assert [(type(e).__name__, e.stamp) for e, _ in released] == [("OdomEvent", 1.9), ("ScanEvent", 2.0)]
+
+
+def test_a_restarted_robot_process_is_a_new_run_even_if_its_token_never_went_away():
+    roster = Roster()
+    roster.on_info("r1", info())
+    roster.admit("r1")
+    for k in range(4):
+        roster.on_stream("r1", "odom", odom(k), source="aaaa")
+    assert roster.on_stream("r1", "odom", odom(0), source="aaaa").refused[0] == "out_of_order"  # same session: old
+    restarted = roster.on_stream("r1", "odom", odom(0), source="bbbb")
+    assert restarted.new_run and restarted.refused is None and roster.info("r1") is None
+
+
+def test_after_resuming_a_robot_restarted_meanwhile_is_a_new_run_not_history():
+    import pickle
+
+    roster = Roster()
+    roster.on_info("r1", info())
+    roster.admit("r1")
+    for k in range(6):
+        roster.on_stream("r1", "odom", odom(k), source="aaaa")
+    restored = pickle.loads(pickle.dumps(roster))
+    restored.resume()
+    assert restored.on_stream("r1", "odom", odom(0), source="aaaa").new_run is False  # the same run's cache
+    assert restored.counts["already_held"] == 1
+    assert restored.on_stream("r1", "odom", odom(0), source="cccc").new_run is True  # a new process of r1
+    restored.on_info("r1", info())
+    restored.admit("r1")
+    assert restored.on_stream("r1", "odom", odom(1), source="cccc").event.seq == 1  # no longer taken as history
+
+
+def test_a_robot_waiting_for_its_own_stream_does_not_hold_the_others_back():
+    """r1's odometry is being recovered (silent longer than the cross-robot window, shorter than the recovery
+    window): r1's scan waits for it, r2's later events go on; once r1's odometry passes, r1's events follow."""
+    clock = Clock()
+    buffer = ReorderBuffer(window_s=0.1, clock=clock, recovery_window_s=5.0)
+    buffer.push(event("r1", 1.0))
+    buffer.push(ScanEvent("r1", 0, 2.0, np.ones(1), np.zeros(1), None, np.eye(2) * 1e-3))
+    clock.now = 1.0
+    buffer.push(event("r2", 2.5))
+    buffer.push(event("r2", 3.0))
+    released = buffer.release(live=["r1", "r2"])
+    assert [(e.robot_id, e.stamp) for e, _ in released] == [("r1", 1.0), ("r2", 2.5), ("r2", 3.0)]
+    clock.now = 2.0
+    buffer.push(event("r1", 2.0))
+    assert [(type(e).__name__, e.stamp) for e, _ in buffer.release(live=["r1", "r2"])] == [("OdomEvent", 2.0),
+                                                                                           ("ScanEvent", 2.0)]
+    buffer.push(ScanEvent("r1", 1, 4.0, np.ones(1), np.zeros(1), None, np.eye(2) * 1e-3))
+    clock.now = 7.5  # r1's odometry silent past the recovery window: the scan goes
+    assert [e.stamp for e, _ in buffer.release(live=["r1", "r2"])] == [4.0]
