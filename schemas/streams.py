@@ -43,8 +43,11 @@ class StreamTracker:
     missing_before_join: bool = True
     rejected: Counter = field(default_factory=Counter)
     left: set[str] = field(default_factory=set)  # robots whose liveliness token went away
+    sources: dict[tuple[str, str], str] = field(default_factory=dict)  # (robot, stream) → publishing Zenoh session
 
-    def check(self, robot_id: str, stream: str, seq: int, stamp: float) -> Verdict:
+    def check(self, robot_id: str, stream: str, seq: int, stamp: float, source: str | None = None) -> Verdict:
+        """The verdict on one message; ``source``: the Zenoh session that published it, when known (remembered
+        from an accepted message, to tell a restarted robot process by)."""
         state = self.streams.setdefault((robot_id, stream), _StreamState())
         if seq == state.last_seq:
             verdict = Verdict.DUPLICATE
@@ -59,6 +62,8 @@ class StreamTracker:
                 state.missing += seq
             state.last_seq, state.last_stamp = seq, stamp
             state.received += 1
+            if source is not None:
+                self.sources[(robot_id, stream)] = source
             return Verdict.ACCEPT
         self.rejected[verdict.value] += 1
         return verdict
@@ -79,11 +84,24 @@ class StreamTracker:
         """The robot's liveliness token went away: its streams stay (it may be back after a link cut)."""
         self.left.add(robot_id)
 
-    def new_run(self, robot_id: str, stream: str, seq: int) -> bool:
-        """True when a robot that left starts again at seq 0: a new run of it, not duplicates of the old one.
-        Its streams are forgotten then; the caller resets what it holds of the robot. A robot back after a
-        link cut goes on with its seq numbers and is not a new run."""
-        if robot_id not in self.left or seq != 0 or self.received(robot_id, stream) == 0:
+    def same_source(self, robot_id: str, stream: str, source: str | None) -> bool:
+        """False only when both are known and ``source`` is not the session that published the stream so far."""
+        known = self.sources.get((robot_id, stream))
+        return source is None or known is None or source == known
+
+    def new_run(self, robot_id: str, stream: str, seq: int, source: str | None = None) -> bool:
+        """True when a stream starts again at seq 0 as a new run of its robot, not as duplicates of the old one:
+        from another Zenoh session than before (a restarted robot process), or, the sessions unknown, after the
+        robot's liveliness token went away. Its streams are forgotten then; the caller resets what it holds of
+        the robot. A robot back after a link cut goes on with its seq numbers and is not a new run, and neither
+        is its own publisher cache sending its stream again (same session)."""
+        if seq != 0 or self.received(robot_id, stream) == 0:
+            return False
+        known = self.sources.get((robot_id, stream))
+        if source is not None and known is not None:
+            if source == known:
+                return False
+        elif robot_id not in self.left:
             return False
         self.left.discard(robot_id)
         self.forget(robot_id)
@@ -91,5 +109,6 @@ class StreamTracker:
 
     def forget(self, robot_id: str) -> None:
         """Drop a robot's streams (it left; a restarted robot starts again at seq 0)."""
-        for key in [k for k in self.streams if k[0] == robot_id]:
-            del self.streams[key]
+        for table in (self.streams, self.sources):
+            for key in [k for k in table if k[0] == robot_id]:
+                del table[key]

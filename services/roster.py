@@ -82,7 +82,6 @@ class Roster:
         self.members: dict[str, Member] = {}
         self.counts: Counter = Counter()
         self.resumed: dict[tuple[str, str], int] = {}  # (robot, stream) → last seq held by the checkpoint resumed from
-        self.sources: dict[tuple[str, str], str] = {}  # (robot, stream) → the Zenoh session that publishes it
 
     # ------------------------------------------------------------ queries
     def member(self, robot_id: str) -> Member:
@@ -108,8 +107,9 @@ class Roster:
     def resume(self) -> None:
         """This roster was just restored from a checkpoint in a new process: no robot has been asked for its
         RobotInfo yet, and what the publishers' caches send again up to each stream's seq in the checkpoint is
-        already held (counted as ``already_held``, not refused). Robots stay alive as they were until the service
-        has looked at the tokens again (:meth:`on_gone` for those that went meanwhile)."""
+        already held (counted as ``already_held``, not refused). Robots stay alive as they were: their recovered
+        streams are waited for, and a robot that went meanwhile no longer holds events back once its streams have
+        been silent for the reorder buffer's recovery window (its token is simply not seen again)."""
         for member in self.members.values():
             member.asked_at = float("-inf")
         self.resumed = {key: state.last_seq for key, state in self.tracker.streams.items()}
@@ -163,23 +163,20 @@ class Roster:
             return Arrival(refused=("robot_id_mismatch", f"{message.robot_id} on the {stream} key of {key_robot_id}"))
         arrival = Arrival()
         member = self.member(key_robot_id)
-        known = self.sources.get((key_robot_id, stream))
-        same_source = source is None or known is None or source == known
-        if message.seq <= self.resumed.get((key_robot_id, stream), -1) and same_source:
+        resumed = self.resumed.get((key_robot_id, stream), -1)
+        if message.seq <= resumed and self.tracker.same_source(key_robot_id, stream, source):
             self.counts["already_held"] += 1
             return arrival
-        if self._new_run(key_robot_id, stream, message.seq, same_source):
+        if self.tracker.new_run(key_robot_id, stream, message.seq, source):
             self._forget_run(key_robot_id)
             member = self.member(key_robot_id)
             arrival.new_run = True
         missing_before = self.tracker.missing(key_robot_id)
-        verdict = self.tracker.check(key_robot_id, stream, message.seq, message.stamp)
+        verdict = self.tracker.check(key_robot_id, stream, message.seq, message.stamp, source)
         if verdict is not Verdict.ACCEPT:
             arrival.refused = (verdict.value, f"{key_robot_id}/{stream} seq {message.seq}")
             return arrival
         arrival.gap = self.tracker.missing(key_robot_id) - missing_before
-        if source is not None:
-            self.sources[(key_robot_id, stream)] = source
         if stream == "odom" and message.seq > 0 and self.tracker.received(key_robot_id, "odom") == 1:
             arrival.late = True
             self.counts["robots_joined_late"] += 1
@@ -207,18 +204,8 @@ class Roster:
         return ("waiting_overflow", f"{event.robot_id} holds {self.waiting_bytes / 2**20:g} MB of messages waiting "
                 f"to join; its {dropped} oldest went")
 
-    def _new_run(self, robot_id: str, stream: str, seq: int, same_source: bool) -> bool:
-        """A new run of the robot: its stream starts again at seq 0 from another session than before, or (the
-        session unknown) after its token went away."""
-        if seq == 0 and not same_source and self.tracker.received(robot_id, stream) > 0:
-            self.tracker.left.discard(robot_id)
-            self.tracker.forget(robot_id)
-            return True
-        return self.tracker.new_run(robot_id, stream, seq) if same_source else False
-
     def _forget_run(self, robot_id: str) -> None:
         self.resumed = {key: seq for key, seq in self.resumed.items() if key[0] != robot_id}
-        self.sources = {key: source for key, source in self.sources.items() if key[0] != robot_id}
         alive = self.members[robot_id].alive if robot_id in self.members else False
         self.members[robot_id] = Member(alive=alive)
         self.counts["robot_restarts"] += 1

@@ -164,19 +164,6 @@ class ServiceShell:
             self.enqueue("alive" if sample.kind == zenoh.SampleKind.PUT else "gone", str(sample.key_expr), b"")
 
         self._declared.append(self.session.liveliness().declare_subscriber(self.keys.alive_any, on_token, history=True))
-        if self.roster.resumed:
-            self._forget_robots_gone_meanwhile()
-
-    def _forget_robots_gone_meanwhile(self) -> None:
-        """Restored from a checkpoint: a robot alive then whose token is gone now left while the service was down."""
-        alive = set()
-        for reply in self.session.liveliness().get(self.keys.alive_any, timeout=self.settings.info_timeout_s):
-            parsed = self.keys.parse_robot_key(str(reply.ok.key_expr)) if reply.ok is not None else None
-            if parsed is not None:
-                alive.add(parsed[0])
-        for rid in sorted(set(self.roster.alive_ids()) - alive):
-            self.roster.on_gone(rid)
-            log.info("%s: robot %s left while the service was down", self.name, rid)
 
     def ask_info(self, robot_id: str) -> None:
         """Query a robot's RobotInfo (a robot answers late joiners); replies come back through the queue."""

@@ -50,3 +50,17 @@ def test_an_observer_joining_late_counts_only_the_messages_lost_after_it_joined(
             assert tracker.check("r1", "scan", seq, float(seq)) == Verdict.ACCEPT
     assert late.missing() == 1  # seq 42
     assert filter_.missing() == 41  # seq 0..39 before it joined, and 42
+
+
+def test_a_new_run_is_told_by_its_publishing_session_when_known():
+    tracker = StreamTracker()
+    for seq in range(3):
+        assert tracker.check("r1", "odom", seq, float(seq), source="old") is Verdict.ACCEPT
+    assert not tracker.new_run("r1", "odom", 0, source="old")  # its own cache sending it again
+    assert tracker.same_source("r1", "odom", "old") and not tracker.same_source("r1", "odom", "new")
+    assert tracker.new_run("r1", "odom", 0, source="new")  # a restarted process, token or not
+    assert tracker.received("r1", "odom") == 0 and not tracker.sources
+    tracker.check("r1", "odom", 0, 0.0, source="new")
+    tracker.leave("r1")
+    assert not tracker.new_run("r1", "odom", 0, source="new")  # left, but the same session: not a new run
+    assert tracker.new_run("r1", "odom", 0)  # session unknown: leaving is what tells
