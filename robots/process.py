@@ -7,7 +7,9 @@ then its odometry, scans and truth in time order, paced at real time divided
 by ``--speedup``. Publishers are reliable with congestion control BLOCK, so
 nothing is dropped silently, and advanced: each caches ``outage_budget_s`` of
 its stream and sends heartbeats, so a receiver that was cut off, restarted or
-late recovers what it missed; after its last message the robot keeps them
+late recovers what it missed (and keeps its odometry and scans for the
+history queryable ``{prefix}/robots/{rid}/history`` that a restarted service
+asks); after its last message the robot keeps them
 ``linger_s`` (at most 1 s when stopped by a signal) for a receiver that missed
 the tail. SIGINT/SIGTERM stop it cleanly.
 """
@@ -26,8 +28,8 @@ from schemas.codec import encode
 from schemas.config import RobotSettings, add_settings_arguments, settings_from_args
 from schemas.keys import Keys
 from schemas.messages import WorldTruth
-from schemas.transport import (ConnectError, Shutdown, StreamPublisher, answer_with, cache_samples, linger_time,
-                               session_scope, undeclare_all)
+from schemas.transport import (ConnectError, Shutdown, StreamPublisher, answer_history, answer_with, cache_samples,
+                               linger_time, session_scope, undeclare_all)
 
 log = logging.getLogger("fleetslam.robot")
 
@@ -79,10 +81,12 @@ def run(settings: RobotSettings, shutdown: Shutdown) -> dict[str, int]:
     with session_scope(settings) as session:
         token = session.liveliness().declare_token(keys.alive(rid))
         rates = {**robot.stream_rates(), "info": 1.0 / settings.info_period_s}
-        pubs = {name: StreamPublisher(session, keys.robot(rid, name),
-                                      cache=cache_samples(settings, rates[name] * settings.speedup))
+        caches = {name: cache_samples(settings, rates[name] * settings.speedup) for name in rates}
+        pubs = {name: StreamPublisher(session, keys.robot(rid, name), cache=caches[name],
+                                      keep=caches[name] if name in ("odom", "scan") else 0)
                 for name in ("info", "odom", "scan", "truth")}
         answer_info = answer_with(session, keys.info(rid), info_payload)
+        answer_history_query = answer_history(session, keys.history(rid), [pubs["odom"], pubs["scan"]])
         answer_world = None
         world_pub = None
         if world_payload is not None:
@@ -124,7 +128,7 @@ def run(settings: RobotSettings, shutdown: Shutdown) -> dict[str, int]:
                          linger_s)
                 time.sleep(linger_s)
         finally:
-            undeclare_all([*pubs.values(), answer_info, answer_world, world_pub, token])
+            undeclare_all([*pubs.values(), answer_info, answer_history_query, answer_world, world_pub, token])
     return counts
 
 

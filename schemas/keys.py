@@ -30,6 +30,10 @@ class Keys:
     def info(self, robot_id: str) -> str:
         return self.robot(robot_id, "info")
 
+    def history(self, robot_id: str) -> str:
+        """A robot's queryable answering with the odometry and scans it kept (for a restarted service)."""
+        return f"{self.prefix}/robots/{check_robot_id(robot_id)}/history"
+
     def alive(self, robot_id: str) -> str:
         return self.robot(robot_id, "alive")
 

@@ -19,6 +19,7 @@ import math
 import re
 import signal
 import threading
+from collections import deque
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Iterator
@@ -145,9 +146,11 @@ class StreamPublisher:
     so a receiver learns of a lost tail even when nothing follows it.
     """
 
-    def __init__(self, session: zenoh.Session, key: str, cache: int = 0):
+    def __init__(self, session: zenoh.Session, key: str, cache: int = 0, keep: int = 0):
         self.key = key
         self.count = 0
+        self.recent: deque[bytes] = deque(maxlen=keep)  # the last ``keep`` payloads, for :func:`answer_history`
+        self._recent_lock = threading.Lock()
         if cache > 0:
             self._publisher = zenoh.ext.declare_advanced_publisher(
                 session,
@@ -164,8 +167,17 @@ class StreamPublisher:
             )
 
     def put(self, message: BaseModel | bytes) -> None:
-        self._publisher.put(message if isinstance(message, bytes) else encode(message))
+        payload = message if isinstance(message, bytes) else encode(message)
+        self._publisher.put(payload)
         self.count += 1
+        if self.recent.maxlen:
+            with self._recent_lock:
+                self.recent.append(payload)
+
+    def kept(self) -> list[bytes]:
+        """The payloads kept (``keep``), oldest first; safe from any thread."""
+        with self._recent_lock:
+            return list(self.recent)
 
     def undeclare(self) -> None:
         try:
@@ -178,6 +190,30 @@ def answer_with(session: zenoh.Session, key: str, payload: bytes):
     """A queryable answering every query on ``key`` with ``payload``, on that concrete key (what a late joiner
     asks a robot for: its RobotInfo, the world truth)."""
     return session.declare_queryable(key, lambda query: query.reply(key, payload))
+
+
+def answer_history(session: zenoh.Session, key: str, publishers: list[StreamPublisher]):
+    """A queryable on ``key`` answering each query with every payload the ``publishers`` kept, oldest first, each on
+    its publisher's key: what a restarted service asks a robot for (:meth:`ServiceShell.refill_from_robots`), on top
+    of the advanced publishers' caches, whose history a subscriber now and then misses at declaration."""
+
+    def answer(query: zenoh.Query) -> None:
+        for publisher in publishers:
+            for payload in publisher.kept():
+                query.reply(publisher.key, payload)
+
+    return session.declare_queryable(key, answer)
+
+
+def history_query(session: zenoh.Session, key: str, on_payload, on_done, timeout_s: float) -> None:
+    """Ask ``key`` (a robot's history queryable) for what it kept: ``on_payload(key, payload)`` per reply, then
+    ``on_done()`` once the query is over (answered, timed out or refused)."""
+    def on_reply(reply: zenoh.Reply) -> None:
+        if reply.ok is not None:
+            on_payload(str(reply.ok.key_expr), reply.ok.payload.to_bytes())
+
+    session.get(key, zenoh.handlers.Callback(on_reply, on_done), timeout=timeout_s,
+                accept_replies=zenoh.ReplyKeyExpr.ANY, consolidation=zenoh.ConsolidationMode.NONE)
 
 
 def undeclare_all(entities) -> None:

@@ -26,8 +26,8 @@ from schemas.keys import Keys
 from schemas.mcap_file import Recording, read_recording
 from schemas.messages import RobotInfo
 from schemas.recording import RecordingError, robot_of, topic_kind
-from schemas.transport import (ConnectError, Shutdown, StreamPublisher, answer_with, cache_samples, linger_time,
-                               session_scope, undeclare_all)
+from schemas.transport import (ConnectError, Shutdown, StreamPublisher, answer_history, answer_with, cache_samples,
+                               linger_time, session_scope, undeclare_all)
 
 log = logging.getLogger("fleetslam.replay")
 
@@ -119,10 +119,13 @@ def publish(plan: ReplayPlan, settings: ReplaySettings, shutdown: Shutdown) -> C
         tokens = {rid: session.liveliness().declare_token(keys.alive(rid)) for rid in plan.infos}
         sent = Counter((item.robot_id, item.stream) for item in plan.items)
         wall_span_s = max(plan.span_s, 1.0) / settings.speedup
-        pubs = {(rid, stream): StreamPublisher(session, keys.robot(rid, stream),
-                                               cache=cache_samples(settings, sent[(rid, stream)] / wall_span_s))
-                for rid in plan.infos for stream in REPLAYED_STREAMS}
+        caches = {(rid, stream): cache_samples(settings, sent[(rid, stream)] / wall_span_s)
+                  for rid in plan.infos for stream in REPLAYED_STREAMS}
+        pubs = {key: StreamPublisher(session, keys.robot(*key), cache=size,
+                                     keep=size if key[1] in ("odom", "scan") else 0) for key, size in caches.items()}
         declared: list = list(pubs.values())
+        declared += [answer_history(session, keys.history(rid), [pubs[(rid, "odom")], pubs[(rid, "scan")]])
+                     for rid in plan.infos if (rid, "odom") in pubs and (rid, "scan") in pubs]
         declared += [answer_with(session, keys.info(rid), payload) for rid, payload in plan.infos.items()]
         world_pub = None
         if plan.world is not None:

@@ -21,6 +21,8 @@ into the core's event:
 - after a service restart from a checkpoint (:meth:`Roster.resume`), what the
   publishers' caches send again up to the checkpointed seq of each stream is
   recognised as already held and counted (``already_held``), not refused;
+  while a robot's kept messages are being fetched (:meth:`Roster.refill`), a
+  message past a gap is parked until the gap is filled or the fetch is over;
 - it says when to ask a robot for its RobotInfo: when its token appears, and
   again every ``info_timeout_s`` while its messages come unannounced.
 
@@ -82,6 +84,8 @@ class Roster:
         self.members: dict[str, Member] = {}
         self.counts: Counter = Counter()
         self.resumed: dict[tuple[str, str], int] = {}  # (robot, stream) → last seq held by the checkpoint resumed from
+        self.refilling: set[str] = set()  # robots whose kept messages were asked for after a restart, not yet in
+        self.parked: dict[tuple[str, str], dict[int, tuple[Odometry | Scan, str | None]]] = {}  # past a gap, waiting
 
     # ------------------------------------------------------------ queries
     def member(self, robot_id: str) -> Member:
@@ -163,14 +167,20 @@ class Roster:
             return Arrival(refused=("robot_id_mismatch", f"{message.robot_id} on the {stream} key of {key_robot_id}"))
         arrival = Arrival()
         member = self.member(key_robot_id)
-        resumed = self.resumed.get((key_robot_id, stream), -1)
-        if message.seq <= resumed and self.tracker.same_source(key_robot_id, stream, source):
+        held = self.resumed.get((key_robot_id, stream), -1)
+        if key_robot_id in self.refilling:  # the robot's history and the caches' send the same messages
+            held = max(held, self.tracker.last_seq(key_robot_id, stream))
+        if message.seq <= held and self.tracker.same_source(key_robot_id, stream, source):
             self.counts["already_held"] += 1
             return arrival
         if self.tracker.new_run(key_robot_id, stream, message.seq, source):
             self._forget_run(key_robot_id)
             member = self.member(key_robot_id)
             arrival.new_run = True
+        last = self.tracker.last_seq(key_robot_id, stream)
+        if key_robot_id in self.refilling and last >= 0 and message.seq > last + 1:
+            self.parked.setdefault((key_robot_id, stream), {})[message.seq] = (message, source)
+            return arrival  # past a gap that the robot's history may still fill: it waits (refilled)
         missing_before = self.tracker.missing(key_robot_id)
         verdict = self.tracker.check(key_robot_id, stream, message.seq, message.stamp, source)
         if verdict is not Verdict.ACCEPT:
@@ -187,6 +197,29 @@ class Roster:
         arrival.refused = self.keep(event)
         arrival.ask_info = member.info is None and self._ask(member)
         return arrival
+
+    def unparked(self, robot_id: str, stream: str) -> list[Arrival]:
+        """The parked messages of a stream that follow on from its last seq now (a gap filled), in order."""
+        parked = self.parked.get((robot_id, stream), {})
+        arrivals = []
+        while (seq := self.tracker.last_seq(robot_id, stream) + 1) in parked:
+            arrivals.append(self.on_stream(robot_id, stream, *parked.pop(seq)))
+        return arrivals
+
+    def refill(self, robot_id: str) -> None:
+        """The robot was asked for the messages it kept (after a restart): until :meth:`refilled`, a message past a
+        gap in one of its streams is parked instead of taken, so that the gap can still be filled in order."""
+        self.refilling.add(robot_id)
+
+    def refilled(self, robot_id: str) -> list[tuple[Arrival, str]]:
+        """The robot's kept messages are in (or the query is over): its parked messages are taken, in order, with
+        any gap that is left counted as lost; (arrival, stream) of each."""
+        self.refilling.discard(robot_id)
+        arrivals = []
+        for key in [key for key in self.parked if key[0] == robot_id]:
+            for _seq, (message, source) in sorted(self.parked.pop(key).items()):
+                arrivals.append((self.on_stream(key[0], key[1], message, source), key[1]))
+        return arrivals
 
     def keep(self, event: StreamEvent) -> tuple[str, str] | None:
         """Hold an event of a robot not admitted (yet, or again); past ``waiting_bytes`` the oldest held events
@@ -206,6 +239,7 @@ class Roster:
 
     def _forget_run(self, robot_id: str) -> None:
         self.resumed = {key: seq for key, seq in self.resumed.items() if key[0] != robot_id}
+        self.parked = {key: parked for key, parked in self.parked.items() if key[0] != robot_id}
         alive = self.members[robot_id].alive if robot_id in self.members else False
         self.members[robot_id] = Member(alive=alive)
         self.counts["robot_restarts"] += 1

@@ -45,12 +45,12 @@ from schemas.codec import DecodeError, decode
 from schemas.config import FleetSettings
 from schemas.keys import Keys
 from schemas.messages import Odometry, RobotInfo, Scan, ServiceStats
-from schemas.transport import ConnectError, StreamPublisher, open_session
+from schemas.transport import ConnectError, StreamPublisher, history_query, open_session
 from services import compiled
 from services.checkpoint import CheckpointStore, encode_checkpoint
 from services.roster import ReorderBuffer, Roster, StreamEvent
 
-ROBOT_TAGS = frozenset({"alive", "gone", "info", "odom", "scan"})
+ROBOT_TAGS = frozenset({"alive", "gone", "info", "odom", "scan", "refilled"})
 
 log = logging.getLogger(__name__)
 
@@ -164,6 +164,8 @@ class ServiceShell:
             self.enqueue("alive" if sample.kind == zenoh.SampleKind.PUT else "gone", str(sample.key_expr), b"")
 
         self._declared.append(self.session.liveliness().declare_subscriber(self.keys.alive_any, on_token, history=True))
+        if self.roster.resumed:
+            self.refill_from_robots()
 
     def ask_info(self, robot_id: str) -> None:
         """Query a robot's RobotInfo (a robot answers late joiners); replies come back through the queue."""
@@ -249,29 +251,60 @@ class ServiceShell:
                 log.info("%s: robot %s announced (%s, start pose %s)", self.name, rid, info.source,
                          "known" if info.start_pose is not None else "unknown")
                 await self.robot_announced(info)
+        elif tag == "refilled":
+            for arrival, stream in roster.refilled(rid):
+                await self._take(rid, stream, arrival)
         else:
             arrival = roster.on_stream(rid, tag, decode(payload, Odometry if tag == "odom" else Scan), source)
-            if arrival.new_run:
-                log.info("%s: robot %s started a new run; it rejoins from its RobotInfo", self.name, rid)
-                self.reorder.drop_robot(rid)
-                self.robot_new_run(rid)
-            if arrival.refused:
-                self.reject(*arrival.refused)
-            if arrival.late:
-                log.warning("%s: robot %s: its first odometry messages were missed", self.name, rid)
-                self.robot_joined_late(rid)
-            elif arrival.gap:
-                self._stream_gap(rid, tag, arrival.gap)
-            if arrival.ask_info:
-                self.ask_info(rid)
-            if arrival.event is not None:
-                if roster.is_admitted(rid):
-                    self.reorder.push(arrival.event)
-                    await self.release_events()
-                else:
-                    refused = roster.keep(arrival.event)
-                    if refused:
-                        self.reject(*refused)
+            await self._take(rid, tag, arrival)
+            for follower in roster.unparked(rid, tag):
+                await self._take(rid, tag, follower)
+
+    async def _take(self, rid: str, stream: str, arrival) -> None:
+        """Act on what the roster made of one stream message (:class:`~services.roster.Arrival`)."""
+        roster = self.roster
+        if arrival.new_run:
+            log.info("%s: robot %s started a new run; it rejoins from its RobotInfo", self.name, rid)
+            self.reorder.drop_robot(rid)
+            self.robot_new_run(rid)
+        if arrival.refused:
+            self.reject(*arrival.refused)
+        if arrival.late:
+            log.warning("%s: robot %s: its first odometry messages were missed", self.name, rid)
+            self.robot_joined_late(rid)
+        elif arrival.gap:
+            self._stream_gap(rid, stream, arrival.gap)
+        if arrival.ask_info:
+            self.ask_info(rid)
+        if arrival.event is not None:
+            if roster.is_admitted(rid):
+                self.reorder.push(arrival.event)
+                await self.release_events()
+            else:
+                refused = roster.keep(arrival.event)
+                if refused:
+                    self.reject(*refused)
+
+    def refill_from_robots(self) -> None:
+        """Restored from a checkpoint: ask every robot the roster knows for the odometry and scans it kept, so that
+        what came after the checkpoint arrives whole even when the caches' history misses some of it at
+        subscription; messages past a gap wait (:meth:`Roster.refill`) until the answer is in."""
+        timeout_s = self.reorder.recovery_window_s
+        for rid in sorted(self.roster.members):
+            self.roster.refill(rid)
+            key = self.keys.history(rid)
+
+            def on_payload(reply_key: str, payload: bytes) -> None:
+                parsed = self.keys.parse_robot_key(reply_key)
+                if parsed is not None and parsed[1] in ("odom", "scan"):
+                    self.enqueue(parsed[1], reply_key, payload)
+
+            try:
+                history_query(self.session, key, on_payload, lambda key=key: self.enqueue("refilled", key, b""),
+                              timeout_s)
+            except zenoh.ZError as exc:
+                log.warning("%s: cannot ask %s for its history: %s", self.name, rid, exc)
+                self.enqueue("refilled", key, b"")
 
     def subscribe(self, key: str, tag: str, recover: bool = True) -> None:
         """Subscribe ``key``; each sample is queued as ``(tag, key, payload)``.

@@ -226,3 +226,38 @@ def test_a_robot_waiting_for_its_own_stream_does_not_hold_the_others_back():
     buffer.push(ScanEvent("r1", 1, 4.0, np.ones(1), np.zeros(1), None, np.eye(2) * 1e-3))
     clock.now = 7.5  # r1's odometry silent past the recovery window: the scan goes
     assert [e.stamp for e, _ in buffer.release(live=["r1", "r2"])] == [4.0]
+
+
+def test_while_a_robot_is_refilled_a_gap_waits_to_be_filled_in_order():
+    """After a restart the robot's kept messages are asked for: a live message past a gap is parked, the history
+    fills the gap, the parked message follows in order; what both send twice is already held, not refused."""
+    roster = Roster()
+    roster.on_info("r1", info())
+    roster.admit("r1")
+    for k in range(3):
+        roster.on_stream("r1", "odom", odom(k))
+    roster.refill("r1")
+    assert roster.on_stream("r1", "odom", odom(6)).event is None  # live, past a gap: parked
+    taken = []
+    for k in (1, 2, 3, 4):  # the robot's history: 1, 2 already held; 3, 4 fill the gap
+        arrival = roster.on_stream("r1", "odom", odom(k))
+        assert arrival.refused is None and arrival.gap == 0
+        taken += [arrival.event] + [a.event for a in roster.unparked("r1", "odom")]
+    assert [e.seq for e in taken if e is not None] == [3, 4]
+    assert roster.counts["already_held"] == 2
+    arrivals = roster.refilled("r1")  # 5 never came: the parked 6 is taken, the gap counted
+    assert [(a.event.seq, a.gap, stream) for a, stream in arrivals] == [(6, 1, "odom")]
+    assert roster.on_stream("r1", "odom", odom(6)).refused[0] == "duplicate"  # refilled: a repeat is refused again
+
+
+def test_a_gap_filled_while_refilling_releases_the_parked_messages_at_once():
+    roster = Roster()
+    roster.on_info("r1", info())
+    roster.admit("r1")
+    roster.on_stream("r1", "scan", scan(0))
+    roster.refill("r1")
+    for k in (3, 2):
+        assert roster.on_stream("r1", "scan", scan(k)).event is None
+    first = roster.on_stream("r1", "scan", scan(1))
+    assert first.event.seq == 1 and [a.event.seq for a in roster.unparked("r1", "scan")] == [2, 3]
+    assert roster.missing() == 0 and roster.refilled("r1") == []
