@@ -19,8 +19,8 @@ COPY services ./services
 RUN pip install . \
     && useradd --create-home --uid 10001 --shell /usr/sbin/nologin fleetslam \
     && cd / && python -c "from services import compiled; print(f'kernels compiled in {compiled.warm_up():.1f} s')" \
-    && mkdir -p /reports /data \
-    && chown -R fleetslam /reports /opt/numba-cache
+    && mkdir -p /reports /state /data \
+    && chown -R fleetslam /reports /state /opt/numba-cache
 
 USER fleetslam
 WORKDIR /home/fleetslam

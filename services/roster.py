@@ -43,6 +43,10 @@ from schemas.messages import Odometry, RobotInfo, Scan
 from schemas.streams import StreamTracker, Verdict
 
 StreamEvent = OdomEvent | ScanEvent
+# After a restart both the caches' history (at subscription) and the robot's history queryable send what came after
+# the checkpoint, in no fixed order: for this long after the robot's answer is in, a repeat of a seq already taken
+# from the same session is counted as already held, not refused as a duplicate.
+REPEAT_GRACE_S = 10.0
 
 
 @dataclass
@@ -85,6 +89,7 @@ class Roster:
         self.counts: Counter = Counter()
         self.resumed: dict[tuple[str, str], int] = {}  # (robot, stream) → last seq held by the checkpoint resumed from
         self.refilling: set[str] = set()  # robots whose kept messages were asked for after a restart, not yet in
+        self.repeats_until: dict[str, float] = {}  # robot → until when a repeat of a taken seq is already held
         self.parked: dict[tuple[str, str], dict[int, tuple[Odometry | Scan, str | None]]] = {}  # past a gap, waiting
 
     # ------------------------------------------------------------ queries
@@ -168,8 +173,8 @@ class Roster:
         arrival = Arrival()
         member = self.member(key_robot_id)
         held = self.resumed.get((key_robot_id, stream), -1)
-        if key_robot_id in self.refilling:  # the robot's history and the caches' send the same messages
-            held = max(held, self.tracker.last_seq(key_robot_id, stream))
+        if key_robot_id in self.refilling or self.clock() < self.repeats_until.get(key_robot_id, float("-inf")):
+            held = max(held, self.tracker.last_seq(key_robot_id, stream))  # the robot's and the caches' history
         if message.seq <= held and self.tracker.same_source(key_robot_id, stream, source):
             self.counts["already_held"] += 1
             return arrival
@@ -215,6 +220,7 @@ class Roster:
         """The robot's kept messages are in (or the query is over): its parked messages are taken, in order, with
         any gap that is left counted as lost; (arrival, stream) of each."""
         self.refilling.discard(robot_id)
+        self.repeats_until[robot_id] = self.clock() + REPEAT_GRACE_S
         arrivals = []
         for key in [key for key in self.parked if key[0] == robot_id]:
             for _seq, (message, source) in sorted(self.parked.pop(key).items()):

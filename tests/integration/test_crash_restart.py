@@ -165,6 +165,8 @@ def test_killed_services_and_router_resume_and_lose_nothing(router, processes, z
     for name in SERVICES:
         after = final_stats("B", name)
         figures.setdefault("already_held", {})[name] = after.extra.get("already_held", 0)
+        figures.setdefault("checkpoint", {})[name] = {"bytes": after.extra.get("checkpoint_bytes"),
+                                                      "write_ms": after.extra.get("checkpoint_write_ms")}
         assert after.extra.get("missing", -1) == 0, (name, after.extra)
         assert "resumed from" in processes.log(f"{name}-B-restarted"), processes.log(f"{name}-B-restarted")[-2000:]
     assert final_stats("A", "central").extra.get("missing", -1) == 0  # the router restart lost nothing either

@@ -231,7 +231,8 @@ def test_a_robot_waiting_for_its_own_stream_does_not_hold_the_others_back():
 def test_while_a_robot_is_refilled_a_gap_waits_to_be_filled_in_order():
     """After a restart the robot's kept messages are asked for: a live message past a gap is parked, the history
     fills the gap, the parked message follows in order; what both send twice is already held, not refused."""
-    roster = Roster()
+    clock = Clock()
+    roster = Roster(clock=clock)
     roster.on_info("r1", info())
     roster.admit("r1")
     for k in range(3):
@@ -247,7 +248,11 @@ def test_while_a_robot_is_refilled_a_gap_waits_to_be_filled_in_order():
     assert roster.counts["already_held"] == 2
     arrivals = roster.refilled("r1")  # 5 never came: the parked 6 is taken, the gap counted
     assert [(a.event.seq, a.gap, stream) for a, stream in arrivals] == [(6, 1, "odom")]
-    assert roster.on_stream("r1", "odom", odom(6)).refused[0] == "duplicate"  # refilled: a repeat is refused again
+    held = roster.counts["already_held"]
+    assert roster.on_stream("r1", "odom", odom(6)).refused is None  # soon after: the other history's repeat
+    assert roster.counts["already_held"] == held + 1
+    clock.now = 11.0  # past the grace: a repeat is a duplicate again
+    assert roster.on_stream("r1", "odom", odom(6)).refused[0] == "duplicate"
 
 
 def test_a_gap_filled_while_refilling_releases_the_parked_messages_at_once():
