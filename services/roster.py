@@ -299,14 +299,14 @@ class ReorderBuffer:
         return len(self._heap)
 
     def push(self, event: StreamEvent, arrived: float | None = None) -> None:
-        stream = (event.robot_id, "odom" if isinstance(event, OdomEvent) else "scan")
+        is_odom = isinstance(event, OdomEvent)
+        stream = (event.robot_id, "odom" if is_odom else "scan")
         arrived = self.clock() if arrived is None else arrived
         self.newest[stream] = max(self.newest.get(stream, float("-inf")), event.stamp)
         self.heard[stream] = arrived
         self.resuming.discard(stream)
         self._order += 1
-        heapq.heappush(self._heap, _Held(event.stamp, 0 if isinstance(event, OdomEvent) else 1, self._order, arrived,
-                                         event))
+        heapq.heappush(self._heap, _Held(event.stamp, 0 if is_odom else 1, self._order, arrived, event))
 
     def restart_clock(self) -> None:
         """Restored from a checkpoint in a new process (whose clock started afresh): held events arrived now, and

@@ -289,16 +289,15 @@ class ServiceShell:
         """Restored from a checkpoint: ask every robot the roster knows for the odometry and scans it kept, so that
         what came after the checkpoint arrives whole even when the caches' history misses some of it at
         subscription; messages past a gap wait (:meth:`Roster.refill`) until the answer is in."""
+        def on_payload(reply_key: str, payload: bytes) -> None:
+            parsed = self.keys.parse_robot_key(reply_key)
+            if parsed is not None and parsed[1] in ("odom", "scan"):
+                self.enqueue(parsed[1], reply_key, payload)
+
         timeout_s = self.reorder.recovery_window_s
         for rid in sorted(self.roster.members):
             self.roster.refill(rid)
             key = self.keys.history(rid)
-
-            def on_payload(reply_key: str, payload: bytes) -> None:
-                parsed = self.keys.parse_robot_key(reply_key)
-                if parsed is not None and parsed[1] in ("odom", "scan"):
-                    self.enqueue(parsed[1], reply_key, payload)
-
             try:
                 history_query(self.session, key, on_payload, lambda key=key: self.enqueue("refilled", key, b""),
                               timeout_s)
@@ -368,6 +367,15 @@ class ServiceShell:
         self.rejected[reason] += 1
         if self.rejected[reason] <= 3:
             log.warning("%s rejected a message (%s)%s", self.name, reason, f": {detail}" if detail else "")
+
+    def key_names_robot(self, key: str, robot_id: str, position: int) -> bool:
+        """Whether ``key`` names the message's robot (``position`` counts segments after the prefix); a message on
+        another robot's key is refused as ``robot_id_mismatch``."""
+        parts = key[len(self.settings.prefix) + 1:].split("/")
+        if len(parts) <= position or parts[position] != robot_id:
+            self.reject("robot_id_mismatch", f"{key} carries {robot_id}")
+            return False
+        return True
 
     def reject_decode(self, error: DecodeError) -> None:
         self.reject(error.reason, error.detail)

@@ -150,14 +150,6 @@ class Evaluator(ServiceShell):
             return False
         return True
 
-    def _robot_in_key(self, key: str, robot_id: str, position: int) -> bool:
-        """Whether the key names the message's robot (``position`` counts segments after the prefix)."""
-        parts = key[len(self.settings.prefix) + 1:].split("/")
-        if len(parts) <= position or parts[position] != robot_id:
-            self.reject("robot_id_mismatch", f"{key} carries {robot_id}")
-            return False
-        return True
-
     async def handle(self, tag: str, key: str, payload: bytes) -> None:
         if tag == "gone":
             parsed = self.keys.parse_robot_key(key)
@@ -165,7 +157,7 @@ class Evaluator(ServiceShell):
                 self.tracker.leave(parsed[0])
         elif tag == "truth":
             message = decode(payload, GroundTruth)
-            if not self._robot_in_key(key, message.robot_id, 1):
+            if not self.key_names_robot(key, message.robot_id, 1):
                 return
             if message.seq == 0:  # perhaps a new run: keep its robot's seq gaps before the tracker forgets them
                 missing = self.tracker.missing(message.robot_id)
@@ -193,12 +185,12 @@ class Evaluator(ServiceShell):
                 self.maps["dslam"] = (message.landmarks, covs)
         elif tag == "dslam_pose":
             message = decode(payload, PoseEstimate)
-            if self._robot_in_key(key, message.robot_id, 2) and self._accept(message.robot_id, "dslam_pose",
+            if self.key_names_robot(key, message.robot_id, 2) and self._accept(message.robot_id, "dslam_pose",
                                                                               message.seq, message.stamp, key):
                 self._series("dslam", message.robot_id).add(message.stamp, message.pose, message.cov)
         elif tag == "mcl":
             message = decode(payload, MclPose)
-            if self._robot_in_key(key, message.robot_id, 1) and self._accept(message.robot_id, "mcl", message.seq,
+            if self.key_names_robot(key, message.robot_id, 1) and self._accept(message.robot_id, "mcl", message.seq,
                                                                               message.stamp, key):
                 if message.localized:  # before that the best pose is a guess: scoring it would say nothing
                     self.mcl_unlocalized.discard(message.robot_id)

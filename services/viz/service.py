@@ -83,18 +83,10 @@ class Viz(ServiceShell):
             self.logged += log_records(self.recording, records)
             self.extra["records_logged"] = float(self.logged)
 
-    def _names(self, key: str, robot_id: str, position: int) -> bool:
-        """Whether the key names the message's robot (``position`` counts segments after the prefix)."""
-        parts = key[len(self.settings.prefix) + 1:].split("/")
-        if len(parts) <= position or parts[position] != robot_id:
-            self.reject("robot_id_mismatch", f"{key} carries {robot_id}")
-            return False
-        return True
-
     def _accept(self, key: str, robot_id: str, position: int | None, stream: str, seq: int, stamp: float) -> bool:
         """The message names the robot of its key (``position``, None for fleet-wide messages) and is in order;
         seq 0 again starts a new run of the stream's robot."""
-        if position is not None and not self._names(key, robot_id, position):
+        if position is not None and not self.key_names_robot(key, robot_id, position):
             return False
         if seq == 0 and self.tracker.received(robot_id, stream):
             self.tracker.forget(robot_id)
@@ -109,7 +101,7 @@ class Viz(ServiceShell):
         wall, now, scene = time.time(), time.monotonic(), self.scene
         if tag == "info":
             info = decode(payload, RobotInfo)
-            if self._names(key, info.robot_id, 1):
+            if self.key_names_robot(key, info.robot_id, 1):
                 self.log(scene.robot_info(info))
         elif tag == "truth":
             message = decode(payload, GroundTruth)
