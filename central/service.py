@@ -213,10 +213,7 @@ class CentralService(ServiceShell):
     def _update_stats(self) -> None:
         self.extra.update({k: v for k, v in self.slam.stats().items()})
         self.extra["processed"] = float(sum(self.processed.values()))
-        if self.compute_ms:
-            array = np.asarray(self.compute_ms)
-            self.extra["compute_ms_median"] = float(np.median(array))
-            self.extra["compute_ms_p99"] = float(np.percentile(array, 99))
+        self.put_timing("compute_ms", self.compute_ms)
 
     def _publish_estimate(self) -> None:
         message = self.estimate()

@@ -396,6 +396,13 @@ class ServiceShell:
             self.refuse(query, error.reason, error.detail)
             return None
 
+    def put_timing(self, name: str, values_ms) -> None:
+        """``{name}_median`` and ``{name}_p99`` of recent durations into the stats' extra (nothing while empty)."""
+        if values_ms:
+            array = np.asarray(values_ms)
+            self.extra[f"{name}_median"] = float(np.median(array))
+            self.extra[f"{name}_p99"] = float(np.percentile(array, 99))
+
     def stats(self) -> ServiceStats:
         lat = np.asarray(self._latencies_ms) if self._latencies_ms else np.zeros(1)
         if self.roster is not None:
@@ -404,10 +411,7 @@ class ServiceShell:
             self.extra["waiting"] = float(self.roster.waiting_count())
             self.extra["robots_alive"] = float(len(self.roster.alive_ids()))
             self.extra["buffered"] = float(len(self.reorder))
-            if self.hold_ms:
-                held = np.asarray(self.hold_ms)
-                self.extra["hold_ms_median"] = float(np.median(held))
-                self.extra["hold_ms_p99"] = float(np.percentile(held, 99))
+            self.put_timing("hold_ms", self.hold_ms)
         return ServiceStats(
             service=self.name,
             instance=self.instance,
