@@ -1,5 +1,6 @@
 # One image for every fleetslam process: `docker run fleetslam router|robot|central|...`
-# (docker-compose.yml runs the whole fleet from it).
+# (docker-compose.yml runs the whole fleet from it). /secrets is where the compose router makes the
+# fleet's passwords: a new volume mounted there takes this folder's owner (the image's user) and mode 0700.
 FROM python:3.11-slim
 
 ENV PYTHONUNBUFFERED=1 \
@@ -19,8 +20,9 @@ COPY services ./services
 RUN pip install . \
     && useradd --create-home --uid 10001 --shell /usr/sbin/nologin fleetslam \
     && cd / && python -c "from services import compiled; print(f'kernels compiled in {compiled.warm_up():.1f} s')" \
-    && mkdir -p /reports /state /data \
-    && chown -R fleetslam /reports /state /opt/numba-cache
+    && mkdir -p /reports /state /data /secrets \
+    && chown -R fleetslam /reports /state /secrets /opt/numba-cache \
+    && chmod 700 /secrets
 
 USER fleetslam
 WORKDIR /home/fleetslam

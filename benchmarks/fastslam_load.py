@@ -32,7 +32,7 @@ from schemas.codec import decode, encode
 from schemas.config import FleetSettings
 from schemas.keys import Keys
 from schemas.messages import ServiceStats
-from schemas.transport import StreamPublisher, open_session
+from schemas.transport import StreamPublisher, declare_robot_tokens, open_session
 from report import emit
 
 REPO = Path(__file__).resolve().parents[1]
@@ -105,7 +105,7 @@ def main() -> None:
             time.sleep(0.05)
         if not stats:
             raise RuntimeError(f"the central service did not start; see {logs}")
-        tokens = [session.liveliness().declare_token(keys.alive(rid)) for rid in data.robots]
+        tokens = [token for rid in data.robots for token in declare_robot_tokens(session, keys, rid)]
         info = {rid: StreamPublisher(session, keys.info(rid)) for rid in data.robots}
         pubs = {(rid, s): StreamPublisher(session, keys.robot(rid, s)) for rid in data.robots for s in ("odom", "scan")}
         for rid, log in data.robots.items():

@@ -5,7 +5,7 @@
 # access control matches with `cert_common_names`.
 #
 #   deploy/make-certs.sh [OUT_DIR] [ROUTER_NAMES] [USERS]
-#   deploy/make-certs.sh deploy/secrets/tls "router,localhost,127.0.0.1" "r1 r2 r3 central dslam assoc mcl evaluate monitor"
+#   deploy/make-certs.sh deploy/secrets/tls "router,localhost,127.0.0.1" "r1 r2 r3 world central dslam assoc mcl evaluate monitor"
 #
 # Writes OUT_DIR/ca.pem (CA certificate, give it to everyone), ca-key.pem (keep
 # it offline), router.pem + router-key.pem, and {user}.pem + {user}-key.pem.
@@ -17,7 +17,7 @@ set -eu
 
 OUT=${1:-deploy/secrets/tls}
 ROUTER_NAMES=${2:-router,localhost,127.0.0.1}
-USERS=${3:-r1 r2 r3 r4 r5 central dslam assoc mcl evaluate monitor}
+USERS=${3:-r1 r2 r3 r4 r5 world central dslam assoc mcl evaluate monitor}
 DAYS=825
 
 mkdir -p "$OUT"

@@ -11,6 +11,7 @@ process publishes a RobotLog over Zenoh; ``fleetslam run`` feeds
 from __future__ import annotations
 
 import heapq
+import math
 from dataclasses import dataclass, field
 from typing import Iterator
 
@@ -69,6 +70,19 @@ class RobotLog:
         span = max(self.end_stamp - self.start_stamp, 1e-3)
         return {"odom": self.odom_stamp.size / span, "scan": self.scan_stamp.size / span,
                 "truth": self.truth_stamp.size / span}
+
+    def motion_limits(self) -> dict[str, float]:
+        """The motion limits to announce in RobotInfo, from the controls the log holds (their largest magnitude, a
+        quarter more and a little): receivers refuse odometry beyond them (a forged or corrupted control)."""
+        if self.odom_control.shape[0] == 0:
+            return {}
+        speed, turn = np.abs(self.odom_control).max(axis=0)
+        limits = {"max_speed": 1.25 * float(speed) + 0.05}
+        if self.info.motion_model == "unicycle":
+            limits["max_turn_rate"] = 1.25 * float(turn) + 0.05
+        else:
+            limits["max_steering"] = min(1.25 * float(turn) + 0.02, math.pi / 2)
+        return limits
 
     def scan(self, s: int) -> ScanEvent:
         lo, hi = self.scan_offsets[s], self.scan_offsets[s + 1]

@@ -2,8 +2,9 @@
 
 It declares the liveliness token ``{prefix}/robots/{rid}/alive``, publishes
 its RobotInfo (again every second, and to late joiners through a queryable),
-the world's true map once on ``{prefix}/world/truth`` (and to late joiners),
-then its odometry, scans and truth in time order, paced at real time divided
+the world's true map once on ``{prefix}/world/truth`` (and to late joiners;
+not with ``--no-publish-world``, where ``fleetslam world`` publishes it under
+its own identity), then its odometry, scans and truth in time order, paced at real time divided
 by ``--speedup``. Publishers are reliable with congestion control BLOCK, so
 nothing is dropped silently, and advanced: each caches ``outage_budget_s`` of
 its stream and sends heartbeats, so a receiver that was cut off, restarted or
@@ -29,6 +30,7 @@ from schemas.config import RobotSettings, add_settings_arguments, settings_from_
 from schemas.keys import Keys
 from schemas.messages import WorldTruth
 from schemas.transport import (ConnectError, Shutdown, StreamPublisher, answer_history, answer_with, cache_samples,
+                               declare_robot_tokens,
                                linger_time, session_scope, undeclare_all)
 
 log = logging.getLogger("fleetslam.robot")
@@ -61,6 +63,7 @@ def load_robot(settings: RobotSettings) -> tuple[RobotLog, Dataset]:
         updates["robot_id"] = settings.robot_id
     if settings.unknown_start:
         updates.update(start_pose=None, start_pose_cov=None)
+    updates.update({name: limit for name, limit in robot.motion_limits().items() if getattr(robot.info, name) is None})
     if updates:
         robot.info = robot.info.model_copy(update=updates)
     return robot, dataset
@@ -74,12 +77,12 @@ def run(settings: RobotSettings, shutdown: Shutdown) -> dict[str, int]:
     until = None if settings.replay is None else robot.start_stamp + settings.duration
     info_payload = encode(robot.info)
     world_payload = None
-    if dataset.landmarks is not None and settings.publish_truth:
+    if dataset.landmarks is not None and settings.publish_truth and settings.publish_world:
         world_payload = encode(WorldTruth(world=dataset.name, stamp=robot.start_stamp, landmarks=dataset.landmarks,
                                           landmark_ids=dataset.landmark_ids))
     counts = {"odom": 0, "scan": 0, "truth": 0}
     with session_scope(settings) as session:
-        token = session.liveliness().declare_token(keys.alive(rid))
+        tokens = declare_robot_tokens(session, keys, rid)
         rates = {**robot.stream_rates(), "info": 1.0 / settings.info_period_s}
         caches = {name: cache_samples(settings, rates[name] * settings.speedup) for name in rates}
         pubs = {name: StreamPublisher(session, keys.robot(rid, name), cache=caches[name],
@@ -128,7 +131,7 @@ def run(settings: RobotSettings, shutdown: Shutdown) -> dict[str, int]:
                          linger_s)
                 time.sleep(linger_s)
         finally:
-            undeclare_all([*pubs.values(), answer_info, answer_history_query, answer_world, world_pub, token])
+            undeclare_all([*pubs.values(), answer_info, answer_history_query, answer_world, world_pub, *tokens])
     return counts
 
 

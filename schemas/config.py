@@ -76,8 +76,25 @@ class FleetSettings(ProcessSettings):
     reorder_window_s: float = Field(0.1, ge=0, le=10, description="longest wall time a robot message waits for the "
                                     "other streams (the robot's own, other robots') so that events are handled in time "
                                     "order, also when a link cut or restart recovers one stream later (0: as they come)")
-    waiting_mb: float = Field(256.0, gt=0, description="megabytes of a robot's messages kept while it waits to join "
+    waiting_mb: float = Field(64.0, gt=0, description="megabytes of a robot's messages kept while it waits to join "
                               "(for its RobotInfo, or for a pose from MCL); the oldest go, counted, past this")
+    unannounced_mb: float = Field(8.0, gt=0, description="megabytes of messages kept, all robot ids together, for ids "
+                                  "that no session holds yet (no session liveliness token); the oldest go, counted, past this")
+    unannounced_s: float = Field(30.0, gt=0, description="how long messages of a robot id that no session holds wait "
+                                 "for one to declare its token before they go, counted (s)")
+    max_stamp_jump_s: float = Field(3600.0, gt=0, description="largest forward jump of a robot stream's stamp between "
+                                    "two messages; a message further ahead is refused as stamp_jump (s)")
+    dt_tolerance_s: float = Field(0.1, ge=0, description="how far an odometry dt may differ from the time between its "
+                                  "stamp and the previous odometry's (plus 5 percent) before it is refused as dt_mismatch (s)")
+    max_scan_kb: int = Field(1024, gt=0, description="largest scan payload taken; a larger one is refused as oversize "
+                             "before it is decoded (KiB)")
+    max_message_kb: int = Field(64, gt=0, description="largest odometry or RobotInfo payload taken; a larger one is "
+                                "refused as oversize before it is decoded (KiB)")
+    lane_mb: float = Field(32.0, gt=0, description="megabytes of received messages waiting per (robot, publishing "
+                           "session) lane; a lane that sends faster than the service handles is refused past this "
+                           "(rate_limited), and lanes are served in turn, so one robot's flood cannot starve the others")
+    queue_mb: float = Field(96.0, gt=0, description="megabytes of received messages waiting, every lane together; "
+                            "refused past this (queue_full)")
     log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = Field("INFO", description="log level")
 
 
@@ -86,8 +103,25 @@ class RouterSettings(FleetSettings):
 
     listen: str = Field("tcp/0.0.0.0:7447", description="endpoint(s) to listen on, comma-separated")
     router_config: str | None = Field(
-        None, description="JSON5 file merged into the router config (access control, users, TLS)"
+        None, description="JSON5 file merged into the router config (access control, users, TLS); without it or "
+        "secrets_dir the router is open: any process that reaches it reads and writes everything"
     )
+    secrets_dir: str | None = Field(
+        None, description="run secured: make (first start) or reuse one random password per user in this folder, the "
+        "user dictionary and the access control (deny by default: each robot writes only its own keys, each service "
+        "only its own root, only the user 'world' the world map); a client logs in with FLEETSLAM_ZENOH_USER=USER "
+        "and FLEETSLAM_ZENOH_PASSWORD_FILE=DIR/USER.password"
+    )
+    robot_users: str = Field("r1,r2,r3,r4,r5", pattern=r"^[A-Za-z0-9_-]+(,[A-Za-z0-9_-]+)*$",
+                             description="with secrets_dir: the robot ids given a user, comma-separated")
+    service_users: str = Field(
+        "central,dslam,assoc,mcl,evaluate=eval,monitor,viz,record", pattern=r"^[A-Za-z0-9_=+-]+(,[A-Za-z0-9_=+-]+)*$",
+        description="with secrets_dir: the services given a user, comma-separated; NAME=ROOT+ROOT when the keys it "
+        "writes ({prefix}/ROOT/**) are not its name's")
+    tls_dir: str | None = Field(
+        None, description="with secrets_dir: mutual TLS too (listen on tls/...): the folder of ca.pem, router.pem and "
+        "router-key.pem (deploy/make-certs.sh); a client then needs a certificate of that CA whose common name is "
+        "its user, as well as its password")
 
 
 class RobotSettings(FleetSettings):
@@ -110,12 +144,24 @@ class RobotSettings(FleetSettings):
     unknown_start: bool = Field(False, description="announce no start pose (to be found by MCL)")
     publish_ids: bool = Field(True, description="publish true landmark ids with each scan")
     publish_truth: bool = Field(True, description="publish ground truth (and the world map)")
+    publish_world: bool = Field(True, description="with publish_truth: publish the world's true map on "
+                                "{prefix}/world/truth too (off where fleetslam world publishes it: a secured router lets "
+                                "only the user 'world' write it)")
     detection_probability: float | None = Field(None, ge=0, le=1, description="override the world's detection probability")
     clutter_rate: float | None = Field(None, ge=0, description="override the world's clutter (false detections per scan)")
     replay: str | None = Field(None, description="replay a data set instead: mrclam:PATH:N, victoria-park:PATH, car-park:PATH")
     info_period_s: float = Field(1.0, gt=0, description="period of the RobotInfo re-publication (s)")
     linger_s: float = Field(2.0, ge=0, description="wall seconds the robot keeps its publishers (their caches and "
                             "heartbeats) after its last message, so a receiver cut off just before can recover the tail")
+
+
+class WorldSettings(FleetSettings):
+    """``fleetslam world``: the world's true landmark map, published under its own identity (user ``world``)."""
+
+    world: WORLDS = Field("arena", description="simulated world (its map is drawn from seed, as the robots' is)")
+    seed: int = Field(0, description="seed of the simulated world (the robots' --seed)")
+    replay: str | None = Field(None, description="take the true map of this data set instead: mrclam:PATH:N, "
+                               "victoria-park:PATH, car-park:PATH (as fleetslam robot --replay)")
 
 
 class MonitorSettings(FleetSettings):
@@ -161,6 +207,10 @@ class DemoSettings(FleetSettings):
                       "http://127.0.0.1:9090 (data on gRPC port 9876), recorded to OUT/fleet.rrd")
     record: str | None = Field(None, description="record every message of the demo to this MCAP file "
                                "(fleetslam record; replay it with fleetslam replay, or fleetslam run --dataset mcap:FILE)")
+    open: bool = Field(False, description="run the router open, without passwords or access control, as before: any "
+                       "process that reaches the port reads and writes everything (default: secured)")
+    secrets_dir: str = Field(".fleetslam/secrets", description="folder of the secured demo's credentials: one random "
+                             "password per robot and service, made on the first run and reused (never commit it)")
 
 
 class RecordSettings(FleetSettings):
@@ -284,14 +334,31 @@ class MclSettings(FleetSettings, MclConfig, CheckpointSettings):
     """``fleetslam mcl``: localize robots against a map; publish hypotheses; answer one-shot localization queries."""
 
     source: str = Field(
-        "truth", pattern=r"^(central|dslam|truth|file:.+)$",
-        description="map source: central (Estimate), dslam (MapEstimate), truth (WorldTruth) or file:PATH (a "
-        "fleetslam-map .json saved by --map-out, or an (L,2) array in .npy/.txt/.csv)",
+        "dslam", pattern=r"^(central|dslam|truth|file:.+)$",
+        description="map source: the fleet's own map, dslam (MapEstimate; from a fresh start it localizes better than "
+        "central) or central (Estimate); truth (WorldTruth: the simulator's or data set's true map, for tests and "
+        "benchmarks); or file:PATH (a fleetslam-map .json saved by --map-out, or an (L,2) array in .npy/.txt/.csv)",
     )
     all_robots: bool = Field(False, description="localize every robot, not only those that announce no start pose")
     publish_every: int = Field(1, ge=1, description="publish a robot's MclPose every this many scans")
     map_period_s: float = Field(1.0, ge=0, description="take a new map from the source at most this often (s)")
     localize_particles: int = Field(2000, ge=10, description="sample size of a one-shot localization query")
+    max_localize_particles: int = Field(5_000, ge=10, description="localization queries asking for more particles are "
+                                        "refused (too_large)")
+    max_localize_cells: int = Field(
+        1_000_000, ge=1, description="localization queries whose observations × particles exceed this are refused "
+        "(too_large)")
+    max_localize_map_cells: int = Field(
+        250_000, ge=1, description="localization queries whose sensor needs more landmark lookup-grid cells plus "
+        "landmark pairs on the map (a wide gate, a long range) than this are refused (too_large)")
+    query_workers: int = Field(2, ge=1, le=16, description="threads that solve localization queries (robot tracking "
+                               "keeps its own path)")
+    query_queue: int = Field(4, ge=0, description="localization queries that may wait for a worker (each takes tens to "
+                             "hundreds of ms); more are answered busy at once")
+    query_deadline_s: float = Field(5.0, gt=0, description="a localization query that waited this long is dropped "
+                                    "(expired), and a solve is cut at it (deadline) (s)")
+    query_nice: int = Field(10, ge=0, le=19, description="niceness the query workers add to the process's (Linux), so "
+                            "that on a busy processor the robots' tracking goes first")
 
 
 
@@ -395,6 +462,17 @@ class AssocSettings(FleetSettings):
     max_measurements: int = Field(2000, ge=1, description="larger requests are refused (measurements)")
     max_landmarks: int = Field(5000, ge=1, description="larger requests are refused (landmarks)")
     max_jcbb_nodes: int = Field(20_000, ge=1, description="cap on a request's JCBB search budget (keeps one query short)")
+    max_query_cells: int = Field(
+        1_000_000, ge=1, description="requests whose largest array exceeds this many cells are refused (too_large): "
+        "measurements × landmarks, (measurements + landmarks)² for exact and auto, + 4 landmarks² + 4 measurements² for "
+        "jcbb and auto")
+    query_workers: int = Field(2, ge=1, le=16, description="threads that solve association queries")
+    query_queue: int = Field(8, ge=0, description="association queries that may wait for a worker; more are answered "
+                             "busy at once")
+    query_deadline_s: float = Field(5.0, gt=0, description="a query that waited this long is dropped (expired), and a "
+                                    "solve is cut at it: the best found so far (truncated), or deadline (s)")
+    query_nice: int = Field(10, ge=0, le=19, description="niceness the query workers add to the process's (Linux), so "
+                            "that on a busy processor the other services go first")
     duration: float | None = Field(None, gt=0, description="stop after this many seconds (default: until SIGINT/SIGTERM)")
 
 

@@ -37,6 +37,11 @@ class Keys:
     def alive(self, robot_id: str) -> str:
         return self.robot(robot_id, "alive")
 
+    def session_token(self, robot_id: str, zid: str) -> str:
+        """The liveliness token a robot's Zenoh session declares besides :meth:`alive`: it names the session, so a
+        service knows which one owns the robot id (the first to hold it) and refuses the others' messages."""
+        return f"{self.alive(robot_id)}/{zid}"
+
     def odom(self, robot_id: str) -> str:
         return self.robot(robot_id, "odom")
 
@@ -56,6 +61,10 @@ class Keys:
     @property
     def alive_any(self) -> str:
         return f"{self.prefix}/robots/*/alive"
+
+    @property
+    def session_tokens_any(self) -> str:
+        return f"{self.prefix}/robots/*/alive/*"
 
     @property
     def world_truth(self) -> str:
@@ -110,3 +119,11 @@ class Keys:
         if len(parts) != 2 or not _ROBOT_ID.match(parts[0]):
             return None
         return parts[0], parts[1]
+
+    def parse_session_token(self, key: str) -> tuple[str, str] | None:
+        """Split ``{prefix}/robots/{rid}/alive/{zid}`` into (rid, zid); None if it is not one."""
+        head = f"{self.prefix}/robots/"
+        parts = key[len(head):].split("/") if key.startswith(head) else []
+        if len(parts) != 3 or parts[1] != "alive" or not _ROBOT_ID.match(parts[0]) or not parts[2]:
+            return None
+        return parts[0], parts[2]

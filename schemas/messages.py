@@ -106,6 +106,11 @@ class RobotInfo(Message):
     source: str = Field("sim", description="sim:WORLD or replay:DATASET")
     odom_rate_hz: float = Field(gt=0.0, allow_inf_nan=False)
     scan_rate_hz: float = Field(gt=0.0, allow_inf_nan=False)
+    max_speed: float | None = Field(None, gt=0.0, allow_inf_nan=False,
+                                    description="largest |speed| its odometry reports (m/s): unicycle v, ackermann encoder speed")
+    max_turn_rate: float | None = Field(None, gt=0.0, allow_inf_nan=False, description="unicycle: largest |ω| (rad/s)")
+    max_steering: float | None = Field(None, gt=0.0, le=math.pi / 2, allow_inf_nan=False,
+                                       description="ackermann: largest |steering angle| (rad)")
 
     @model_validator(mode="after")
     def _ackermann_has_wheelbase(self) -> "RobotInfo":

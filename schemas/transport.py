@@ -165,10 +165,14 @@ class StreamPublisher:
             self._publisher = session.declare_publisher(
                 key, congestion_control=zenoh.CongestionControl.BLOCK, reliability=zenoh.Reliability.RELIABLE
             )
+        self._plain = cache <= 0  # a plain publisher names its session in each sample itself (an advanced one does)
 
     def put(self, message: BaseModel | bytes) -> None:
         payload = message if isinstance(message, bytes) else encode(message)
-        self._publisher.put(payload)
+        if self._plain:
+            self._publisher.put(payload, source_info=zenoh.SourceInfo(self._publisher.id, self.count))
+        else:
+            self._publisher.put(payload)
         self.count += 1
         if self.recent.maxlen:
             with self._recent_lock:
@@ -184,6 +188,15 @@ class StreamPublisher:
             self._publisher.undeclare()
         except Exception:  # noqa: BLE001 - already gone with the session
             log.debug("publisher undeclare failed", exc_info=True)
+
+
+def declare_robot_tokens(session: zenoh.Session, keys, robot_id: str) -> list:
+    """The liveliness tokens of a robot published by ``session``: DESIGN's ``{prefix}/robots/{rid}/alive`` and the
+    session token naming this session (:meth:`Keys.session_token`), by which services accept the robot's messages
+    from this session only."""
+    zid = str(session.info.zid())
+    return [session.liveliness().declare_token(keys.alive(robot_id)),
+            session.liveliness().declare_token(keys.session_token(robot_id, zid))]
 
 
 def answer_with(session: zenoh.Session, key: str, payload: bytes):
@@ -205,12 +218,24 @@ def answer_history(session: zenoh.Session, key: str, publishers: list[StreamPubl
     return session.declare_queryable(key, answer)
 
 
+def replier_zid(reply: zenoh.Reply) -> str | None:
+    """The Zenoh session id of the session that sent ``reply`` (None when unknown)."""
+    replier = reply.replier_id
+    return None if replier is None else str(replier.zid)
+
+
+def sample_source(sample: zenoh.Sample) -> str | None:
+    """The Zenoh session id of the session that published ``sample`` (None when it carries no source)."""
+    return None if sample.source_info is None else str(sample.source_info.source_id.zid)
+
+
 def history_query(session: zenoh.Session, key: str, on_payload, on_done, timeout_s: float) -> None:
-    """Ask ``key`` (a robot's history queryable) for what it kept: ``on_payload(key, payload)`` per reply, then
+    """Ask ``key`` (a robot's history queryable) for what it kept: ``on_payload(key, payload, replier)`` per reply
+    (``replier``: the answering Zenoh session's id), then
     ``on_done()`` once the query is over (answered, timed out or refused)."""
     def on_reply(reply: zenoh.Reply) -> None:
         if reply.ok is not None:
-            on_payload(str(reply.ok.key_expr), reply.ok.payload.to_bytes())
+            on_payload(str(reply.ok.key_expr), reply.ok.payload.to_bytes(), replier_zid(reply))
 
     session.get(key, zenoh.handlers.Callback(on_reply, on_done), timeout=timeout_s,
                 accept_replies=zenoh.ReplyKeyExpr.ANY, consolidation=zenoh.ConsolidationMode.NONE)

@@ -29,6 +29,11 @@ def _robot() -> ModuleType:
     return process
 
 
+def _world() -> ModuleType:
+    from robots import truth
+    return truth
+
+
 def _monitor() -> ModuleType:
     from services import monitor
     return monitor
@@ -87,6 +92,7 @@ def _viz() -> ModuleType:
 COMMANDS: dict[str, tuple[Callable[[], ModuleType], str]] = {
     "router": (_router, "run the Zenoh router (router mode; access control and TLS optional)"),
     "robot": (_robot, "run one robot: simulated in a named world, or replaying a data set"),
+    "world": (_world, "publish the world's true landmark map (a simulated world's or a data set's) as the user 'world'"),
     "monitor": (_monitor, "live console of robots, message rates, gaps, rejections and service stats"),
     "demo": (_demo, "start a router, robots, the monitor and every service; print what was measured"),
     "run": (_run, "offline: feed a data set straight into an estimator, no Zenoh; results and plots in reports/run/"),

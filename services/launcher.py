@@ -1,11 +1,17 @@
 """``fleetslam demo``: a whole fleet on this machine, as separate processes.
 
 Starts a router, the services that exist in this installation, the monitor (and with ``--viz`` the live
-Rerun view, ``fleetslam viz``), and ``--robots`` simulated robots in one world (plus ``--unknown-start-robots``
-that announce no start pose, for MCL to find); lets the robots run for
+Rerun view, ``fleetslam viz``), the world's true map (``fleetslam world``) and ``--robots`` simulated robots in
+one world (plus ``--unknown-start-robots`` that announce no start pose, for MCL to find); lets the robots run for
 ``--duration`` wall seconds; stops everything in order (robots, services,
 monitor, router) with SIGTERM; then prints per-robot message counts, service
 statistics, the memory of each process, and where the logs and results are.
+
+The fleet is secured unless ``--open``: the router makes one password per
+robot and service in ``--secrets-dir`` on the first run (reused after) and
+denies by default; each process logs in as itself (a robot as its id, a
+service as its name, the world map as ``world``), so a process without
+credentials is refused.
 """
 
 from __future__ import annotations
@@ -27,6 +33,7 @@ from rich.table import Table
 
 from schemas.config import DemoSettings, add_settings_arguments, settings_from_args
 from schemas.transport import Shutdown
+from services.credentials import WORLD_USER
 
 log = logging.getLogger("fleetslam.demo")
 
@@ -52,6 +59,9 @@ SERVICES: list[ServiceSpec] = [
 ]
 
 
+# Set per process by the launcher (its own credentials), never inherited from the launcher's environment.
+CREDENTIAL_VARIABLES = ("FLEETSLAM_ZENOH_USER", "FLEETSLAM_ZENOH_PASSWORD", "FLEETSLAM_ZENOH_PASSWORD_FILE",
+                        "FLEETSLAM_SECRETS_DIR", "FLEETSLAM_ROUTER_CONFIG")
 VIZ_WEB_PORT, VIZ_GRPC_PORT = 9090, 9876  # fleetslam viz's defaults: web viewer (HTTP) and its data (gRPC)
 
 
@@ -72,14 +82,31 @@ class Fleet:
         self.exit_codes: dict[str, int] = {}  # exit code of every stopped process (0: a clean stop on SIGTERM)
         self.killed: list[str] = []  # processes that had to be killed after the stop timeout
         self.endpoint = f"tcp/127.0.0.1:{settings.port}"
-        self.env = {**os.environ, "FLEETSLAM_ZENOH_CONNECT": self.endpoint, "FLEETSLAM_PREFIX": settings.prefix,
+        self.secrets = None if settings.open else Path(settings.secrets_dir).resolve()
+        inherited = {k: v for k, v in os.environ.items() if k not in CREDENTIAL_VARIABLES}
+        self.env = {**inherited, "FLEETSLAM_ZENOH_CONNECT": self.endpoint, "FLEETSLAM_PREFIX": settings.prefix,
                     "PYTHONUNBUFFERED": "1"}
 
-    def start(self, name: str, *words: str) -> Child:
+    def credentials(self, user: str | None) -> dict[str, str]:
+        """``user``'s login (its password file in the secrets folder); none for an open fleet."""
+        if self.secrets is None or user is None:
+            return {}
+        return {"zenoh_user": user, "zenoh_password_file": str(self.secrets / f"{user}.password")}
+
+    def router_words(self, robot_ids: list[str]) -> list[str]:
+        """``fleetslam router`` on the demo's endpoint: secured with a user per robot (and the default services)."""
+        words = ["router", "--listen", self.endpoint]
+        if self.secrets is not None:
+            words += ["--secrets-dir", str(self.secrets), "--robot-users", ",".join(robot_ids)]
+        return words
+
+    def start(self, name: str, *words: str, user: str | None = None) -> Child:
+        """``fleetslam WORDS...`` logging in as ``user`` (a secured fleet)."""
         log_path = self.out / "logs" / f"{name}.log"
         log_path.parent.mkdir(parents=True, exist_ok=True)
         handle = open(log_path, "w")
-        process = subprocess.Popen([sys.executable, "-m", "services.cli", *words], env=self.env, stdout=handle,
+        env = {**self.env, **{f"FLEETSLAM_{k.upper()}": v for k, v in self.credentials(user).items()}}
+        process = subprocess.Popen([sys.executable, "-m", "services.cli", *words], env=env, stdout=handle,
                                    stderr=subprocess.STDOUT, start_new_session=True)
         child = Child(name, process, log_path)
         self.children.append(child)
@@ -104,7 +131,8 @@ class Fleet:
 
         seen: set[str] = set()
         started = time.monotonic()
-        settings = FleetSettings(zenoh_connect=self.endpoint, prefix=self.settings.prefix)
+        settings = FleetSettings(zenoh_connect=self.endpoint, prefix=self.settings.prefix,
+                                 **self.credentials("monitor"))
         with session_scope(settings) as session:
             subscriber = session.declare_subscriber(
                 f"{self.settings.prefix}/*/stats", lambda sample: seen.add(str(sample.key_expr).split("/")[-2])
@@ -165,15 +193,20 @@ def run_demo(settings: DemoSettings, shutdown: Shutdown, console: Console) -> di
         log.info("removed %d files of an earlier demo report from %s", cleared, out / "report")
     fleet = Fleet(settings, out)
     services = SERVICES
-    summary: dict = {"settings": settings.model_dump(mode="json"), "services": [s.name for s in services]}
-    router = fleet.start("router", "router", "--listen", fleet.endpoint)
+    summary: dict = {"settings": settings.model_dump(mode="json"), "services": [s.name for s in services],
+                     "secured": fleet.secrets is not None}
+    robot_ids = [f"r{i + 1}" for i in range(settings.robots + settings.unknown_start_robots)]
+    router = fleet.start("router", *fleet.router_words(robot_ids))
     try:
         fleet.wait_for_router()
-        monitor = fleet.start("monitor", "monitor", "--plain", "--json-out", str(out / "monitor.json"))
+        monitor = fleet.start("monitor", "monitor", "--plain", "--json-out", str(out / "monitor.json"), user="monitor")
         viewers = [fleet.start("viz", "viz", "--serve", str(VIZ_WEB_PORT), "--grpc-port", str(VIZ_GRPC_PORT),
-                               "--save", str(out / "fleet.rrd"))] if settings.viz else []
-        recorders = [fleet.start("record", "record", "--out", settings.record)] if settings.record else []
-        service_children = [fleet.start(s.name, s.name, *(a.format(out=settings.out) for a in s.args)) for s in services]
+                               "--save", str(out / "fleet.rrd"), user="viz")] if settings.viz else []
+        recorders = [fleet.start("record", "record", "--out", settings.record, user="record")] if settings.record else []
+        service_children = [fleet.start(s.name, s.name, *(a.format(out=settings.out) for a in s.args), user=s.name)
+                            for s in services]
+        world = fleet.start(WORLD_USER, "world", "--world", settings.world, "--seed", str(settings.seed),
+                            user=WORLD_USER)
         ready_s = fleet.wait_for_services(["monitor", *(c.name for c in viewers), *(c.name for c in recorders),
                                            *(s.stats_name or s.name for s in services)], shutdown)
         if viewers:
@@ -183,13 +216,15 @@ def run_demo(settings: DemoSettings, shutdown: Shutdown, console: Console) -> di
         summary["services_ready_s"] = ready_s
         robot_duration = settings.duration * settings.speedup
         robots = [
-            fleet.start(f"r{i + 1}", "robot", "--id", f"r{i + 1}", "--world", settings.world, "--seed", str(settings.seed),
+            fleet.start(rid, "robot", "--id", rid, "--world", settings.world, "--seed", str(settings.seed),
                         "--rate", str(settings.rate), "--speedup", str(settings.speedup),
-                        "--duration", f"{robot_duration:g}", "--start-delay", "1.0",
-                        *(["--unknown-start"] if i >= settings.robots else []))
-            for i in range(settings.robots + settings.unknown_start_robots)
+                        "--duration", f"{robot_duration:g}", "--start-delay", "1.0", "--no-publish-world",
+                        *(["--unknown-start"] if i >= settings.robots else []), user=rid)
+            for i, rid in enumerate(robot_ids)
         ]
-        console.print(f"[bold]fleetslam demo[/]: router {fleet.endpoint}, {settings.robots} robots "
+        access = (f"secured (a password per process, made once in {fleet.secrets})" if fleet.secrets is not None
+                  else "[bold red]OPEN[/] (--open: no passwords, no access control)")
+        console.print(f"[bold]fleetslam demo[/]: router {fleet.endpoint} {access}, {settings.robots} robots "
                       f"(+{settings.unknown_start_robots} with no start pose) in world "
                       f"'{settings.world}', services: {', '.join(s.name for s in services) or 'none yet'}; "
                       f"{settings.duration:g} s (Ctrl-C stops early)")
@@ -209,7 +244,7 @@ def run_demo(settings: DemoSettings, shutdown: Shutdown, console: Console) -> di
         evaluators = [c for c in service_children if c.name == "evaluate"]
         summary["stop_s"].update(fleet.stop([c for c in service_children if c not in evaluators], timeout=15.0))
         summary["stop_s"].update(fleet.stop(evaluators, timeout=30.0))
-        summary["stop_s"].update(fleet.stop([monitor, *viewers, *recorders]))
+        summary["stop_s"].update(fleet.stop([world, monitor, *viewers, *recorders]))
     finally:
         remaining = [c for c in fleet.children if c.process.poll() is None and c is not router]
         if remaining:

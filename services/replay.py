@@ -27,6 +27,7 @@ from schemas.mcap_file import Recording, read_recording
 from schemas.messages import RobotInfo
 from schemas.recording import RecordingError, robot_of, topic_kind
 from schemas.transport import (ConnectError, Shutdown, StreamPublisher, answer_history, answer_with, cache_samples,
+                               declare_robot_tokens,
                                linger_time, session_scope, undeclare_all)
 
 log = logging.getLogger("fleetslam.replay")
@@ -116,7 +117,7 @@ def publish(plan: ReplayPlan, settings: ReplaySettings, shutdown: Shutdown) -> C
     keys = Keys(settings.prefix)
     counts: Counter = Counter()
     with session_scope(settings) as session:
-        tokens = {rid: session.liveliness().declare_token(keys.alive(rid)) for rid in plan.infos}
+        tokens = {rid: declare_robot_tokens(session, keys, rid) for rid in plan.infos}
         sent = Counter((item.robot_id, item.stream) for item in plan.items)
         wall_span_s = max(plan.span_s, 1.0) / settings.speedup
         caches = {(rid, stream): cache_samples(settings, sent[(rid, stream)] / wall_span_s)
@@ -150,7 +151,7 @@ def publish(plan: ReplayPlan, settings: ReplaySettings, shutdown: Shutdown) -> C
                 pubs[(item.robot_id, item.stream)].put(item.data)
                 counts[item.stream] += 1
                 if plan.last_index[item.robot_id] == k:
-                    undeclare_all([tokens.pop(item.robot_id)])
+                    undeclare_all(tokens.pop(item.robot_id))
                     log.info("robot %s done", item.robot_id)
                 if time.monotonic() >= next_progress:
                     log.info("replay: %.1f of %.1f recorded s; %s", item.offset_s, plan.span_s,
@@ -161,7 +162,7 @@ def publish(plan: ReplayPlan, settings: ReplaySettings, shutdown: Shutdown) -> C
                 log.info("replay: keeping the caches %g s more for receivers that missed the last messages", linger_s)
                 time.sleep(linger_s)
         finally:
-            undeclare_all([*declared, *tokens.values()])
+            undeclare_all([*declared, *(token for pair in tokens.values() for token in pair)])
     return counts
 
 

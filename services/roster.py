@@ -5,9 +5,17 @@ which robots are alive (liveliness), which have announced themselves
 (RobotInfo), and which the service has taken in. It turns each stream message
 into the core's event:
 
+- a robot id belongs to one Zenoh session: the first that holds the robot's
+  session token (:meth:`Keys.session_token`); the robot's RobotInfo and streams
+  are taken from that session only (``not_owner``), a second session announcing
+  a live id is refused (``second_announcer``), and the messages of an id no
+  session holds wait at most ``unannounced_s`` within ``unannounced_bytes`` (all
+  such ids together) for a token, then go (``unannounced_dropped``);
 - the message's robot id must match its key, and its stream must be in order
-  (:class:`~schemas.streams.StreamTracker`: duplicates, out-of-order and time
-  going backwards are refused with the reason, gaps counted);
+  and plausible (:class:`~schemas.streams.StreamTracker`: duplicates, out-of-order,
+  time going backwards and jumps in seq or stamp beyond its limits are refused
+  with the reason, gaps counted; :func:`~schemas.streams.odometry_doubt`: a dt
+  that disagrees with the stamps, a control beyond the announced limits);
 - a robot whose stream starts again at seq 0 from another Zenoh session (a
   restarted process), or, the session unknown, after its token went away, is
   a new run: the roster forgets its RobotInfo and the service resets what it
@@ -40,7 +48,7 @@ from typing import Callable
 
 from schemas.contract import OdomEvent, ScanEvent, event_nbytes, stream_event
 from schemas.messages import Odometry, RobotInfo, Scan
-from schemas.streams import StreamTracker, Verdict
+from schemas.streams import StreamLimits, StreamTracker, Verdict, odometry_doubt
 
 StreamEvent = OdomEvent | ScanEvent
 # After a restart both the caches' history (at subscription) and the robot's history queryable send what came after
@@ -62,6 +70,17 @@ class Member:
 
 
 @dataclass
+class Takeover:
+    """A session now owns a robot id (its token appeared first, or the owner's went and it held one too): whether to
+    ask the robot for its RobotInfo now, the messages that waited for a token that this session sent (to be taken
+    now, in order, as ``(tag, message, source)``), and how many waiting ones other sessions sent (refused)."""
+
+    ask_info: bool = False
+    take: list = field(default_factory=list)
+    not_owner: int = 0
+
+
+@dataclass
 class Arrival:
     """What became of one stream message: its event (None when refused or held), or the reason it was refused;
     whether it started a new run of its robot, whether the robot joined late (its first odometry has seq > 0),
@@ -79,12 +98,20 @@ class Arrival:
 class Roster:
     """Membership of every robot a service hears of (see the module docstring)."""
 
-    def __init__(self, waiting_bytes: int = 256 << 20, info_timeout_s: float = 2.0,
-                 clock: Callable[[], float] = time.monotonic):
+    def __init__(self, waiting_bytes: int = 64 << 20, info_timeout_s: float = 2.0,
+                 clock: Callable[[], float] = time.monotonic, unannounced_bytes: int = 8 << 20,
+                 unannounced_s: float = 30.0, limits: StreamLimits = StreamLimits(), dt_tolerance_s: float = 0.1):
         self.waiting_bytes = waiting_bytes
         self.info_timeout_s = info_timeout_s
         self.clock = clock
-        self.tracker = StreamTracker()
+        self.unannounced_bytes = unannounced_bytes
+        self.unannounced_s = unannounced_s
+        self.dt_tolerance_s = dt_tolerance_s
+        self.tracker = StreamTracker(limits=limits)
+        self.holders: dict[str, list[str]] = {}  # robot → Zenoh sessions holding its session token, first = owner
+        self.last_owner: dict[str, str] = {}  # robot → the session that owned it last (its tail may come after its token)
+        self.pending: dict[str, deque] = {}  # robot no session holds → (since, tag, message, source, nbytes) waiting
+        self.pending_bytes = 0
         self.members: dict[str, Member] = {}
         self.counts: Counter = Counter()
         self.resumed: dict[tuple[str, str], int] = {}  # (robot, stream) → last seq held by the checkpoint resumed from
@@ -113,6 +140,12 @@ class Roster:
     def missing(self) -> int:
         return self.tracker.missing()
 
+    def __setstate__(self, state: dict) -> None:
+        """A roster from a checkpoint written before identity checks existed gets their empty state."""
+        defaults = {"unannounced_bytes": 8 << 20, "unannounced_s": 30.0, "dt_tolerance_s": 0.1, "holders": {},
+                    "last_owner": {}, "pending": {}, "pending_bytes": 0}
+        self.__dict__.update({**defaults, **state})
+
     def resume(self) -> None:
         """This roster was just restored from a checkpoint in a new process: no robot has been asked for its
         RobotInfo yet, and what the publishers' caches send again up to each stream's seq in the checkpoint is
@@ -122,20 +155,108 @@ class Roster:
         for member in self.members.values():
             member.asked_at = float("-inf")
         self.resumed = {key: state.last_seq for key, state in self.tracker.streams.items()}
+        for rid, holders in self.holders.items():  # the tokens are seen afresh (liveliness history) in this process
+            self.last_owner[rid] = holders[0]
+        self.holders = {}
 
     # ------------------------------------------------------------ liveliness
-    def on_alive(self, robot_id: str) -> bool:
-        """A robot's liveliness token appeared; True when its RobotInfo should be asked for now."""
-        member = self.member(robot_id)
-        member.alive = True
-        return member.info is None and self._ask(member)
-
     def on_gone(self, robot_id: str) -> None:
         """A robot's token went away: its state stays (its last messages may still be queued, or it is back
         after a link cut); a new run of it is recognised when its streams start again at seq 0."""
         self.member(robot_id).alive = False
         self.tracker.leave(robot_id)
         self.counts["robots_lost"] += 1
+
+    # ------------------------------------------------------------ identity
+    def owner(self, robot_id: str) -> str | None:
+        """The Zenoh session that owns the robot id now (None when no session holds its token)."""
+        holders = self.holders.get(robot_id)
+        return holders[0] if holders else None
+
+    def on_token(self, robot_id: str, zid: str) -> tuple[Takeover | None, tuple[str, str] | None]:
+        """Session ``zid`` declared the robot's session token: (the takeover when it now owns the robot, the
+        refusal when another session owns it already)."""
+        holders = self.holders.setdefault(robot_id, [])
+        if zid in holders:
+            return None, None
+        holders.append(zid)
+        if len(holders) > 1:
+            return None, ("second_announcer", f"{robot_id} belongs to session {holders[0]}; {zid} announced it too")
+        self.member(robot_id).alive = True
+        return self._take_over(robot_id), None
+
+    def on_token_gone(self, robot_id: str, zid: str) -> tuple[Takeover | None, bool]:
+        """Session ``zid`` no longer holds the robot's token: (the takeover when another session holding it now owns
+        the robot, True when no session holds it any more: the robot left)."""
+        holders = self.holders.get(robot_id, [])
+        if zid not in holders:
+            return None, False
+        was_owner = holders[0] == zid
+        holders.remove(zid)
+        if holders:
+            return (self._take_over(robot_id) if was_owner else None), False
+        del self.holders[robot_id]
+        self.on_gone(robot_id)
+        return None, True
+
+    def _take_over(self, robot_id: str) -> Takeover:
+        owner = self.holders[robot_id][0]
+        self.last_owner[robot_id] = owner
+        takeover = Takeover()
+        member = self.member(robot_id)
+        takeover.ask_info = member.info is None and self._ask(member)
+        for _since, tag, message, source, nbytes in self.pending.pop(robot_id, ()):
+            self.pending_bytes -= nbytes
+            if source == owner:
+                takeover.take.append((tag, message, source))
+            else:
+                takeover.not_owner += 1
+        return takeover
+
+    def identify(self, robot_id: str, tag: str, message, source: str | None, nbytes: int) -> tuple[str, tuple | None]:
+        """Whose message is this: ``("own", None)`` from the robot's owner (or, no session holding its token now,
+        from its last owner: a tail recovered after its token went), ``("held", None)`` kept until a session holds
+        the robot's token, ``("refused", reason)`` otherwise."""
+        owner = self.owner(robot_id)
+        if owner is None and robot_id not in self.holders:
+            owner = self.last_owner.get(robot_id) if source == self.last_owner.get(robot_id) else None
+        if owner is not None:
+            if source == owner:
+                return "own", None
+            if source is None:
+                return "refused", ("no_source", f"a {tag} message for {robot_id} names no publishing session")
+            return "refused", ("not_owner", f"a {tag} message for {robot_id} from session {source}, not its owner {owner}")
+        if nbytes > self.unannounced_bytes:
+            return "refused", ("unannounced_dropped", f"{robot_id} is held by no session and its {tag} is too large")
+        self.pending.setdefault(robot_id, deque()).append((self.clock(), tag, message, source, nbytes))
+        self.pending_bytes += nbytes
+        dropped = self._drop_pending(lambda since: self.pending_bytes > self.unannounced_bytes)
+        if dropped:
+            return "held", ("unannounced_dropped", f"{dropped} message(s) of robot ids no session holds went (over "
+                            f"{self.unannounced_bytes / 2**20:g} MB)", dropped)
+        return "held", None
+
+    def expire_pending(self) -> int:
+        """Drop what waited longer than ``unannounced_s`` for a session to hold its robot id; how many went."""
+        horizon = self.clock() - self.unannounced_s
+        return self._drop_pending(lambda since: since < horizon)
+
+    def _drop_pending(self, drop: Callable[[float], bool]) -> int:
+        """Drop the oldest waiting messages while ``drop(their arrival)`` holds; counted as ``unannounced_dropped``."""
+        dropped = 0
+        while self.pending:
+            rid, queue = min(self.pending.items(), key=lambda item: item[1][0][0])
+            if not drop(queue[0][0]):
+                break
+            self.pending_bytes -= queue.popleft()[4]
+            dropped += 1
+            if not queue:
+                del self.pending[rid]
+        self.counts["unannounced_dropped"] += dropped
+        return dropped
+
+    def pending_count(self) -> int:
+        return sum(len(queue) for queue in self.pending.values())
 
     # ------------------------------------------------------------ announcements
     def on_info(self, key_robot_id: str, info: RobotInfo) -> tuple[bool, tuple[str, str] | None]:
@@ -186,11 +307,21 @@ class Roster:
         if key_robot_id in self.refilling and last >= 0 and message.seq > last + 1:
             self.parked.setdefault((key_robot_id, stream), {})[message.seq] = (message, source)
             return arrival  # past a gap that the robot's history may still fill: it waits (refilled)
-        missing_before = self.tracker.missing(key_robot_id)
-        verdict = self.tracker.check(key_robot_id, stream, message.seq, message.stamp, source)
+        info = member.info
+        rate = None if info is None else (info.odom_rate_hz if stream == "odom" else info.scan_rate_hz)
+        verdict = self.tracker.classify(key_robot_id, stream, message.seq, message.stamp, rate,
+                                        None if info is None else info.stamp)
         if verdict is not Verdict.ACCEPT:
-            arrival.refused = (verdict.value, f"{key_robot_id}/{stream} seq {message.seq}")
+            arrival.refused = (verdict.value, f"{key_robot_id}/{stream} seq {message.seq} stamp {message.stamp:g} "
+                               f"after seq {last} stamp {self.tracker.last_stamp(key_robot_id, stream)}")
             return arrival
+        if stream == "odom":
+            arrival.refused = odometry_doubt(message, info, self.tracker.last_stamp(key_robot_id, stream),
+                                             message.seq == last + 1, self.dt_tolerance_s)
+            if arrival.refused:
+                return arrival
+        missing_before = self.tracker.missing(key_robot_id)
+        self.tracker.commit(key_robot_id, stream, message.seq, message.stamp, source)
         arrival.gap = self.tracker.missing(key_robot_id) - missing_before
         if stream == "odom" and message.seq > 0 and self.tracker.received(key_robot_id, "odom") == 1:
             arrival.late = True

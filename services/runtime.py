@@ -1,7 +1,9 @@
 """The thin asyncio shell every service runs in (DESIGN §1).
 
-Zenoh callbacks only hand ``(tag, key, payload, arrival time)`` to an asyncio
-queue with ``loop.call_soon_threadsafe``; the numeric core runs in the
+Zenoh callbacks only hand ``(tag, key, payload, arrival time, source)`` to the
+service's :class:`~services.intake.Intake` (bounded in bytes, per-kind size
+limits checked before anything decodes, one lane per robot session taken in
+turn, so a flood only delays its own lane); the numeric core runs in the
 service's handler, off the callback thread. The shell counts messages in,
 rejections by reason and handling latency, publishes :class:`ServiceStats`
 on ``{prefix}/{service}/stats`` and stops cleanly on SIGINT/SIGTERM, closing
@@ -11,9 +13,10 @@ A service subclasses :class:`ServiceShell`, declares its subscriptions and
 queryables in :meth:`setup`, handles items in :meth:`handle`, and may run
 periodic work in :meth:`tick`. A service fed by robots calls
 :meth:`follow_robots` in its setup: the shell then subscribes every robot's
-RobotInfo, odometry and scans and their liveliness, keeps the membership in
-one :class:`~services.roster.Roster` (asking a robot for its RobotInfo when
-it appears, recognising a new run), hands the admitted robots' events to the
+RobotInfo, odometry and scans and their session tokens, keeps the membership
+in one :class:`~services.roster.Roster` (taking a robot's messages only from
+the session that owns its id, asking a robot for its RobotInfo when it
+appears, recognising a new run), hands the admitted robots' events to the
 service in stamp order across every stream (a :class:`~services.roster.ReorderBuffer`,
 ``reorder_window_s``), and calls the service's hooks :meth:`robot_announced`,
 :meth:`robot_event`, :meth:`robot_new_run`, :meth:`robot_joined_late`,
@@ -45,10 +48,12 @@ from schemas.codec import DecodeError, decode
 from schemas.config import FleetSettings
 from schemas.keys import Keys
 from schemas.messages import Odometry, RobotInfo, Scan, ServiceStats
-from schemas.transport import ConnectError, StreamPublisher, history_query, open_session
+from schemas.streams import StreamLimits
+from schemas.transport import ConnectError, StreamPublisher, history_query, open_session, replier_zid, sample_source
 from services import compiled
 from services.checkpoint import CheckpointStore, encode_checkpoint
-from services.roster import ReorderBuffer, Roster, StreamEvent
+from services.intake import Intake
+from services.roster import ReorderBuffer, Roster, StreamEvent, Takeover
 
 ROBOT_TAGS = frozenset({"alive", "gone", "info", "odom", "scan", "refilled"})
 
@@ -74,7 +79,11 @@ class ServiceShell:
         self._started = time.monotonic()
         self._stop: asyncio.Event | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
-        self._queue: asyncio.Queue | None = None
+        self._wake: asyncio.Event | None = None
+        kb = 1024
+        self.intake = Intake(int(settings.lane_mb * 2**20), int(settings.queue_mb * 2**20),
+                             {"scan": settings.max_scan_kb * kb, "odom": settings.max_message_kb * kb,
+                              "info": settings.max_message_kb * kb}, on_first=self._wake_up)
         self.session: zenoh.Session | None = None
         self._declared: list[Any] = []
         self.roster: Roster | None = None
@@ -150,12 +159,17 @@ class ServiceShell:
 
     # ------------------------------------------------------------ robots
     def follow_robots(self) -> None:
-        """Subscribe every robot's info, odometry and scans and their liveliness; membership in :attr:`roster`."""
+        """Subscribe every robot's info, odometry and scans and their session tokens; membership in :attr:`roster`."""
         assert self.session is not None
         if self.roster is None:
             self.roster = Roster()
-        self.roster.waiting_bytes = int(self.settings.waiting_mb * 2**20)
-        self.roster.info_timeout_s = self.settings.info_timeout_s
+        settings, roster = self.settings, self.roster
+        roster.waiting_bytes = int(settings.waiting_mb * 2**20)
+        roster.info_timeout_s = settings.info_timeout_s
+        roster.unannounced_bytes = int(settings.unannounced_mb * 2**20)
+        roster.unannounced_s = settings.unannounced_s
+        roster.dt_tolerance_s = settings.dt_tolerance_s
+        roster.tracker.limits = StreamLimits(max_stamp_jump_s=settings.max_stamp_jump_s)
         self.subscribe(self.keys.all_robot_stream("info"), "info", recover=False)
         self.subscribe(self.keys.all_robot_stream("odom"), "odom")
         self.subscribe(self.keys.all_robot_stream("scan"), "scan")
@@ -163,7 +177,8 @@ class ServiceShell:
         def on_token(sample: zenoh.Sample) -> None:
             self.enqueue("alive" if sample.kind == zenoh.SampleKind.PUT else "gone", str(sample.key_expr), b"")
 
-        self._declared.append(self.session.liveliness().declare_subscriber(self.keys.alive_any, on_token, history=True))
+        self._declared.append(self.session.liveliness().declare_subscriber(self.keys.session_tokens_any, on_token,
+                                                                           history=True))
         if self.roster.resumed:
             self.refill_from_robots()
 
@@ -173,7 +188,7 @@ class ServiceShell:
 
         def on_reply(reply: zenoh.Reply) -> None:
             if reply.ok is not None:
-                self.enqueue("info", str(reply.ok.key_expr), reply.ok.payload.to_bytes())
+                self.enqueue("info", str(reply.ok.key_expr), reply.ok.payload.to_bytes(), replier_zid(reply))
 
         try:
             self.session.get(self.keys.info(robot_id), on_reply, timeout=self.settings.info_timeout_s)
@@ -229,36 +244,67 @@ class ServiceShell:
             self.robot_lost_odometry(robot_id)
 
     async def _robot_item(self, tag: str, key: str, payload: bytes, source: str | None = None) -> None:
+        roster = self.roster
+        if tag in ("alive", "gone"):
+            token = self.keys.parse_session_token(key)
+            if token is None:
+                self.reject("bad_key", key)
+            elif tag == "alive":
+                takeover, refused = roster.on_token(*token)
+                if refused:
+                    self.reject(*refused)
+                await self._take_over(token[0], takeover)
+            else:
+                takeover, left = roster.on_token_gone(*token)
+                if left:
+                    log.info("%s: robot %s left (its state stays, for a return after a link cut)", self.name, token[0])
+                    self.robot_left(token[0])
+                    await self.release_events()
+                await self._take_over(token[0], takeover)
+            return
         parsed = self.keys.parse_robot_key(key)
         if parsed is None:
             self.reject("bad_key", key)
             return
-        rid, roster = parsed[0], self.roster
-        if tag == "alive":
-            if roster.on_alive(rid):
-                self.ask_info(rid)
-        elif tag == "gone":
-            roster.on_gone(rid)
-            log.info("%s: robot %s left (its state stays, for a return after a link cut)", self.name, rid)
-            self.robot_left(rid)
-            await self.release_events()
-        elif tag == "info":
-            info = decode(payload, RobotInfo)
-            announced, refused = roster.on_info(rid, info)
+        rid = parsed[0]
+        if tag == "refilled":
+            for arrival, stream in roster.refilled(rid):
+                await self._take(rid, stream, arrival)
+            return
+        message = decode(payload, RobotInfo if tag == "info" else Odometry if tag == "odom" else Scan)
+        whose, refused = roster.identify(rid, tag, message, source, len(payload))
+        if refused:
+            self.reject(*refused)
+        if whose == "own":
+            await self._owned_item(rid, tag, message, source)
+
+    async def _take_over(self, rid: str, takeover: Takeover | None) -> None:
+        """A session now owns robot ``rid``: take what it sent while no session held the id."""
+        if takeover is None:
+            return
+        if takeover.not_owner:
+            self.rejected["not_owner"] += takeover.not_owner
+        if takeover.ask_info:
+            self.ask_info(rid)
+        for tag, message, source in takeover.take:
+            await self._owned_item(rid, tag, message, source)
+
+    async def _owned_item(self, rid: str, tag: str, message, source: str | None) -> None:
+        """A RobotInfo, odometry or scan from the session that owns ``rid``."""
+        roster = self.roster
+        if tag == "info":
+            announced, refused = roster.on_info(rid, message)
             if refused:
                 self.reject(*refused)
             elif announced:
-                log.info("%s: robot %s announced (%s, start pose %s)", self.name, rid, info.source,
-                         "known" if info.start_pose is not None else "unknown")
-                await self.robot_announced(info)
-        elif tag == "refilled":
-            for arrival, stream in roster.refilled(rid):
-                await self._take(rid, stream, arrival)
-        else:
-            arrival = roster.on_stream(rid, tag, decode(payload, Odometry if tag == "odom" else Scan), source)
-            await self._take(rid, tag, arrival)
-            for follower in roster.unparked(rid, tag):
-                await self._take(rid, tag, follower)
+                log.info("%s: robot %s announced (%s, start pose %s)", self.name, rid, message.source,
+                         "known" if message.start_pose is not None else "unknown")
+                await self.robot_announced(message)
+            return
+        arrival = roster.on_stream(rid, tag, message, source)
+        await self._take(rid, tag, arrival)
+        for follower in roster.unparked(rid, tag):
+            await self._take(rid, tag, follower)
 
     async def _take(self, rid: str, stream: str, arrival) -> None:
         """Act on what the roster made of one stream message (:class:`~services.roster.Arrival`)."""
@@ -289,10 +335,10 @@ class ServiceShell:
         """Restored from a checkpoint: ask every robot the roster knows for the odometry and scans it kept, so that
         what came after the checkpoint arrives whole even when the caches' history misses some of it at
         subscription; messages past a gap wait (:meth:`Roster.refill`) until the answer is in."""
-        def on_payload(reply_key: str, payload: bytes) -> None:
+        def on_payload(reply_key: str, payload: bytes, replier: str | None) -> None:
             parsed = self.keys.parse_robot_key(reply_key)
             if parsed is not None and parsed[1] in ("odom", "scan"):
-                self.enqueue(parsed[1], reply_key, payload)
+                self.enqueue(parsed[1], reply_key, payload, replier)
 
         timeout_s = self.reorder.recovery_window_s
         for rid in sorted(self.roster.members):
@@ -332,26 +378,32 @@ class ServiceShell:
         self._declared.append(subscriber)
 
     def _enqueuer(self, tag: str):
-        loop, queue = self._loop, self._queue
+        intake, limit = self.intake, self.intake.limits.get(tag)
 
         def callback(sample: zenoh.Sample) -> None:
-            source = sample.source_info.source_id.zid if sample.source_info is not None else None
-            item = (tag, str(sample.key_expr), sample.payload.to_bytes(), time.perf_counter(),
-                    None if source is None else str(source))
-            try:
-                loop.call_soon_threadsafe(queue.put_nowait, item)
-            except RuntimeError:
-                pass  # the loop is closing: the service is stopping
+            nbytes = len(sample.payload)
+            if limit is not None and nbytes > limit:  # refused before it is even copied
+                intake.put(tag, tag, None, nbytes)
+                return
+            self.enqueue(tag, str(sample.key_expr), sample.payload.to_bytes(), sample_source(sample))
 
         return callback
 
-    def enqueue(self, tag: str, key: str, payload: bytes) -> None:
-        """Queue an item from any thread (liveliness callbacks, queries...)."""
-        if self._loop is not None and self._queue is not None:
+    def enqueue(self, tag: str, key: str, payload, source: str | None = None) -> None:
+        """Queue an item from any thread (subscriptions, liveliness, replies, queries...): a robot's messages in the
+        lane of (robot, publishing session), anything else in the lane of its tag; counted when refused."""
+        head = f"{self.settings.prefix}/robots/"
+        lane = (key[len(head):].split("/", 1)[0], source) if tag in ROBOT_TAGS and key.startswith(head) else tag
+        nbytes = len(payload) if isinstance(payload, (bytes, bytearray)) else 0
+        self.intake.put(tag, lane, (tag, key, payload, time.perf_counter(), source), nbytes)
+
+    def _wake_up(self) -> None:
+        """The intake was empty and got an item: wake the consumer (from any thread)."""
+        if self._loop is not None and self._wake is not None:
             try:
-                self._loop.call_soon_threadsafe(self._queue.put_nowait, (tag, key, payload, time.perf_counter(), None))
+                self._loop.call_soon_threadsafe(self._wake.set)
             except RuntimeError:
-                pass
+                pass  # the loop is closing: the service is stopping
 
     def publisher(self, key: str) -> StreamPublisher:
         """A publisher of the service's output; unless ``publisher_cache`` says otherwise it caches its latest
@@ -362,9 +414,9 @@ class ServiceShell:
         self._declared.append(pub)
         return pub
 
-    def reject(self, reason: str, detail: str = "") -> None:
-        """Count a rejected message by reason (and log the first few of each)."""
-        self.rejected[reason] += 1
+    def reject(self, reason: str, detail: str = "", count: int = 1) -> None:
+        """Count ``count`` rejected messages by reason (and log the first few of each)."""
+        self.rejected[reason] += count
         if self.rejected[reason] <= 3:
             log.warning("%s rejected a message (%s)%s", self.name, reason, f": {detail}" if detail else "")
 
@@ -405,7 +457,11 @@ class ServiceShell:
 
     def stats(self) -> ServiceStats:
         lat = np.asarray(self._latencies_ms) if self._latencies_ms else np.zeros(1)
+        self.rejected.update(self.intake.take_refused())
+        self.extra["intake_bytes"] = float(self.intake.held_bytes)
+        self.extra["intake_peak_bytes"] = float(self.intake.peak_bytes)
         if self.roster is not None:
+            self.extra["unannounced_waiting"] = float(self.roster.pending_count())
             self.extra.update({k: float(v) for k, v in self.roster.counts.items()})
             self.extra["missing"] = float(self.roster.missing())
             self.extra["waiting"] = float(self.roster.waiting_count())
@@ -422,7 +478,7 @@ class ServiceShell:
             published=self.published,
             latency_ms_median=float(np.median(lat)),
             latency_ms_p99=float(np.percentile(lat, 99)),
-            queue_depth=self._queue.qsize() if self._queue else 0,
+            queue_depth=len(self.intake),
             extra=dict(self.extra),
         )
 
@@ -431,10 +487,15 @@ class ServiceShell:
             self._loop.call_soon_threadsafe(self._stop.set)
 
     async def _consume(self) -> None:
-        assert self._queue is not None
+        assert self._wake is not None
         while True:
-            await asyncio.sleep(0)  # a non-empty queue never suspends: yield so stop, ticks and stats still run
-            tag, key, payload, arrived, source = await self._queue.get()
+            await asyncio.sleep(0)  # a non-empty intake never suspends: yield so stop, ticks and stats still run
+            self._wake.clear()
+            item = self.intake.get()
+            if item is None:
+                await self._wake.wait()
+                continue
+            tag, key, payload, arrived, source = item
             self.messages_in[tag] += 1
             try:
                 if self.roster is not None and tag in ROBOT_TAGS:
@@ -457,6 +518,11 @@ class ServiceShell:
                 log.exception("%s: periodic work failed", self.name)
 
     async def _publish_stats(self) -> None:
+        if self.roster is not None:
+            dropped = self.roster.expire_pending()
+            if dropped:
+                self.reject("unannounced_dropped", f"{dropped} message(s) of robot ids no session held for "
+                            f"{self.roster.unannounced_s:g} s", dropped)
         self._stats_pub.put(self.stats())
 
     def _install_signal_handlers(self) -> dict:
@@ -485,7 +551,7 @@ class ServiceShell:
     async def run(self, duration: float | None = None) -> None:
         """Open the session, set up, consume until a signal (or ``duration``), close."""
         self._loop = asyncio.get_running_loop()
-        self._queue = asyncio.Queue()
+        self._wake = asyncio.Event()
         self._stop = asyncio.Event()
         previous_handlers = self._install_signal_handlers()
         if self.uses_kernels:

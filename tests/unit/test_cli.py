@@ -68,7 +68,7 @@ def _settings_classes() -> dict[str, type]:
             "demo": config.DemoSettings, "run": config.RunSettings, "evaluate": config.EvaluateSettings,
             "assoc": config.AssocSettings, "central": config.CentralSettings, "dslam": config.DslamSettings,
             "mcl": config.MclSettings, "viz": config.VizSettings, "record": config.RecordSettings,
-            "replay": config.ReplaySettings}
+            "replay": config.ReplaySettings, "world": config.WorldSettings}
 
 
 @pytest.mark.parametrize("command", list(COMMANDS))
@@ -116,3 +116,34 @@ def test_demo_problems_flag_lagging_services_lost_messages_and_unlocalized_robot
     healthy = {**summary, "metrics": {}, "monitor": {**summary["monitor"], "services": {"central:a": stats(2.0, 20.0, 0, 200, 200)},
                                                       "robots": {"r1": summary["monitor"]["robots"]["r1"]}}}
     assert problems(healthy) == []
+
+
+def test_the_router_gives_a_user_to_every_default_robot_and_service_and_refuses_bad_ones(capsys, tmp_path):
+    from services.credentials import DEFAULT_ROBOTS, DEFAULT_SERVICES, format_services, parse_services
+
+    fields = config.RouterSettings.model_fields
+    assert fields["robot_users"].default == ",".join(DEFAULT_ROBOTS)
+    assert parse_services(fields["service_users"].default) == DEFAULT_SERVICES
+    assert parse_services(format_services(DEFAULT_SERVICES)) == DEFAULT_SERVICES
+    assert cli_main(["router", "--secrets-dir", str(tmp_path), "--router-config", "x.json5"]) == 2
+    assert "give one" in one_error_line(capsys)
+    assert cli_main(["router", "--robot-users", "r1,bad:id"]) == 2
+    assert one_error_line(capsys).startswith("fleetslam router: error: --robot-users:")
+    assert cli_main(["router", "--secrets-dir", str(tmp_path), "--robot-users", "r1,world"]) == 2
+    assert "given twice" in capsys.readouterr().err and not list(tmp_path.iterdir())
+
+
+def test_credentials_are_made_once_and_kept(tmp_path):
+    from services.credentials import secure_folder
+
+    config_path = secure_folder(tmp_path / "s", "fleet", ["r1"], {"central": ("central",)})
+    first = {p.name: p.read_text() for p in (tmp_path / "s").glob("*.password")}
+    assert set(first) == {"r1.password", "central.password", "world.password"}
+    assert len(set(first.values())) == 3 and all(len(v.strip()) >= 32 for v in first.values())
+    secure_folder(tmp_path / "s", "fleet", ["r1", "r2"], {"central": ("central",)})
+    again = {p.name: p.read_text() for p in (tmp_path / "s").glob("*.password")}
+    assert {k: again[k] for k in first} == first and "r2.password" in again
+    users = dict(line.split(":", 1) for line in (tmp_path / "s" / "users.txt").read_text().split())
+    assert users == {name.removesuffix(".password"): text.strip() for name, text in again.items()}
+    assert str((tmp_path / "s" / "users.txt").resolve()) in config_path.read_text()
+    assert not list((tmp_path / "s").glob("*.part"))

@@ -34,7 +34,8 @@ def scan(seq, rid="r1"):
 def test_messages_wait_for_the_announcement_and_flow_in_order_once_admitted():
     clock = Clock()
     roster = Roster(waiting_bytes=1 << 20, info_timeout_s=2.0, clock=clock)
-    assert roster.on_alive("r1") is True  # ask for its RobotInfo at once
+    takeover, refused = roster.on_token("r1", "s1")
+    assert takeover.ask_info is True and refused is None  # its session holds the id: ask for its RobotInfo at once
     first = roster.on_stream("r1", "odom", odom(0))
     assert first.event is None and first.refused is None and first.ask_info is False  # asked a moment ago
     clock.now = 2.5
@@ -97,7 +98,7 @@ def test_after_resuming_what_the_caches_send_again_is_already_held_not_refused()
     import pickle
 
     roster = Roster()
-    roster.on_alive("r1")
+    roster.on_token("r1", "s1")
     roster.on_info("r1", info())
     roster.admit("r1")
     for k in range(6):
@@ -115,7 +116,7 @@ def test_after_resuming_what_the_caches_send_again_is_already_held_not_refused()
 
 def test_a_new_run_after_leaving_is_told_and_a_return_after_a_link_cut_is_not():
     roster = Roster()
-    roster.on_alive("r1")
+    roster.on_token("r1", "s1")
     roster.on_info("r1", info())
     roster.admit("r1")
     for k in range(3):
@@ -266,3 +267,64 @@ def test_a_gap_filled_while_refilling_releases_the_parked_messages_at_once():
     first = roster.on_stream("r1", "scan", scan(1))
     assert first.event.seq == 1 and [a.event.seq for a in roster.unparked("r1", "scan")] == [2, 3]
     assert roster.missing() == 0 and roster.refilled("r1") == []
+
+
+def test_a_robot_id_belongs_to_the_first_session_holding_its_token():
+    roster = Roster()
+    takeover, refused = roster.on_token("r1", "real")
+    assert takeover is not None and refused is None and roster.owner("r1") == "real"
+    takeover, refused = roster.on_token("r1", "forger")
+    assert takeover is None and refused[0] == "second_announcer" and roster.owner("r1") == "real"
+    assert roster.identify("r1", "odom", odom(0), "real", 100) == ("own", None)
+    whose, refused = roster.identify("r1", "info", info(), "forger", 100)
+    assert whose == "refused" and refused[0] == "not_owner"
+    assert roster.identify("r1", "odom", odom(1), None, 100)[1][0] == "no_source"
+    takeover, left = roster.on_token_gone("r1", "real")  # the owner went while the forger holds a token too
+    assert not left and roster.owner("r1") == "forger" and takeover is not None
+
+
+def test_messages_of_an_id_no_session_holds_wait_within_a_budget_then_go_counted():
+    clock = Clock()
+    roster = Roster(clock=clock, unannounced_bytes=1000, unannounced_s=30.0)
+    for k in range(3):
+        assert roster.identify("r9", "odom", odom(k, "r9"), "s9", 300) == ("held", None)
+    whose, refused = roster.identify("r9", "odom", odom(3, "r9"), "s9", 300)
+    assert whose == "held" and refused[0] == "unannounced_dropped" and refused[2] == 1  # the oldest went
+    roster.identify("r8", "odom", odom(0, "r8"), "s8", 10)
+    roster.identify("r8", "odom", odom(1, "r8"), "other", 10)
+    takeover, _ = roster.on_token("r8", "s8")  # r8's session appears: what it sent is taken, the rest refused
+    assert [m.seq for _, m, _ in takeover.take] == [0] and takeover.not_owner == 1
+    clock.now = 31.0
+    assert roster.expire_pending() == 3 and roster.pending_count() == 0 and roster.pending_bytes == 0
+    assert roster.counts["unannounced_dropped"] == 4
+    assert roster.identify("r7", "scan", scan(0, "r7"), "s7", 2000)[1][0] == "unannounced_dropped"  # over the budget
+
+
+def test_the_tail_of_a_robot_whose_token_went_is_still_its_own_and_a_checkpoint_resumes_ownership():
+    import pickle
+
+    roster = Roster()
+    roster.on_token("r1", "s1")
+    roster.on_token_gone("r1", "s1")
+    assert roster.identify("r1", "scan", scan(5), "s1", 100) == ("own", None)  # its last messages, recovered late
+    assert roster.identify("r1", "scan", scan(5), "s2", 100)[0] == "held"  # another session: wait for its token
+    roster.on_token("r1", "s1")
+    restored = pickle.loads(pickle.dumps(roster))
+    restored.resume()
+    assert restored.owner("r1") is None and restored.identify("r1", "odom", odom(0), "s1", 10) == ("own", None)
+
+
+def test_plausibility_uses_the_announced_rate_start_and_limits():
+    roster = Roster()
+    roster.on_info("r1", info().model_copy(update={"max_speed": 0.5, "max_turn_rate": 0.5}))
+    roster.admit("r1")
+    assert roster.on_stream("r1", "odom", odom(0)).event is not None
+    forged = Odometry(robot_id="r1", seq=1, stamp=0.1, dt=10.0, control=np.array([2.0, 0.0]),
+                      control_cov=np.eye(2) * 1e-3)
+    assert roster.on_stream("r1", "odom", forged).refused[0] == "dt_mismatch"
+    fast = Odometry(robot_id="r1", seq=1, stamp=0.1, dt=0.1, control=np.array([2.0, 0.0]), control_cov=np.eye(2))
+    assert roster.on_stream("r1", "odom", fast).refused[0] == "control_limit"
+    assert roster.on_stream("r1", "odom", odom(2**62, stamp=0.1)).refused[0] == "seq_jump"
+    far = scan(0).model_copy(update={"seq": 10**6, "stamp": 1.0})  # its first scan, a million seqs after the start
+    assert roster.on_stream("r1", "scan", far).refused[0] == "seq_jump"
+    assert roster.on_stream("r1", "odom", odom(1)).event is not None and roster.missing() == 0

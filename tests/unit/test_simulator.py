@@ -92,3 +92,14 @@ def test_clutter_and_missed_detections():
 def test_unknown_start_hides_the_start_pose_but_keeps_truth():
     log = simulate("cross", seed=0, duration=1.0, unknown_start=True).robots["r1"]
     assert log.info.start_pose is None and log.truth_pose.shape[0] > 0
+
+
+def test_a_robot_announces_motion_limits_that_its_own_odometry_keeps():
+    from robots.process import load_robot
+    from schemas.config import RobotSettings
+
+    robot, _ = load_robot(RobotSettings(world="arena", duration=20.0, seed=3))
+    info = robot.info
+    assert info.max_speed is not None and info.max_turn_rate is not None and info.max_steering is None
+    assert np.abs(robot.odom_control[:, 0]).max() <= info.max_speed < 2 * np.abs(robot.odom_control[:, 0]).max()
+    assert np.abs(robot.odom_control[:, 1]).max() <= info.max_turn_rate
