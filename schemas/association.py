@@ -32,7 +32,10 @@ An :class:`AssociationReply` gives per measurement a landmark index, or
 landmark whether it was missed, the total cost Σ c_nm of the chosen pairs
 (the all-dummy hypothesis costs 0), the solve time and the method used;
 IHGR adds its first LP objective (a lower bound) and the gap of its rounded
-solution above it.
+solution above it. A solve cut by the service's time budget answers with its
+best so far (``truncated``); a request the service will not solve gets
+``reply_err("reason: detail")`` (``invalid``, ``bad_covariance``,
+``too_large``, ``busy``, ``expired``, ``deadline``, ``solve_error``...).
 """
 
 from __future__ import annotations
@@ -134,4 +137,5 @@ class AssociationReply(Message):
     gap: float | None = Field(None, description="IHGR: cost − lp_objective (≥ 0; 0 means provably optimal)")
     lp_solves: int = Field(0, ge=0, description="IHGR: LPs solved")
     joint_nis: float | None = Field(None, description="JCBB: joint NIS of the chosen hypothesis")
-    truncated: bool = Field(False, description="JCBB: the search budget ran out (best found so far)")
+    truncated: bool = Field(False, description="the search budget (JCBB's nodes, or the service's time budget for "
+                            "greedy, IHGR and JCBB) ran out: the best found so far")

@@ -5,7 +5,11 @@ frame) and the sensor that took it; the MCL service draws poses from the scan
 and its current map (sensor resetting), weighs them by the whole scan, clusters
 them and answers with every significant hypothesis in a
 :class:`LocalizeReply`. A request that names a robot the service tracks and
-carries no scan is answered with that robot's current belief instead.
+carries no scan is answered with that robot's current belief instead. A
+request the service will not solve gets ``reply_err("reason: detail")``:
+``invalid`` (a sensor noise covariance that is not positive definite),
+``too_large`` (more work than the service's limits), ``busy`` (its queue is
+full), ``expired`` or ``deadline`` (out of time), ``no_map``, ``no_sensor``.
 """
 
 from __future__ import annotations
@@ -26,7 +30,8 @@ class LocalizeRequest(Message):
     ranges: Array(None, nonnegative=True) = Field(default_factory=lambda: np.zeros(0))
     bearings: Array(None) = Field(default_factory=lambda: np.zeros(0))
     sensor: SensorSpec | None = Field(None, description="the sensor that took the scan (else the tracked robot's)")
-    particles: int | None = Field(None, ge=10, le=50_000, description="sample size (default: the service's setting)")
+    particles: int | None = Field(None, ge=10, le=50_000, description="sample size (default: the service's setting; "
+                                  "above its max_localize_particles the request is refused)")
     seed: int = Field(0, ge=0, description="seed of the draw")
 
     @model_validator(mode="after")

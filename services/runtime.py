@@ -432,21 +432,16 @@ class ServiceShell:
     def reject_decode(self, error: DecodeError) -> None:
         self.reject(error.reason, error.detail)
 
-    def refuse(self, query: zenoh.Query, reason: str, detail: str) -> None:
-        """Count a refused query by reason and answer it with ``reply_err("reason: detail")``."""
-        self.reject(reason, detail)
-        query.reply_err(f"{reason}: {detail}".encode())
-
-    def decode_request(self, query: zenoh.Query, model):
-        """The query's payload decoded as ``model``, or None after refusing the query with the reason."""
-        if query.payload is None:
-            self.refuse(query, "empty", f"the query carries no {model.__name__} payload")
-            return None
+    def call_in_loop(self, work, *args) -> None:
+        """Run ``work(*args)`` in the service's loop, where its state and counters live, from any thread (at once
+        when no loop runs: tests of a service's parts); nothing when the loop is closing."""
+        if self._loop is None:
+            work(*args)
+            return
         try:
-            return decode(query.payload.to_bytes(), model)
-        except DecodeError as error:
-            self.refuse(query, error.reason, error.detail)
-            return None
+            self._loop.call_soon_threadsafe(work, *args)
+        except RuntimeError:
+            pass  # the loop is closing: the service is stopping
 
     def put_timing(self, name: str, values_ms) -> None:
         """``{name}_median`` and ``{name}_p99`` of recent durations into the stats' extra (nothing while empty)."""

@@ -3,9 +3,13 @@
 :func:`query_associate` sends one :class:`AssociationRequest` to
 ``{prefix}/assoc/{method}`` with target ``BEST_MATCHING`` (one instance
 answers) and returns the :class:`AssociationReply`. A refusal raises
-:class:`AssociationRefused` (with the service's reason); no answer within
-``timeout`` raises :class:`TimeoutError`, so that a caller can fall back to the
-in-process :func:`~services.association.core.associate`.
+:class:`AssociationRefused` (with the service's reason: ``busy``,
+``too_large``, ``deadline``...); no answer within ``timeout`` (Zenoh's own
+``Timeout`` error, which no replier sent) raises :class:`TimeoutError`, so
+that a caller can fall back to the in-process
+:func:`~services.association.core.associate`. The query tells the service
+how long it waits (selector parameter ``timeout_s``): the service drops it
+unsolved once the caller has given up, and cuts its solve to fit.
 
 :class:`AssociationClient` shares the load between several service
 instances: it follows their liveliness tokens and sends each request to the
@@ -51,10 +55,13 @@ def query_associate(
     """Associate one scan through the queryable (one ``instance``'s key if given); raise AssociationRefused or TimeoutError."""
     key = keys.assoc(method) if instance is None else instance_key(keys, method, instance)
     payload = request if isinstance(request, bytes) else encode(request)
-    replies = session.get(key, payload=payload, target=zenoh.QueryTarget.BEST_MATCHING, timeout=timeout)
+    selector = zenoh.Selector(key, {"timeout_s": f"{timeout:g}"})  # the service drops what we no longer wait for
+    replies = session.get(selector, payload=payload, target=zenoh.QueryTarget.BEST_MATCHING, timeout=timeout)
     for reply in replies:
         if reply.ok is not None:
             return decode(reply.ok.payload.to_bytes(), AssociationReply)
+        if reply.replier_id is None:  # Zenoh's own error (its timeout), not a service's answer
+            break
         text = reply.err.payload.to_bytes().decode(errors="replace")
         reason, _, detail = text.partition(": ")
         raise AssociationRefused(reason, detail)
@@ -87,7 +94,7 @@ class AssociationClient:
             return list(self._instances)
 
     def associate(self, method: str, request: AssociationRequest | bytes) -> AssociationReply:
-        """Ask the next live instance; if it does not answer in time, ask the public key once."""
+        """Ask the next live instance; if it does not answer in time or is busy, ask the public key once."""
         with self._lock:
             instance = self._instances[next(self._turn) % len(self._instances)] if self._instances else None
         if instance is not None:
@@ -95,6 +102,9 @@ class AssociationClient:
                 return query_associate(self.session, self.keys, method, request, self.timeout, instance)
             except TimeoutError:
                 pass
+            except AssociationRefused as refusal:
+                if refusal.reason != "busy":
+                    raise
         return query_associate(self.session, self.keys, method, request, self.timeout)
 
     def close(self) -> None:

@@ -14,6 +14,11 @@ queryable calls it too. Steps (paper 000 §II-III, DESIGN §4):
    the rest of the gate graph (separable over its connected components).
 6. Unassigned measurements become NEW when they lie outside every landmark's
    new-feature gate, CLUTTER otherwise.
+
+A time budget (``time_budget_s`` on an injected ``clock``) bounds a solve: the
+iterative solvers stop with their best so far (the reply says ``truncated``),
+and a solve with nothing to give raises AssociationError ``deadline``.
+:func:`query_cells` sizes a request before any of this is built.
 """
 
 from __future__ import annotations
@@ -185,7 +190,7 @@ def _isolated_pairs(gated: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarr
     return rows, cols, gated & ~isolated
 
 
-def _solve_exact(problem: Problem) -> tuple[np.ndarray, np.ndarray, dict]:
+def _solve_exact(problem: Problem, budget: solvers.Budget | None = None) -> tuple[np.ndarray, np.ndarray, dict]:
     """The optimum: isolated pairs taken when c < 0, everything else in one ``linear_sum_assignment``.
 
     The problem is separable over the gate graph's components, so solving
@@ -196,6 +201,8 @@ def _solve_exact(problem: Problem) -> tuple[np.ndarray, np.ndarray, dict]:
     take = problem.cost[single_rows, single_cols] < 0.0
     rows, cols = [single_rows[take]], [single_cols[take]]
     if rest.any():
+        if budget is not None and budget.spent():
+            raise solvers.DeadlineExceeded("exact: no time left for the assignment")
         union_rows, union_cols = np.flatnonzero(rest.any(1)), np.flatnonzero(rest.any(0))
         r, c = solvers.solve_exact(problem.cost[np.ix_(union_rows, union_cols)])
         rows.append(union_rows[r])
@@ -203,7 +210,8 @@ def _solve_exact(problem: Problem) -> tuple[np.ndarray, np.ndarray, dict]:
     return np.concatenate(rows).astype(np.int64), np.concatenate(cols).astype(np.int64), {}
 
 
-def _solve_ihgr(problem: Problem, tie_margin: float) -> tuple[np.ndarray, np.ndarray, dict]:
+def _solve_ihgr(problem: Problem, tie_margin: float, budget: solvers.Budget | None = None,
+                ) -> tuple[np.ndarray, np.ndarray, dict]:
     """Paper 000 §III: isolated pairs taken when c < 0, then IHGR on the rest of the gate graph.
 
     The LP is separable over the gate graph's components, so one LP over their
@@ -219,7 +227,7 @@ def _solve_ihgr(problem: Problem, tie_margin: float) -> tuple[np.ndarray, np.nda
     if components:  # an isolated pair's row and column gate nothing else: the union holds no isolated pair
         union_rows = np.sort(np.concatenate([comp_rows for comp_rows, _ in components]))
         union_cols = np.sort(np.concatenate([comp_cols for _, comp_cols in components]))
-        result = solvers.solve_ihgr(problem.cost[np.ix_(union_rows, union_cols)], tie_margin=tie_margin)
+        result = solvers.solve_ihgr(problem.cost[np.ix_(union_rows, union_cols)], tie_margin=tie_margin, budget=budget)
         lp_objective += result.lp_objective
         lp_solves += result.lp_solves
         rows.append(union_rows[result.rows])
@@ -228,22 +236,23 @@ def _solve_ihgr(problem: Problem, tie_margin: float) -> tuple[np.ndarray, np.nda
     return np.concatenate(rows).astype(np.int64), np.concatenate(cols).astype(np.int64), info
 
 
-def solve(problem: Problem, method: str, request: AssociationRequest) -> tuple[np.ndarray, np.ndarray, dict]:
-    """Run one concrete method on a built problem: (rows, cols, extra reply fields)."""
+def solve(problem: Problem, method: str, request: AssociationRequest, budget: solvers.Budget | None = None,
+          ) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Run one concrete method on a built problem: (rows, cols, extra reply fields), within ``budget``."""
     if method == "nn":
         rows, cols = solvers.solve_nn(problem.nis, problem.cost)
         return rows, cols, {}
     if method == "greedy":
-        rows, cols = solvers.solve_greedy(problem.nis, problem.cost)
+        rows, cols = solvers.solve_greedy(problem.nis, problem.cost, budget)
         return rows, cols, {}
     if method == "exact":
-        return _solve_exact(problem)
+        return _solve_exact(problem, budget)
     if method == "ihgr":
-        return _solve_ihgr(problem, request.ihgr_tie_margin)
+        return _solve_ihgr(problem, request.ihgr_tie_margin, budget)
     if method == "jcbb":
         result = solvers.solve_jcbb(
             problem.innovations, problem.gated, problem.nis, problem.joint_blocks, problem.noise,
-            request.gate_probability, request.jcbb_max_nodes,
+            request.gate_probability, request.jcbb_max_nodes, budget=budget,
         )
         return result.rows, result.cols, {"joint_nis": result.joint_nis, "truncated": result.truncated}
     raise AssociationError("unknown_method", f"{method!r}; choose from nn, greedy, ihgr, exact, jcbb, auto")
@@ -256,12 +265,41 @@ def choose_method(request: AssociationRequest, problem: Problem) -> str:
     return "jcbb" if correlated and gated_measurements <= request.auto_jcbb_max_measurements else "exact"
 
 
-def associate(request: AssociationRequest, method: str = "auto") -> AssociationReply:
-    """Associate one scan by ``method`` (nn, greedy, ihgr, exact, jcbb or auto) and build the reply."""
+def query_cells(request: AssociationRequest, method: str) -> int:
+    """The largest array ``method`` builds for ``request``, in cells: the M × N cost matrix, the (M + N)² matrix of
+    the exact solver (exact, auto), JCBB's 4N² joint-covariance blocks and its (2M)² Cholesky factor on top (jcbb,
+    auto), and the request's own ``joint_cov``. A service refuses a request above its limit before building
+    anything."""
+    m, n = request.size
+    cells = m * n
+    if method in ("exact", "auto"):
+        cells = max(cells, (m + n) ** 2)
+    if method in ("jcbb", "auto"):
+        cells = max(cells, m * n + 4 * n * n + 4 * m * m)
+    if request.joint_cov is not None:
+        cells = max(cells, int(request.joint_cov.size))
+    return cells
+
+
+def associate(request: AssociationRequest, method: str = "auto", time_budget_s: float | None = None,
+              clock: Callable[[], float] = time.perf_counter) -> AssociationReply:
+    """Associate one scan by ``method`` (nn, greedy, ihgr, exact, jcbb or auto) and build the reply.
+
+    With ``time_budget_s`` (seconds on ``clock``), a solve that runs out of time gives its best pairs so far
+    (``truncated``), or AssociationError ``deadline`` when it has none.
+    """
     started = time.perf_counter()
+    budget = solvers.Budget(time_budget_s, clock)
     problem = build_problem(request)
     concrete = choose_method(request, problem) if method == "auto" else method
-    rows, cols, extra = solve(problem, concrete, request)
+    try:
+        if budget.spent():
+            raise solvers.DeadlineExceeded(f"{time_budget_s:.3g} s spent building the problem")
+        rows, cols, extra = solve(problem, concrete, request, budget)
+    except solvers.DeadlineExceeded as exc:
+        raise AssociationError("deadline", str(exc)) from None
+    if budget.cut:
+        extra["truncated"] = True
     m, n = problem.cost.shape
     assignment = np.full(m, CLUTTER, np.int64)
     assignment[rows] = cols

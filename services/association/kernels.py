@@ -7,7 +7,9 @@ branch before the branch that leaves the measurement out, the joint NIS grown by
 of S_H one 2 × 2 Schur complement at a time, pruning by the χ² bound and by the number of pairings still
 possible. The recursion becomes a loop over depth: the factor, the whitened innovation and the pairings of
 the current branch live in arrays whose first 2k rows belong to the k pairings made so far, so a deeper
-branch never disturbs its ancestors' rows.
+branch never disturbs its ancestors' rows. As the whole state lives in arrays (:class:`JcbbState`), the search
+can stop after a slice of work and go on in the next call: the caller checks its time budget between slices
+(numba reads no clock, and a budget on an injected clock is one tests control).
 """
 
 from __future__ import annotations
@@ -51,33 +53,67 @@ def jcbb_candidates(gated, nis):
     return table, counts, order[:kept]
 
 
-@njit
+class JcbbState:
+    """Where a paused search stands: the current branch (factor, whitened innovation, pairings, per-depth cursors)
+    and the best pairings found so far. :func:`jcbb_search` takes it up again where it stopped."""
+
+    def __init__(self, depth_count: int):
+        size = 2 * depth_count
+        self.lower = np.zeros((size, size))
+        self.white = np.zeros(size)
+        self.pair_m = np.zeros(depth_count, np.int64)
+        self.pair_n = np.zeros(depth_count, np.int64)
+        self.d2_at = np.zeros(depth_count + 1)
+        self.k_at = np.zeros(depth_count + 1, np.int64)
+        self.cursor = np.zeros(depth_count + 1, np.int64)
+        self.skipped = np.zeros(depth_count + 1, np.bool_)
+        self.best_m = np.zeros(depth_count, np.int64)
+        self.best_n = np.zeros(depth_count, np.int64)
+        self.counters = np.array([0, 0, 1, 0], np.int64)  # depth, best pairings, nodes, truncated
+        self.best_d2 = np.array([np.inf])
+
+    def arrays(self) -> tuple:
+        return (self.lower, self.white, self.pair_m, self.pair_n, self.d2_at, self.k_at, self.cursor, self.skipped,
+                self.best_m, self.best_n, self.counters, self.best_d2)
+
+    def result(self) -> tuple:
+        """(pair measurement indices, pair landmark indices, pairings, joint NIS, truncated, nodes) of the best so far."""
+        count = int(self.counters[1])
+        return (self.best_m[:count].copy(), self.best_n[:count].copy(), count, float(self.best_d2[0]),
+                bool(self.counters[3]), int(self.counters[2]))
+
+
 def jcbb_kernel(innovations, joint_blocks, noise, candidates, counts, order, bounds, max_nodes):
-    """(pair measurement indices, pair landmark indices, pairings, joint NIS, truncated, nodes).
+    """(pair measurement indices, pair landmark indices, pairings, joint NIS, truncated, nodes): the whole search.
 
     ``candidates`` (M, C) lists each measurement's gated landmarks (``counts`` of them, best first),
     ``order`` the measurements to visit, ``bounds[k]`` the χ² bound of k + 1 pairings.
     """
+    state = JcbbState(order.shape[0])
+    jcbb_search(innovations, joint_blocks, noise, candidates, counts, order, bounds, max_nodes, *state.arrays(), 0)
+    return state.result()
+
+
+@njit
+def jcbb_search(innovations, joint_blocks, noise, candidates, counts, order, bounds, max_nodes, lower, white, pair_m,
+                pair_n, d2_at, k_at, cursor, skipped, best_m, best_n, counters, best_d2, work_limit):
+    """Search from the state held in the arrays (a :class:`JcbbState`) until the tree is done or ``max_nodes`` are
+    spent (True), or until ``work_limit`` units of work were done in this call (False; 0: no limit), the state then
+    saved for the next call. A unit is one multiply-add of a candidate's test, so a slice takes about as long
+    whatever the size of the branch: the caller checks its clock between slices."""
     depth_count = order.shape[0]
-    size = 2 * depth_count
-    lower = np.zeros((size, size))
-    white = np.zeros(size)
-    pair_m = np.zeros(depth_count, np.int64)
-    pair_n = np.zeros(depth_count, np.int64)
-    d2_at = np.zeros(depth_count + 1)
-    k_at = np.zeros(depth_count + 1, np.int64)
-    cursor = np.zeros(depth_count + 1, np.int64)
-    skipped = np.zeros(depth_count + 1, np.bool_)
-    best_m = np.zeros(depth_count, np.int64)
-    best_n = np.zeros(depth_count, np.int64)
-    best_count, best_d2 = 0, np.inf
-    nodes, truncated = 1, False
-    depth = 0
+    depth, best_count, nodes, truncated = counters[0], counters[1], counters[2], counters[3] != 0
+    best = best_d2[0]
+    work = 0
+    paused = False
     while depth >= 0:
+        if work_limit > 0 and work >= work_limit:
+            paused = True
+            break
         k = k_at[depth]
         if depth == depth_count:
-            if k > best_count or (k == best_count and d2_at[k] < best_d2):
-                best_count, best_d2 = k, d2_at[k]
+            if k > best_count or (k == best_count and d2_at[k] < best):
+                best_count, best = k, d2_at[k]
                 best_m[:k] = pair_m[:k]
                 best_n[:k] = pair_n[:k]
             depth -= 1
@@ -88,8 +124,12 @@ def jcbb_kernel(innovations, joint_blocks, noise, candidates, counts, order, bou
         m = order[depth]
         descended = False
         while cursor[depth] < counts[m]:
+            if work_limit > 0 and work >= work_limit:
+                paused = True
+                break
             n = candidates[m, cursor[depth]]
             cursor[depth] += 1
+            work += 8 * (k * k + k + 1)
             used = False
             for j in range(k):
                 if pair_n[j] == n:
@@ -129,7 +169,7 @@ def jcbb_kernel(innovations, joint_blocks, noise, candidates, counts, order, bou
                 truncated = True
             descended = True
             break
-        if truncated:
+        if paused or truncated:
             break
         if descended:
             continue
@@ -143,7 +183,9 @@ def jcbb_kernel(innovations, joint_blocks, noise, candidates, counts, order, bou
                 break
             continue
         depth -= 1
-    return best_m[:best_count].copy(), best_n[:best_count].copy(), best_count, best_d2, truncated, nodes
+    counters[0], counters[1], counters[2], counters[3] = depth, best_count, nodes, truncated
+    best_d2[0] = best
+    return not paused
 
 
 def warm_up() -> None:

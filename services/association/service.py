@@ -8,6 +8,20 @@ A bad request (undecodable, invalid, too large, not solvable) gets
 ``reply_err`` with ``"reason: detail"`` and is counted; the service keeps
 serving. Stats go to ``{prefix}/assoc/stats``.
 
+Queries are bounded (:class:`~services.query_pool.QueryPool`): a request is
+decoded and sized (:func:`~services.association.core.query_cells` against
+``max_query_cells``) on Zenoh's callback thread and refused at once when too
+large or when ``query_queue`` requests already wait (``busy``); the others
+are solved by ``query_workers`` threads within ``query_deadline_s``.
+
+A query on a wildcard (``{prefix}/assoc/**``, ``{prefix}/assoc/*``) reaches
+every queryable of an instance, but is solved and answered once per
+instance: by the default method ``auto`` (the first served method when
+``auto`` is not served) on the first key the wildcard names, public before
+instance keys; the reply's ``method`` and key say which. The other
+queryables let it go unanswered. A concrete key is answered by its method,
+as always.
+
 Several instances run side by side. Each declares its queryables *complete*
 on the public keys ``{prefix}/assoc/{method}`` (a ``BEST_MATCHING`` query is
 answered by exactly one instance; the router keeps choosing the same one while
@@ -23,7 +37,6 @@ from __future__ import annotations
 import argparse
 import logging
 import os
-import time
 import uuid
 
 import zenoh
@@ -32,24 +45,33 @@ from schemas.association import AssociationRequest
 from schemas.codec import encode
 from schemas.config import AssocSettings, add_settings_arguments, settings_from_args
 from services.association.client import instance_key, instances_key
-from services.association.core import AssociationError, associate
+from services.association.core import AssociationError, associate, query_cells
+from services.query_pool import QueryPool, QueryRefused, Solve, decode_query, is_wildcard
 from services.runtime import ServiceShell
 
 log = logging.getLogger(__name__)
 
+DEFAULT_METHOD = "auto"
+
 
 class AssocService(ServiceShell):
-    """The association queryable: decode, validate, :func:`associate`, encode, reply."""
+    """The association queryable: decode, validate, size, then :func:`associate` in a worker, encode, reply."""
 
     name = "assoc"
     uses_kernels = ("association",)
 
     def __init__(self, settings: AssocSettings, instance: str | None = None):
         super().__init__(settings, instance or f"assoc-{os.getpid()}-{uuid.uuid4().hex[:6]}")
+        self.settings: AssocSettings = settings
         self.methods = settings.methods.split(",")
-        self._solve_ms_total = 0.0
+        self.pool = QueryPool(self, settings.query_workers, settings.query_queue, settings.query_deadline_s,
+                              settings.query_nice)
+        self._wildcard_order: list[zenoh.KeyExpr] = []
 
     def setup(self, session: zenoh.Session) -> None:
+        first = sorted(self.methods, key=lambda method: method != DEFAULT_METHOD)
+        self._wildcard_order = [zenoh.KeyExpr(self.keys.assoc(method)) for method in first] + [
+            zenoh.KeyExpr(instance_key(self.keys, method, self.instance)) for method in first]
         for method in self.methods:
             for key in (self.keys.assoc(method), instance_key(self.keys, method, self.instance)):
                 queryable = session.declare_queryable(key, self._on_query(method, key), complete=self.settings.complete)
@@ -58,41 +80,52 @@ class AssocService(ServiceShell):
 
     def _on_query(self, method: str, key: str):
         def callback(query: zenoh.Query) -> None:
-            self.enqueue(method, key, query)  # the query object rides the queue; it is answered in handle()
+            if is_wildcard(query.key_expr) and not self.answers_wildcard(key, query.key_expr):
+                query.drop()  # another queryable of this instance answers it
+                return
+            self.pool.admit(query, method, lambda: self._prepare(method, key, query))
 
         return callback
 
-    async def handle(self, tag: str, key: str, query: zenoh.Query) -> None:
-        try:
-            self._answer(tag, key, query)
-        except Exception as exc:  # noqa: BLE001 - the client must hear back, and the service must go on
-            log.exception("assoc: %s failed", tag)
-            self.refuse(query, "internal_error", f"{type(exc).__name__}: {exc}")
-        finally:
-            query.drop()
+    def answers_wildcard(self, key: str, asked: zenoh.KeyExpr) -> bool:
+        """Whether the queryable on ``key`` is the one of this instance that answers the wildcard ``asked``: the
+        first of the default method's keys, then the other methods', public keys before the instance's."""
+        for candidate in self._wildcard_order:
+            if candidate.intersects(asked):
+                return str(candidate) == key
+        return False
 
-    def _answer(self, method: str, key: str, query: zenoh.Query) -> None:
-        request = self.decode_request(query, AssociationRequest)
-        if request is None:
-            return
+    def _prepare(self, method: str, key: str, query: zenoh.Query) -> Solve:
+        """Decode and size the request on the callback's thread (QueryRefused at once); the solve for a worker."""
+        request = decode_query(query, AssociationRequest)
+        s = self.settings
         m, n = request.size
-        if m > self.settings.max_measurements or n > self.settings.max_landmarks:
-            self.refuse(query, "too_large", f"{m} measurements × {n} landmarks exceeds "
-                         f"{self.settings.max_measurements} × {self.settings.max_landmarks}")
-            return
-        if request.jcbb_max_nodes > self.settings.max_jcbb_nodes:
-            request = request.model_copy(update={"jcbb_max_nodes": self.settings.max_jcbb_nodes})
-        started = time.perf_counter()
-        try:
-            reply = associate(request, method)
-        except AssociationError as error:
-            self.refuse(query, error.reason, error.detail)
-            return
-        self._solve_ms_total += (time.perf_counter() - started) * 1e3
-        query.reply(key, encode(reply))
-        self.published += 1
-        self.extra["replies"] = float(self.published)
-        self.extra["solve_ms_mean"] = self._solve_ms_total / self.published
+        if m > s.max_measurements or n > s.max_landmarks:
+            raise QueryRefused("too_large", f"{m} measurements × {n} landmarks exceeds "
+                               f"{s.max_measurements} × {s.max_landmarks}")
+        cells = query_cells(request, method)
+        if cells > s.max_query_cells:
+            raise QueryRefused("too_large", f"{m} measurements × {n} landmarks make {cells} cells for {method}, "
+                               f"above max_query_cells {s.max_query_cells}")
+        if request.jcbb_max_nodes > s.max_jcbb_nodes:
+            request = request.model_copy(update={"jcbb_max_nodes": s.max_jcbb_nodes})
+
+        def solve(budget_s: float) -> tuple[str, bytes]:
+            try:
+                reply = associate(request, method, time_budget_s=budget_s)
+            except AssociationError as error:
+                raise QueryRefused(error.reason, error.detail) from None
+            return key, encode(reply)
+
+        return solve
+
+    def stats(self):
+        self.pool.put_stats()
+        self.published = self.pool.replies
+        return super().stats()
+
+    def on_stop(self) -> None:
+        self.pool.close()
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

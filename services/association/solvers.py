@@ -16,11 +16,17 @@ index arrays ``(rows, cols)`` (measurement, landmark).
   the dummy-augmented square matrix.
 - :func:`solve_jcbb`: joint compatibility branch and bound (maximum number of
   jointly compatible pairings, then smallest joint NIS).
+
+The iterative solvers (greedy, IHGR, JCBB) take a :class:`Budget`, a time
+budget on an injected clock: they check it between steps and stop with their
+best pairs so far (``truncated``), or raise :class:`DeadlineExceeded` when they
+have nothing to give.
 """
 
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass
 from typing import Callable
 
@@ -40,6 +46,34 @@ _EMPTY = np.zeros(0, np.int64)
 gate_value = chi2_quantile  # the chi-square gate ε with P(τ ≤ ε) = probability for dof degrees of freedom
 
 
+class DeadlineExceeded(RuntimeError):
+    """The time budget ran out before the solver had an answer to give."""
+
+
+class Budget:
+    """``seconds`` of time from now on ``clock`` (None: unbounded); the solvers ask :meth:`spent` between steps.
+
+    The clock is injected, so that tests decide when the time is up. A solver that stops short because of it sets
+    ``cut``.
+    """
+
+    def __init__(self, seconds: float | None = None, clock: Callable[[], float] = time.perf_counter):
+        self.seconds = seconds
+        self.clock = clock
+        self.started = clock()
+        self.cut = False
+
+    @property
+    def bounded(self) -> bool:
+        return self.seconds is not None
+
+    def remaining(self) -> float:
+        return math.inf if self.seconds is None else self.seconds - (self.clock() - self.started)
+
+    def spent(self) -> bool:
+        return self.seconds is not None and self.remaining() <= 0.0
+
+
 def solve_nn(nis: np.ndarray, cost: np.ndarray) -> Pairs:
     """Per measurement, the gated landmark of smallest NIS, kept if its cost beats the dummy (c < 0)."""
     if nis.size == 0:
@@ -51,12 +85,16 @@ def solve_nn(nis: np.ndarray, cost: np.ndarray) -> Pairs:
     return rows[keep], best[keep]
 
 
-def solve_greedy(nis: np.ndarray, cost: np.ndarray) -> Pairs:
-    """Global greedy nearest neighbour: take gated pairs by increasing NIS while both ends are free."""
+def solve_greedy(nis: np.ndarray, cost: np.ndarray, budget: Budget | None = None) -> Pairs:
+    """Global greedy nearest neighbour: take gated pairs by increasing NIS while both ends are free (the pairs taken
+    so far once the ``budget`` is spent)."""
     rows, cols = np.nonzero(np.isfinite(cost) & (cost < 0.0))
     order = np.argsort(nis[rows, cols], kind="stable")
     used_rows, used_cols, chosen = set(), set(), []
-    for k in order:
+    for step, k in enumerate(order):
+        if step % 4096 == 4095 and budget is not None and budget.spent():
+            budget.cut = True
+            break
         r, c = int(rows[k]), int(cols[k])
         if r not in used_rows and c not in used_cols:
             used_rows.add(r)
@@ -86,8 +124,10 @@ def solve_exact(cost: np.ndarray) -> Pairs:
     return rows[keep].astype(np.int64), cols[keep].astype(np.int64)
 
 
-def lp_relaxation(weights: np.ndarray, rows: np.ndarray, cols: np.ndarray, n_rows: int, n_cols: int) -> tuple[np.ndarray, float]:
-    """Solve the LP relaxation of eqs. 6-8 over the pairs (rows[e], cols[e]) with HiGHS.
+def lp_relaxation(weights: np.ndarray, rows: np.ndarray, cols: np.ndarray, n_rows: int, n_cols: int,
+                  time_limit: float | None = None) -> tuple[np.ndarray, float]:
+    """Solve the LP relaxation of eqs. 6-8 over the pairs (rows[e], cols[e]) with HiGHS (within ``time_limit``
+    seconds when given, else DeadlineExceeded).
 
     min Σ w_e x_e  s.t.  Σ_{e ∋ m} x_e ≤ 1,  Σ_{e ∋ n} x_e ≤ 1,  0 ≤ x ≤ 1
     (the slack of each inequality is the dummy variable x_0m or x_n0, cost 0).
@@ -105,7 +145,11 @@ def lp_relaxation(weights: np.ndarray, rows: np.ndarray, cols: np.ndarray, n_row
         (np.ones(2 * e), (np.concatenate([rows, n_rows + cols]), np.concatenate([index, index]))),
         shape=(n_rows + n_cols, e),
     )
-    result = linprog(weights, A_ub=a_ub, b_ub=np.ones(n_rows + n_cols), bounds=(0.0, 1.0), method="highs")
+    options = {} if time_limit is None else {"time_limit": max(float(time_limit), 1e-3)}
+    result = linprog(weights, A_ub=a_ub, b_ub=np.ones(n_rows + n_cols), bounds=(0.0, 1.0), method="highs",
+                     options=options)
+    if result.status == 1 and time_limit is not None:
+        raise DeadlineExceeded(f"IHGR: the LP relaxation of {e} pairs ran out of time ({time_limit:.3g} s)")
     if result.status != 0:
         raise RuntimeError(f"IHGR: the LP relaxation failed ({result.message})")
     return np.clip(result.x, 0.0, 1.0), float(result.fun)
@@ -117,6 +161,7 @@ class IhgrResult:
     cols: np.ndarray
     lp_objective: float  # optimum of the first LP (a lower bound on the IP optimum)
     lp_solves: int
+    truncated: bool = False  # the budget ran out while rounding: the pairs fixed so far
 
 
 def _best_matching(weights: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> list[int]:
@@ -145,6 +190,7 @@ def solve_ihgr(
     tolerance: float = 1e-6,
     max_tie_pairs: int = 16,
     lp: LpSolver = lp_relaxation,
+    budget: Budget | None = None,
 ) -> IhgrResult:
     """Paper 000 §III-B: LP relaxation, then iterative heuristic greedy rounding.
 
@@ -155,7 +201,10 @@ def solve_ihgr(
     delete its row and column, and solve the LP of what is left. The
     single-scan LP is totally unimodular, so HiGHS' vertex optimum is already
     integral and the loop usually ends after one LP; ``lp`` can be replaced
-    (tests inject fractional optima to exercise the rounding).
+    (tests inject fractional optima to exercise the rounding; with a bounded
+    ``budget`` it is given the time left as ``time_limit``). Once the budget
+    is spent, the rounding stops with the pairs fixed so far (``truncated``);
+    DeadlineExceeded when the first LP does not finish in time.
     """
     n_rows, n_cols = cost.shape
     pair_rows, pair_cols = np.nonzero(np.isfinite(cost))
@@ -171,15 +220,27 @@ def solve_ihgr(
         hit_rows, hit_cols = pair_rows[list(indices)], pair_cols[list(indices)]
         active[np.isin(pair_rows, hit_rows) | np.isin(pair_cols, hit_cols)] = False
 
-    values, lp_objective = lp(weights, pair_rows, pair_cols, n_rows, n_cols)
+    def solve_lp(*args) -> tuple[np.ndarray, float]:
+        if budget is None or not budget.bounded:
+            return lp(*args)
+        remaining = budget.remaining()
+        if remaining <= 0.0:
+            raise DeadlineExceeded("IHGR: no time left for the LP relaxation")
+        return lp(*args, time_limit=remaining)
+
+    values, lp_objective = solve_lp(weights, pair_rows, pair_cols, n_rows, n_cols)
     values = values.copy()
     solves = 1
+    truncated = False
     while True:
         ones = np.flatnonzero(active & (values > 1.0 - tolerance))
         if ones.size:
             fix(ones)
         fractional = np.flatnonzero(active & (values > tolerance))
         if fractional.size == 0:
+            break
+        if budget is not None and budget.spent():
+            truncated = budget.cut = True
             break
         ranked = fractional[np.argsort(-values[fractional], kind="stable")]
         top = values[ranked[0]]
@@ -195,12 +256,17 @@ def solve_ihgr(
         remaining = np.flatnonzero(active)
         if remaining.size == 0:
             break
-        x, _ = lp(weights[remaining], pair_rows[remaining], pair_cols[remaining], n_rows, n_cols)
+        try:
+            x, _ = solve_lp(weights[remaining], pair_rows[remaining], pair_cols[remaining], n_rows, n_cols)
+        except DeadlineExceeded:
+            truncated = budget.cut = True
+            break
         solves += 1
         values[:] = 0.0
         values[remaining] = x
     fixed_array = np.asarray(fixed, np.int64)
-    return IhgrResult(pair_rows[fixed_array].astype(np.int64), pair_cols[fixed_array].astype(np.int64), lp_objective, solves)
+    return IhgrResult(pair_rows[fixed_array].astype(np.int64), pair_cols[fixed_array].astype(np.int64), lp_objective, solves,
+                      truncated)
 
 
 def _inverse_cholesky_2x2(s: np.ndarray) -> np.ndarray | None:
@@ -221,7 +287,7 @@ class JcbbResult:
     rows: np.ndarray
     cols: np.ndarray
     joint_nis: float
-    truncated: bool
+    truncated: bool  # the node budget or the time budget ran out: the best found so far
     nodes: int
 
 
@@ -234,6 +300,8 @@ def solve_jcbb(
     probability: float,
     max_nodes: int = 20_000,
     compiled: bool = True,
+    budget: Budget | None = None,
+    slice_work: int = 20_000_000,
 ) -> JcbbResult:
     """Joint compatibility branch and bound (Neira & Tardós 2001).
 
@@ -245,7 +313,10 @@ def solve_jcbb(
     incrementally with the inverse L⁻¹ of the Cholesky factor of S_H (a 2 × 2
     Schur complement per new pair). Measurements are visited
     fewest candidates first; a branch stops once it cannot beat the best
-    pairings found. ``max_nodes`` bounds the search (``truncated`` then).
+    pairings found. ``max_nodes`` bounds the search (``truncated`` then), and
+    so does the time ``budget`` (checked every ``slice_work`` multiply-adds
+    of the kernel, every node of the reference): the best pairings so far
+    (``truncated``, ``budget.cut``), or DeadlineExceeded if there are none.
 
     ``compiled`` runs the same search in the numba kernel of :mod:`services.association.kernels`; False,
     this recursive reference.
@@ -257,10 +328,19 @@ def solve_jcbb(
         if not order.size:
             return JcbbResult(_EMPTY, _EMPTY, 0.0, False, 0)
         bounds = np.array([gate_value(probability, 2 * k) for k in range(1, order.size + 1)])
-        rows, cols, count, d2, truncated, nodes = kernels.jcbb_kernel(
-            np.ascontiguousarray(innovations, float), np.ascontiguousarray(joint_blocks, float),
-            np.asarray(noise, float), table, counts, order, bounds, max_nodes)
-        return JcbbResult(rows, cols, float(d2) if count else 0.0, bool(truncated), int(nodes))
+        state = kernels.JcbbState(order.size)
+        inputs = (np.ascontiguousarray(innovations, float), np.ascontiguousarray(joint_blocks, float),
+                  np.asarray(noise, float), table, counts, order, bounds, max_nodes)
+        limit = slice_work if budget is not None and budget.bounded else 0
+        while not (budget is not None and budget.spent()):
+            if kernels.jcbb_search(*inputs, *state.arrays(), limit):
+                break
+        else:
+            budget.cut = True
+        rows, cols, count, d2, truncated, nodes = state.result()
+        if budget is not None and budget.cut and not count:
+            raise DeadlineExceeded(f"JCBB: no jointly compatible pairing found in {budget.seconds:.3g} s ({nodes} nodes)")
+        return JcbbResult(rows, cols, float(d2) if count else 0.0, truncated or (budget is not None and budget.cut), nodes)
     candidates = [np.flatnonzero(gated[m])[np.argsort(nis[m, gated[m]], kind="stable")] for m in range(m_count)]
     order = [m for m in sorted(range(m_count), key=lambda m: len(candidates[m])) if candidates[m].size]
     if not order:
@@ -275,6 +355,9 @@ def solve_jcbb(
         nodes += 1
         if nodes > max_nodes:
             truncated = True
+            return
+        if budget is not None and budget.spent():
+            truncated = budget.cut = True
             return
         if depth == len(order):
             if len(pairs) > len(best["pairs"]) or (len(pairs) == len(best["pairs"]) and d2 < best["d2"]):
@@ -308,6 +391,8 @@ def solve_jcbb(
 
     search(0, [], np.zeros((0, 0)), np.zeros(0), 0.0)
     pairs = best["pairs"]
+    if budget is not None and budget.cut and not pairs:
+        raise DeadlineExceeded(f"JCBB: no jointly compatible pairing found in {budget.seconds:.3g} s ({nodes} nodes)")
     rows = np.asarray([p[0] for p in pairs], np.int64)
     cols = np.asarray([p[1] for p in pairs], np.int64)
     return JcbbResult(rows, cols, float(best["d2"]) if pairs else 0.0, truncated, nodes)

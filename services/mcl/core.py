@@ -250,13 +250,13 @@ class MonteCarloLocalizer:
         loglik, quality = self._likelihood(self.particles, z)
         if override.size:
             loglik[-override.size:] = override
-        self._reweigh(loglik, quality)
+        self.reweigh(loglik, quality)
         best_quality = self._best_quality()
         kidnapped = self._check_lost(best_quality, float(quality.max()), z)
         if kidnapped:
             self.initialize_global(z)
             loglik, quality = self._likelihood(self.particles, z)
-            self._reweigh(loglik, quality)
+            self.reweigh(loglik, quality)
             added += self.count
             fresh = True
         mean_quality = float(quality.mean())
@@ -273,9 +273,9 @@ class MonteCarloLocalizer:
         if not self.initialized:
             self.initialize_global(z)
         loglik, quality = self._likelihood(self.particles, z)
-        self._reweigh(loglik, quality)
+        self.reweigh(loglik, quality)
 
-    def _reweigh(self, loglik: np.ndarray, quality: np.ndarray) -> None:
+    def reweigh(self, loglik: np.ndarray, quality: np.ndarray) -> None:
         """Multiply the weights by the scan's likelihood, normalise, cluster."""
         logw = np.log(np.maximum(self.weights, 1e-300)) + loglik
         weights = np.exp(logw - logw.max())

@@ -11,7 +11,9 @@ from its own stream ``[seed, n]``, n counting the filters built so far.
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 
@@ -20,6 +22,7 @@ from schemas.contract import MapView, OdomEvent, RunOptions, ScanEvent
 from schemas.messages import RobotInfo, SensorSpec
 from services.mcl.config import MclConfig
 from services.mcl.core import Hypothesis, MonteCarloLocalizer, UpdateReport
+from services.mcl.likelihood import scan_log_likelihood
 
 UNKNOWN_COV = np.diag([1e6, 1e6, 1e2])
 
@@ -189,18 +192,40 @@ class MclFleet:
     # -------------------------------------------------------------- one-shot
 
     def localize_once(self, observations: np.ndarray, sensor: SensorSpec, particles: int, seed: int,
-                      robot_id: str = "query") -> MonteCarloLocalizer:
+                      robot_id: str = "query", landmarks: np.ndarray | None = None, time_budget_s: float | None = None,
+                      clock: Callable[[], float] = time.perf_counter, slice_cells: int = 1_000_000,
+                      ) -> MonteCarloLocalizer:
         """A fresh filter globally localized from one scan ``(n, 2)`` and weighed by it (not resampled).
 
-        Needs a map (ValueError without one); the fleet's robots are not touched.
+        Against ``landmarks`` (default: the fleet's map; ValueError without one); the fleet's robots are not
+        touched, so a worker thread may run it. The candidates are weighed ``slice_cells`` (observations ×
+        poses) at a time; with ``time_budget_s`` (seconds on ``clock``) TimeoutError is raised once the budget is
+        spent, between slices.
         """
-        if self.landmarks is None:
+        landmarks = self.landmarks if landmarks is None else landmarks
+        if landmarks is None:
             raise ValueError("no map to localize against yet")
+        started = clock()
+
+        def check(stage: str) -> None:
+            if time_budget_s is not None and clock() - started > time_budget_s:
+                raise TimeoutError(f"the {time_budget_s:.3g} s budget ran out {stage} ({particles} particles, "
+                                   f"{len(observations)} observations)")
+
         info = RobotInfo(robot_id=robot_id, stamp=0.0, motion_model="unicycle", sensor=sensor, odom_rate_hz=1.0,
                          scan_rate_hz=1.0)
-        mcl = MonteCarloLocalizer(self.landmarks, info, self.config, np.random.default_rng(seed))
-        mcl.initialize_global(observations, particles)
-        mcl.weigh(observations)
+        mcl = MonteCarloLocalizer(landmarks, info, self.config, np.random.default_rng(seed))
+        z = np.asarray(observations, float).reshape(-1, 2)
+        mcl.initialize_global(z, particles)
+        check("drawing poses from the scan")
+        loglik, quality = np.empty(mcl.count), np.empty(mcl.count)
+        step = max(1, slice_cells // max(len(z), 1))
+        for start in range(0, mcl.count, step):
+            part = slice(start, start + step)
+            loglik[part], quality[part] = scan_log_likelihood(mcl.particles[part], z, mcl.map, mcl.model,
+                                                              self.config.chunk_particles, self.config.compiled)
+            check("weighing the poses")
+        mcl.reweigh(loglik, quality)  # what MonteCarloLocalizer.weigh does after its likelihood, here in slices
         return mcl
 
 

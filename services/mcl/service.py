@@ -19,7 +19,15 @@ service takes a robot with an unknown start pose in on its first
 
 The queryable ``{prefix}/mcl/localize`` answers a :class:`LocalizeRequest`
 (one scan and its sensor) with the hypotheses of a one-shot global
-localization, or a tracked robot's belief. Bad input — undecodable payloads,
+localization, or a tracked robot's belief. A scan is checked on Zenoh's
+callback thread (:func:`localize_refusal`: a sensor noise covariance that is
+not positive definite is ``invalid``; more work than the ``max_localize_*``
+settings allow is ``too_large``) and solved by a worker of a
+:class:`~services.query_pool.QueryPool` (``busy`` at once when
+``query_queue`` queries wait already, ``expired`` or ``deadline`` past
+``query_deadline_s``), so the robots' tracking in the loop keeps its path; a
+tracked robot's belief is read in the loop, between its events, for a
+worker. Bad input — undecodable payloads,
 out-of-order or duplicate stream messages, keys that disagree with the
 message's robot id, a map of the wrong shape — is counted and dropped.
 """
@@ -28,22 +36,26 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 import time
+from concurrent.futures import Future, TimeoutError as FutureTimeout
 from pathlib import Path
 
 import numpy as np
 import zenoh
+from scipy.spatial import cKDTree
 
 from schemas.codec import decode, encode
 from schemas.mapfile import load_map
 from schemas.config import MclSettings, add_settings_arguments, settings_from_args
 from schemas.contract import OdomEvent
 from schemas.mcl import LocalizeReply, LocalizeRequest
-from schemas.messages import Estimate, MapEstimate, MclPose, PoseHypothesis, RobotInfo, WorldTruth
+from schemas.messages import Estimate, MapEstimate, MclPose, PoseHypothesis, RobotInfo, SensorSpec, WorldTruth
 from schemas.transport import StreamPublisher
 from services.mcl.config import MclConfig
 from services.mcl.core import MonteCarloLocalizer
 from services.mcl.fleet import MclFleet, RobotState
+from services.query_pool import QueryPool, QueryRefused, Solve, decode_query
 from services.runtime import ServiceShell
 
 log = logging.getLogger(__name__)
@@ -76,6 +88,41 @@ def load_source_file(path: str) -> tuple[np.ndarray, np.ndarray | None]:
     return load_map_file(path), None
 
 
+def localize_refusal(observations: int, particles: int, sensor: SensorSpec, landmarks: np.ndarray, config: MclConfig,
+                     max_particles: int, max_cells: int, max_map_cells: int) -> tuple[str, str] | None:
+    """Why a one-shot localization of ``observations`` with ``particles`` may not run, as (reason, detail), or None.
+
+    Checked before any work: the sensor's noise covariance (scaled by ``noise_scale``) must be positive definite,
+    as the likelihood inverts it (``invalid``); the particles at most ``max_particles``, observations × particles
+    at most ``max_cells``, and what the sensor makes of the map — the cells of the landmark lookup grids its gate
+    and range need, plus the landmark pairs within twice its range — at most ``max_map_cells`` (``too_large``).
+    """
+    noise = np.asarray(sensor.noise_cov, float) * config.noise_scale**2
+    (a, b), (c, d) = noise
+    if not (np.all(np.isfinite(noise)) and a > 0 and d > 0 and a * d - b * c > 0):
+        return "invalid", f"the sensor's noise covariance {np.asarray(sensor.noise_cov).tolist()} is not positive definite"
+    if particles > max_particles:
+        return "too_large", f"{particles} particles exceed max_localize_particles {max_particles}"
+    if observations * particles > max_cells:
+        return "too_large", (f"{observations} observations × {particles} particles = {observations * particles} cells "
+                             f"exceed max_localize_cells {max_cells}")
+    span = np.ptp(landmarks, axis=0) if len(landmarks) else np.zeros(2)
+    radius = config.match_sigmas * math.hypot(math.sqrt(a), sensor.max_range * math.sqrt(d))
+    view_cell = max(config.lookup_cell, sensor.max_range / 8)
+    grid = float(np.prod(np.ceil((span + 2 * radius + 6 * config.lookup_cell) / config.lookup_cell)))
+    grid += float(np.prod(np.ceil((span + 2 * sensor.max_range + 6 * view_cell) / view_cell)))
+    if grid > max_map_cells:
+        return "too_large", (f"the sensor's gate ({radius:.3g} m) and range ({sensor.max_range:g} m) need lookup grids of "
+                             f"{grid:.0f} cells on this map, above max_localize_map_cells {max_map_cells}")
+    if len(landmarks) > 1:
+        tree = cKDTree(landmarks)
+        pairs = int(tree.count_neighbors(tree, 2 * sensor.max_range)) - len(landmarks)
+        if grid + pairs > max_map_cells:
+            return "too_large", (f"the sensor's range ({sensor.max_range:g} m) pairs {pairs} landmarks of this map "
+                                 f"(with {grid:.0f} grid cells), above max_localize_map_cells {max_map_cells}")
+    return None
+
+
 def hypotheses_message(mcl: MonteCarloLocalizer) -> tuple[np.ndarray, np.ndarray, list[PoseHypothesis]]:
     """(best pose, best covariance, hypotheses) of a filter, ready for a message."""
     found = mcl.hypotheses()
@@ -101,6 +148,8 @@ class MclService(ServiceShell):
         self.fleet = MclFleet(settings.core(MclConfig), landmarks, landmark_ids=ids)
         self.pose_pubs: dict[str, StreamPublisher] = {}
         self.pose_seq: dict[str, int] = {}  # kept when a robot leaves: its MclPose stream goes on where it stopped
+        self.pool = QueryPool(self, settings.query_workers, settings.query_queue, settings.query_deadline_s,
+                              settings.query_nice)
 
     # ----------------------------------------------------------------- wiring
 
@@ -118,17 +167,12 @@ class MclService(ServiceShell):
             self.enqueue("map", str(reply.ok.key_expr), reply.ok.payload.to_bytes())
 
     def _on_query(self, query: zenoh.Query) -> None:
-        self.enqueue("localize", str(query.key_expr), query)  # the query rides the queue; answered in handle()
+        self.pool.admit(query, "localize", lambda: self._prepare(query))
 
     # ---------------------------------------------------------------- handling
 
     async def handle(self, tag: str, key: str, payload) -> None:
-        if tag == "localize":
-            try:
-                self._answer(payload)
-            finally:
-                payload.drop()
-        elif tag == "map":
+        if tag == "map":
             self._on_map(payload)
         self._refresh_extra()
 
@@ -238,33 +282,79 @@ class MclService(ServiceShell):
         self.pose_seq[rid] = seq + 1
         self.published += 1
 
-    def _answer(self, query: zenoh.Query) -> None:
-        """One-shot localization (or a tracked robot's belief) for a LocalizeRequest."""
-        key = self.keys.mcl_localize
-        request = self.decode_request(query, LocalizeRequest)
-        if request is None:
-            return
+    # ---------------------------------------------------------------- queries
+    def _prepare(self, query: zenoh.Query) -> Solve:
+        """Zenoh's thread: decode; the solve of a tracked robot's belief, or of a scan (checked now)."""
+        request = decode_query(query, LocalizeRequest)
+        if request.ranges.size == 0 and request.robot_id is not None:
+            return self._track_solve(request)
+        return self._scan_solve(request)
+
+    def _track_solve(self, request: LocalizeRequest) -> Solve:
+        """A tracked robot's belief, read in the loop between two of its events (the worker waits for it); a robot
+        the service does not track yet gets a one-shot localization instead."""
+        def read(future: Future) -> None:
+            state = self.fleet.robots.get(request.robot_id)
+            try:
+                tracked = state is not None and state.mcl is not None and state.mcl.initialized
+                future.set_result(encode(self._reply(request, state.mcl, "track")) if tracked else None)
+            except Exception as exc:  # noqa: BLE001 - handed to the worker, which answers solve_error
+                future.set_exception(exc)
+
+        def solve(budget_s: float) -> tuple[str, bytes]:
+            started = time.monotonic()
+            future: Future = Future()
+            self.call_in_loop(read, future)
+            try:
+                payload = future.result(timeout=budget_s)
+            except FutureTimeout:
+                raise QueryRefused("deadline", f"the robots' loop did not get to the belief within {budget_s:.3g} s") from None
+            if payload is not None:
+                return self.keys.mcl_localize, payload
+            return self._scan_solve(request)(budget_s - (time.monotonic() - started))
+
+        return solve
+
+    def _scan_solve(self, request: LocalizeRequest) -> Solve:
+        """Check a one-shot localization (QueryRefused now) and return its solve, against the map of now."""
         state = self.fleet.robots.get(request.robot_id) if request.robot_id else None
-        if request.ranges.size == 0 and state is not None and state.mcl is not None and state.mcl.initialized:
-            mcl, source = state.mcl, "track"
-        else:
-            sensor = request.sensor or (state.info.sensor if state else None)
-            if sensor is None:
-                self.refuse(query, "no_sensor", "a scan needs its sensor (or the id of a robot the service tracks)")
-                return
-            if self.fleet.landmarks is None:
-                self.refuse(query, "no_map", f"no map from source {self.settings.source!r} yet")
-                return
-            count = request.particles or self.settings.localize_particles
-            mcl = self.fleet.localize_once(request.observations, sensor, count, request.seed, request.robot_id or "query")
-            source = "scan"
+        sensor = request.sensor or (state.info.sensor if state else None)
+        if sensor is None:
+            raise QueryRefused("no_sensor", "a scan needs its sensor (or the id of a robot the service tracks)")
+        landmarks = self.fleet.landmarks
+        if landmarks is None:
+            raise QueryRefused("no_map", f"no map from source {self.settings.source!r} yet")
+        s = self.settings
+        count = request.particles or s.localize_particles
+        refusal = localize_refusal(request.ranges.size, count, sensor, landmarks, self.fleet.config,
+                                   s.max_localize_particles, s.max_localize_cells, s.max_localize_map_cells)
+        if refusal is not None:
+            raise QueryRefused(*refusal)
+
+        def solve(budget_s: float) -> tuple[str, bytes]:
+            try:
+                mcl = self.fleet.localize_once(request.observations, sensor, count, request.seed,
+                                               request.robot_id or "query", landmarks, time_budget_s=budget_s)
+            except TimeoutError as exc:
+                raise QueryRefused("deadline", str(exc)) from None
+            return self.keys.mcl_localize, encode(self._reply(request, mcl, "scan"))
+
+        return solve
+
+    def _reply(self, request: LocalizeRequest, mcl: MonteCarloLocalizer, source: str) -> LocalizeReply:
         best, cov, hypotheses = hypotheses_message(mcl)
-        reply = LocalizeReply(request_id=request.request_id, robot_id=request.robot_id, stamp=time.time(), source=source,
-                              best_pose=best, best_cov=cov,
-                              localized=mcl.localized if source == "track" else mcl.dominant(),
-                              hypotheses=hypotheses, particles=mcl.count, map_landmarks=mcl.map.count, variant=mcl.variant)
-        query.reply(key, encode(reply))
-        self.extra["localize_replies"] = self.extra.get("localize_replies", 0.0) + 1.0
+        return LocalizeReply(request_id=request.request_id, robot_id=request.robot_id, stamp=time.time(), source=source,
+                             best_pose=best, best_cov=cov,
+                             localized=mcl.localized if source == "track" else mcl.dominant(),
+                             hypotheses=hypotheses, particles=mcl.count, map_landmarks=mcl.map.count,
+                             variant=mcl.variant)
+
+    def stats(self):
+        self.pool.put_stats()
+        return super().stats()
+
+    def on_stop(self) -> None:
+        self.pool.close()
 
     def _refresh_extra(self) -> None:
         self.extra["robots"] = float(len(self.fleet.robots))

@@ -1,0 +1,206 @@
+"""Bounded queries for the queryable services (``fleetslam assoc``, ``fleetslam mcl``'s localize).
+
+A queryable's Zenoh callback hands each query to :meth:`QueryPool.admit`,
+which answers at once, on the callback's thread, whatever need not wait for a
+solve: ``busy`` when ``workers + queue`` queries are already in (nothing is
+decoded then), and every refusal the service's ``prepare`` raises while it
+decodes and checks the request (``too_large``, ``invalid``...). An admitted
+query is solved by one of a few worker threads (numpy, scipy and the numba
+kernels release the GIL) at a lower priority (``nice``), so the service's own
+loop — MCL's robot tracking — keeps its path, and its processor share. A query that waited past ``deadline_s`` is dropped unsolved
+(``expired``: its caller has given up); a solve gets the rest of the
+deadline as its time budget. A caller may say how long it waits, with the
+selector parameter ``timeout_s`` (``{key}?timeout_s=0.5``, as the association
+client does): the query's deadline is then the shorter of the two, so what
+its caller abandoned is not solved. Every query gets exactly one answer; a solve
+that raises is answered ``solve_error``. Refusals are counted by reason in
+the service's stats (in its loop), the queue wait and the solve time in its
+``extra`` (:meth:`put_timing`).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import threading
+import time
+from collections import deque
+from concurrent.futures import ThreadPoolExecutor
+from typing import Callable
+
+import zenoh
+
+from schemas.codec import DecodeError, decode
+
+log = logging.getLogger(__name__)
+
+Solve = Callable[[float], tuple[str, bytes]]  # the time budget (s) -> (reply key, reply payload)
+Outcome = tuple[str, bytes]  # (reply key, reply payload), or a QueryRefused
+
+
+class QueryRefused(Exception):
+    """A query answered with ``reply_err("reason: detail")`` and counted under ``reason``."""
+
+    def __init__(self, reason: str, detail: str = ""):
+        self.reason = reason
+        self.detail = detail
+        super().__init__(f"{reason}: {detail}" if detail else reason)
+
+
+def decode_query(query: zenoh.Query, model):
+    """The query's payload decoded as ``model``; QueryRefused (``empty``, or the codec's reason) otherwise."""
+    if query.payload is None:
+        raise QueryRefused("empty", f"the query carries no {model.__name__} payload")
+    try:
+        return decode(query.payload.to_bytes(), model)
+    except DecodeError as error:
+        raise QueryRefused(error.reason, error.detail) from None
+
+
+def caller_timeout(query: zenoh.Query) -> float | None:
+    """How long the caller waits (s), from the selector parameter ``timeout_s``; None when absent or not a positive
+    number."""
+    parameters = getattr(query, "parameters", None)
+    text = parameters.get("timeout_s") if parameters is not None else None
+    try:
+        value = float(text) if text is not None else math.nan
+    except ValueError:
+        return None
+    return value if math.isfinite(value) and value > 0 else None
+
+
+def is_wildcard(key_expr) -> bool:
+    """Whether a query's key expression names more than one key (``*``, ``**``, ``$*``)."""
+    return "*" in str(key_expr)
+
+
+class QueryPool:
+    """A bounded queue of queries in front of ``workers`` solver threads, owned by one service (``shell``)."""
+
+    def __init__(self, shell, workers: int, queue: int, deadline_s: float, nice: int = 0,
+                 clock: Callable[[], float] = time.monotonic):
+        self.shell = shell
+        self.workers = workers
+        self.queue = queue
+        self.deadline_s = deadline_s
+        self.clock = clock
+        self._lock = threading.Lock()
+        self._pending = 0  # admitted and not yet answered: waiting or being solved
+        self._closing = False
+        self._executor = ThreadPoolExecutor(workers, thread_name_prefix=f"{shell.name}-query", initializer=self._lower,
+                                            initargs=(nice,))
+        self.wait_ms: deque[float] = deque(maxlen=2000)
+        self.solve_ms: deque[float] = deque(maxlen=2000)
+        self.replies = 0
+
+    # ------------------------------------------------------------ admission (any thread)
+    def admit(self, query: zenoh.Query, tag: str, prepare: Callable[[], Solve]) -> None:
+        """Take one query (counted under ``tag``): ``busy`` when full; else ``prepare()`` (decode, validate, size:
+        QueryRefused is answered at once) gives the solve, which a worker runs."""
+        arrived = self.clock()
+        self.shell.call_in_loop(self._count_in, tag)
+        with self._lock:
+            full = self._pending >= self.workers + self.queue
+            if not full:
+                self._pending += 1
+        if full:
+            self.answer(query, QueryRefused("busy", f"{self.workers} solving and {self.queue} waiting; ask again later"))
+            return
+        try:
+            solve = prepare()
+        except QueryRefused as refusal:
+            self._release()
+            self.answer(query, refusal)
+            return
+        except Exception as exc:  # noqa: BLE001 - the client must hear back, and the service must go on
+            self._release()
+            log.debug("%s: preparing a query failed", self.shell.name, exc_info=True)
+            self.answer(query, QueryRefused("solve_error", f"{type(exc).__name__}: {exc}"))
+            return
+        waits = caller_timeout(query)
+        deadline_s = self.deadline_s if waits is None else min(self.deadline_s, waits)
+        try:
+            self._executor.submit(self._run, query, solve, arrived, deadline_s)
+        except RuntimeError:  # shut down: the service is stopping
+            self._release()
+            self.answer(query, QueryRefused("stopping", "the service is stopping"))
+
+    # ------------------------------------------------------------ workers
+    def _run(self, query: zenoh.Query, solve: Solve, arrived: float, deadline_s: float) -> None:
+        started = self.clock()
+        waited = started - arrived
+        outcome: Outcome | QueryRefused
+        try:
+            if self._closing:
+                outcome = QueryRefused("stopping", "the service is stopping")
+            elif waited > deadline_s:
+                outcome = QueryRefused("expired", f"waited {waited:.2f} s in the queue, past the {deadline_s:g} s "
+                                       "deadline: dropped unsolved")
+            else:
+                outcome = solve(deadline_s - waited)
+        except QueryRefused as refusal:
+            outcome = refusal
+        except Exception as exc:  # noqa: BLE001 - a solver error is the query's, never the service's
+            log.debug("%s: a query's solve failed", self.shell.name, exc_info=True)
+            outcome = QueryRefused("solve_error", f"{type(exc).__name__}: {exc}")
+        solved_s = self.clock() - started
+        self._release()
+        self.answer(query, outcome)
+        self.shell.call_in_loop(self._timed, waited * 1e3, solved_s * 1e3)
+
+    @staticmethod
+    def _lower(nice: int) -> None:
+        """A worker thread's start: ``nice`` more than the process (Linux schedules threads apart), so that on a busy
+        processor the service's stream handling goes first."""
+        if nice > 0 and hasattr(os, "setpriority"):
+            try:
+                os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), os.getpriority(os.PRIO_PROCESS, 0) + nice)
+            except OSError as exc:
+                log.debug("cannot lower a query worker's priority: %s", exc)
+
+    def _release(self) -> None:
+        with self._lock:
+            self._pending -= 1
+
+    def answer(self, query: zenoh.Query, outcome: Outcome | QueryRefused) -> None:
+        """Send the one answer of a query, from any thread, and let it go (the caller's get ends when every
+        queryable has); counted in the service's loop."""
+        try:
+            if isinstance(outcome, QueryRefused):
+                query.reply_err(str(outcome).encode())
+            else:
+                query.reply(*outcome)
+        except Exception as exc:  # noqa: BLE001 - the session may be closing; the answer is lost either way
+            log.debug("%s: cannot answer a query: %s", self.shell.name, exc)
+        finally:
+            query.drop()
+        if isinstance(outcome, QueryRefused):
+            self.shell.call_in_loop(self.shell.reject, outcome.reason, outcome.detail)
+        else:
+            self.shell.call_in_loop(self._replied)
+
+    # ------------------------------------------------------------ counters (the service's loop)
+    def _count_in(self, tag: str) -> None:
+        self.shell.messages_in[tag] += 1
+
+    def _replied(self) -> None:
+        self.replies += 1
+
+    def _timed(self, wait_ms: float, solve_ms: float) -> None:
+        self.wait_ms.append(wait_ms)
+        self.solve_ms.append(solve_ms)
+
+    def put_stats(self) -> None:
+        """Replies, queries in, and the median/p99 of the queue wait and the solve time, into the service's extra."""
+        with self._lock:
+            pending = self._pending
+        self.shell.extra["query_replies"] = float(self.replies)
+        self.shell.extra["query_pending"] = float(pending)
+        self.shell.put_timing("query_wait_ms", self.wait_ms)
+        self.shell.put_timing("query_solve_ms", self.solve_ms)
+
+    def close(self) -> None:
+        """Stop taking queries; those still waiting are answered ``stopping``, a running solve ends by its deadline."""
+        self._closing = True
+        self._executor.shutdown(wait=False)
