@@ -44,6 +44,7 @@ import zenoh
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from benchmarks.support.association_problems import dense_request  # noqa: E402
 from robots.models import RangeBearingSensor  # noqa: E402
 from robots.worlds import make_world  # noqa: E402
 from schemas.association import AssociationRequest  # noqa: E402
@@ -56,17 +57,6 @@ from report import emit, over_seeds  # noqa: E402
 
 PREFIX = "qflood"
 ROBOTS = ("r1", "r2")
-
-
-def dense_request(m: int, n: int, seed: int) -> AssociationRequest:
-    """Every measurement gates every landmark (landmarks packed in a metre, wide covariances): the worst case."""
-    rng = np.random.default_rng([seed, m, n])
-    landmarks = np.column_stack([rng.uniform(4.0, 5.0, n), rng.uniform(-0.5, 0.5, n)])
-    z = RangeBearingSensor().observe(np.zeros(3), landmarks[rng.integers(0, n, m)]) + rng.normal(0, [0.05, 0.01], (m, 2))
-    z[:, 0] = np.abs(z[:, 0])
-    return AssociationRequest(measurements=z, noise=np.diag([0.05**2, 0.01**2]), landmarks=landmarks,
-                              landmark_covs=np.tile(np.eye(2) * 0.5, (n, 1, 1)), pose=np.zeros(3),
-                              pose_cov=np.diag([0.5, 0.5, 0.05]))
 
 
 def ordinary_assoc(seed: int) -> AssociationRequest:

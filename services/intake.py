@@ -46,15 +46,24 @@ class Intake:
     def __len__(self) -> int:
         return self._count
 
+    def oversize(self, kind: str, nbytes: int) -> bool:
+        """Whether a sample of ``kind`` and ``nbytes`` is over its size limit (then counted as ``oversize``): a
+        callback asks before it copies the payload."""
+        limit = self.limits.get(kind)
+        if limit is None or nbytes <= limit:
+            return False
+        with self._lock:
+            self.refused["oversize"] += 1
+        return True
+
     def put(self, kind: str, lane: Hashable, item: Any, nbytes: int) -> str | None:
         """Queue ``item`` (of ``nbytes`` payload bytes) in ``lane``; the refusal reason instead when it is refused
         (counted in :attr:`refused`)."""
+        if self.oversize(kind, nbytes):
+            return "oversize"
         reason = None
         with self._lock:
-            limit = self.limits.get(kind)
-            if limit is not None and nbytes > limit:
-                reason = "oversize"
-            elif self._lane_bytes.get(lane, 0) + nbytes > self.lane_bytes and lane in self._lanes:
+            if self._lane_bytes.get(lane, 0) + nbytes > self.lane_bytes and lane in self._lanes:
                 reason = "rate_limited"
             elif self.held_bytes + nbytes > self.total_bytes and self._count:
                 reason = "queue_full"

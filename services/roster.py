@@ -218,8 +218,8 @@ class Roster:
         from its last owner: a tail recovered after its token went), ``("held", None)`` kept until a session holds
         the robot's token, ``("refused", reason)`` otherwise."""
         owner = self.owner(robot_id)
-        if owner is None and robot_id not in self.holders:
-            owner = self.last_owner.get(robot_id) if source == self.last_owner.get(robot_id) else None
+        if owner is None and source == self.last_owner.get(robot_id):
+            owner = source
         if owner is not None:
             if source == owner:
                 return "own", None

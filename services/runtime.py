@@ -378,12 +378,10 @@ class ServiceShell:
         self._declared.append(subscriber)
 
     def _enqueuer(self, tag: str):
-        intake, limit = self.intake, self.intake.limits.get(tag)
+        intake = self.intake
 
         def callback(sample: zenoh.Sample) -> None:
-            nbytes = len(sample.payload)
-            if limit is not None and nbytes > limit:  # refused before it is even copied
-                intake.put(tag, tag, None, nbytes)
+            if intake.oversize(tag, len(sample.payload)):  # refused before it is even copied
                 return
             self.enqueue(tag, str(sample.key_expr), sample.payload.to_bytes(), sample_source(sample))
 
