@@ -12,9 +12,11 @@ service, to its first estimate (whatever ``*_after_s`` figures the test prints p
 by kills in the first half of the run (``killed_early``) and the second (``killed_late``); "lost": the test
 asserts that no service of B misses a message, so a run that printed its figures lost nothing, and a run that
 failed on that check is listed with the service and its ``missing`` count; why every failing run failed (its
-assertion line); and every run's record. Variables FLEETSLAM_* of the caller are not passed on.
+assertion line); and every run's record. With ``--control-seeds N`` also N runs that kill nothing (``control``):
+how far B's errors differ from A's between two untouched live runs, the noise the killed runs are read against.
+Variables FLEETSLAM_* of the caller are not passed on.
 
-    .venv/bin/python benchmarks/crash_restart.py --seeds 10 --out reports/crash_restart.json
+    .venv/bin/python benchmarks/crash_restart.py --seeds 10 --control-seeds 5 --out reports/crash_restart.json
 """
 
 from __future__ import annotations
@@ -171,6 +173,9 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, default=10, help="how many seeds to run (about 35 s each)")
     parser.add_argument("--first-seed", type=int, default=0, help="the first kill-time seed")
     parser.add_argument("--out", help="also write the JSON here")
+    parser.add_argument("--control-seeds", type=int, default=0, help="also this many runs that kill nothing "
+                        "(--crash-kills none): how far copy B's errors differ from A's without any kill, the noise "
+                        "floor the killed runs' differences are read against")
     parser.add_argument("--stop-on-failure", action="store_true", help="stop after the first failing run")
     parser.add_argument("--timeout", type=float, default=300.0, help="wall seconds one run may take before it counts "
                         "as failed")
@@ -188,6 +193,12 @@ def main() -> None:
         print(progress(f"seed {seed} ({index}/{len(seeds)})", run, details(run)), file=sys.stderr, flush=True)
         if run["outcome"] == "failed" and args.stop_on_failure:
             break
+    controls: list[dict] = []
+    for index in range(args.control_seeds):
+        finished = run_pytest(TEST, args.timeout, ("--crash-seed", str(index), "--crash-kills", "none"))
+        run = run_record(finished, parse_run(index, finished.output))
+        controls.append(run)
+        print(progress(f"control {index + 1}/{args.control_seeds}", run, details(run)), file=sys.stderr, flush=True)
     result = {
         "test": TEST, "seeds": [run["seed"] for run in runs], "seeds_asked": seeds, **count_outcomes(runs),
         "run_wall_s": RUN_WALL_S, "early_before_s": EARLY_BEFORE_S,
@@ -198,6 +209,11 @@ def main() -> None:
                      for run in runs if run["outcome"] == "failed"],
         "per_run": runs, "wall_s": round(time.monotonic() - started, 1),
     }
+    if controls:
+        result["control"] = {"runs": len(controls), **count_outcomes(controls),
+                             "errors": {service: errors_over_seeds(service_rows(controls, service), service)
+                                        for service in MEASURES},
+                             "per_run": controls}
     emit(result, args.out)
 
 

@@ -36,6 +36,7 @@ from schemas.codec import DecodeError, decode  # noqa: E402
 from schemas.config import DemoSettings, FleetSettings  # noqa: E402
 from schemas.messages import ServiceStats  # noqa: E402
 from schemas.transport import Shutdown, open_session  # noqa: E402
+from services.credentials import WORLD_USER  # noqa: E402
 from services.launcher import SERVICES, Child, Fleet  # noqa: E402
 from report import emit  # noqa: E402
 
@@ -204,7 +205,7 @@ def run_soak(args: argparse.Namespace, shutdown: Shutdown) -> dict:
     from services.evaluation.report import clear_report  # matplotlib: only when a soak runs
 
     clear_report(out / "report")
-    settings = DemoSettings(port=free_port(), prefix=PREFIX, out=str(out))
+    settings = DemoSettings(port=free_port(), prefix=PREFIX, out=str(out), secrets_dir=str(out / "secrets"))
     fleet = Fleet(settings, out)
     fleet.env = {k: v for k, v in fleet.env.items()
                  if not k.startswith("FLEETSLAM_") or k in ("FLEETSLAM_ZENOH_CONNECT", "FLEETSLAM_PREFIX")}
@@ -218,19 +219,23 @@ def run_soak(args: argparse.Namespace, shutdown: Shutdown) -> dict:
     session = subscriber = None
     robots: list[Child] = []
     services: list[Child] = []
-    router = fleet.start("router", "router", "--listen", fleet.endpoint)
+    robot_ids = [f"r{i + 1}" for i in range(args.robots)]
+    router = fleet.start("router", *fleet.router_words(robot_ids))  # secured, as the demo's and compose's
     try:
         fleet.wait_for_router()
-        services = [fleet.start(s.name, s.name, *(a.format(out=out) for a in s.args)) for s in SERVICES]
+        services = [fleet.start(s.name, s.name, *(a.format(out=out) for a in s.args), user=s.name) for s in SERVICES]
+        fleet.start(WORLD_USER, "world", "--world", args.world, "--seed", str(args.seed), user=WORLD_USER)  # true map
         rss = {child.name: [] for child in [*services, router]}
-        session = open_session(FleetSettings(zenoh_connect=fleet.endpoint, prefix=PREFIX))
+        session = open_session(FleetSettings(zenoh_connect=fleet.endpoint, prefix=PREFIX,
+                                             **fleet.credentials("monitor")))
         subscriber = session.declare_subscriber(f"{PREFIX}/*/stats", stats_log.on_sample)
         result["services_ready_s"] = round(fleet.wait_for_services(list(STATS_NAMES), shutdown), 2)
         known = args.robots - args.unknown_start_robots
-        robots = [fleet.start(f"r{i + 1}", "robot", "--id", f"r{i + 1}", "--world", args.world, "--seed", str(args.seed),
+        robots = [fleet.start(rid, "robot", "--id", rid, "--world", args.world, "--seed", str(args.seed),
                               "--rate", str(args.rate), "--speedup", str(args.speedup), "--duration", f"{robot_s:g}",
-                              "--start-delay", "1.0", *(["--unknown-start"] if i >= known else []))
-                  for i in range(args.robots) if not shutdown.is_set()]
+                              "--start-delay", "1.0", "--no-publish-world", *(["--unknown-start"] if i >= known else []),
+                              user=rid)
+                  for i, rid in enumerate(robot_ids) if not shutdown.is_set()]
         t0 = time.monotonic()
         deadline = t0 + expected_s + args.grace_s
         next_sample = next_progress = t0

@@ -24,7 +24,9 @@ filter (:class:`central.fastslam.FastSlam`):
 
 The estimate (every placed robot's weighted mean pose and covariance, the
 map) is published on ``{prefix}/central/estimate`` at ``estimate_rate_hz``;
-the queryable ``{prefix}/central/state`` answers with a fresh one.
+the queryable ``{prefix}/central/state`` answers with a fresh one: the queries that arrive meanwhile wait
+together (at most ``max_state_queries``; more are answered ``busy`` at once) and all get the one estimate built
+at the loop's next turn, so a flood of them costs the filter one estimate.
 
 With ``map`` (``--map FILE``, :mod:`schemas.mapfile`) the filter starts from a saved map, in its frame: the
 estimate is published from the start (the map alone, before any robot), and no robot anchors a new frame:
@@ -36,6 +38,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import threading
 import time
 from collections import defaultdict, deque
 
@@ -71,6 +74,9 @@ class CentralService(ServiceShell):
         self.estimate_seq = 0
         self.last_stamp = 0.0
         self.announced_waiting: dict[str, float] = {}  # robots announced without a pose: when (wall clock)
+        self._state_lock = threading.Lock()
+        self._state_queries: list[zenoh.Query] = []  # waiting for the next estimate (Zenoh's threads append)
+        self.state_answered = 0
         self.prior_landmarks = seed_from_file(self.slam, settings.map, self.slam.config.association)
         self.map_saver = MapSaver(settings.map_out, {
             "estimator": "fastslam", "association": self.slam.config.association,
@@ -82,8 +88,24 @@ class CentralService(ServiceShell):
         self.follow_robots()
         self.subscribe(f"{self.settings.prefix}/mcl/*/pose", "mcl", recover=False)
         self._estimate_pub = self.publisher(self.keys.central_estimate)
-        self._declared.append(session.declare_queryable(self.keys.central_state,
-                                                        lambda query: self.enqueue("state", self.keys.central_state, query)))
+        self._declared.append(session.declare_queryable(self.keys.central_state, self._on_state_query))
+
+    def _on_state_query(self, query: zenoh.Query) -> None:
+        """Zenoh's callback: the query waits with the others for the next estimate; ``busy`` when too many wait."""
+        with self._state_lock:
+            admitted = len(self._state_queries) < self.settings.max_state_queries
+            if admitted:
+                self._state_queries.append(query)
+                first = len(self._state_queries) == 1
+        if not admitted:
+            try:
+                query.reply_err(f"busy: {self.settings.max_state_queries} state queries wait already; ask again "
+                                "later".encode())
+            finally:
+                query.drop()
+            self.call_in_loop(self.reject, "busy", "a state query")
+        elif first:  # the loop answers every query waiting by then
+            self.enqueue("state", self.keys.central_state, b"")
 
     # ------------------------------------------------------------ robots
     async def robot_announced(self, info: RobotInfo) -> None:
@@ -159,7 +181,7 @@ class CentralService(ServiceShell):
     # ------------------------------------------------------------ handling
     async def handle(self, tag: str, key: str, payload) -> None:
         if tag == "state":
-            self._answer_state(payload)
+            self._answer_state_queries()
         elif tag == "mcl":
             await self._on_mcl(decode(payload, MclPose), key)
         await self.release_events()
@@ -200,19 +222,28 @@ class CentralService(ServiceShell):
         self.estimate_seq += int(publish)
         return message
 
-    def _answer_state(self, query: zenoh.Query) -> None:
-        try:
-            message = self.estimate(publish=False)
-            if message is None:
-                query.reply_err(b"estimate_not_finite")
-            else:
-                query.reply(self.keys.central_state, encode(message))
-        finally:
-            query.drop()
+    def _answer_state_queries(self) -> None:
+        """Answer every waiting state query with one estimate, built and encoded once."""
+        with self._state_lock:
+            queries, self._state_queries = self._state_queries, []
+        message = self.estimate(publish=False)
+        payload = None if message is None else encode(message)
+        for query in queries:
+            try:
+                if payload is None:
+                    query.reply_err(b"estimate_not_finite")
+                else:
+                    query.reply(self.keys.central_state, payload)
+            except Exception as exc:  # noqa: BLE001 - the caller may be gone; the others still get theirs
+                log.debug("central: cannot answer a state query: %s", exc)
+            finally:
+                query.drop()
+        self.state_answered += len(queries)
 
     def _update_stats(self) -> None:
         self.extra.update({k: v for k, v in self.slam.stats().items()})
         self.extra["processed"] = float(sum(self.processed.values()))
+        self.extra["state_answered"] = float(self.state_answered)
         self.put_timing("compute_ms", self.compute_ms)
 
     def _publish_estimate(self) -> None:

@@ -448,7 +448,8 @@ class EvaluateSettings(FleetSettings):
     max_gap_s: float = Field(1.0, gt=0, description="truth is not interpolated across gaps longer than this (s)")
     truth_offset_x: float = Field(0.0, description="body-frame x (m) of the point the truth positions refer to (GPS antenna)")
     truth_offset_y: float = Field(0.0, description="body-frame y (m) of that point")
-    max_samples: int = Field(200000, ge=100, description="most samples kept per trajectory (older ones are thinned)")
+    max_samples: int = Field(8192, ge=100, description="samples kept per trajectory, in arrays allocated when it starts "
+                             "(memory stays flat: when full, every other sample is dropped, the span stays)")
 
 
 class AssocSettings(FleetSettings):
@@ -473,6 +474,12 @@ class AssocSettings(FleetSettings):
                                     "solve is cut at it: the best found so far (truncated), or deadline (s)")
     query_nice: int = Field(10, ge=0, le=19, description="niceness the query workers add to the process's (Linux), so "
                             "that on a busy processor the other services go first")
+    light_query_cells: int = Field(
+        100_000, ge=0, description="queries of at most this many cells (a robot's scan against the landmarks near it, "
+        "as D-SLAM asks) have a worker of their own at the service's priority, so heavy queries never hold them up; "
+        "0: one lane for all")
+    light_query_queue: int = Field(8, ge=0, description="light queries that may wait for their worker; more are "
+                                   "answered busy at once")
     duration: float | None = Field(None, gt=0, description="stop after this many seconds (default: until SIGINT/SIGTERM)")
 
 
@@ -480,6 +487,8 @@ class CentralSettings(FleetSettings, FastSlamConfig, SavedMapSettings, Checkpoin
     """``fleetslam central``: the central multi-robot FastSLAM service (every robot in one filter)."""
 
     estimate_rate_hz: float = Field(2.0, gt=0, le=100, description="rate of the estimate publication on {prefix}/central/estimate")
+    max_state_queries: int = Field(64, ge=1, description="queries of {prefix}/central/state that may wait for the next "
+                                   "estimate (all get the one built then); more are answered busy at once")
     anchor_first: bool = Field(
         True, description="when no robot is placed anchor_after_s after the first robot without a start pose was "
         "announced, it anchors the world frame at the origin (DESIGN §3); the others wait for MCL")

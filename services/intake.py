@@ -38,6 +38,7 @@ class Intake:
         self.refused: Counter = Counter()
         self.held_bytes = 0
         self.peak_bytes = 0
+        self.high_water = 0  # the most held since :meth:`take_high_water`
         self._lanes: OrderedDict[Hashable, deque[tuple[Any, int]]] = OrderedDict()
         self._lane_bytes: dict[Hashable, int] = {}
         self._count = 0
@@ -75,6 +76,7 @@ class Intake:
             self._lane_bytes[lane] = self._lane_bytes.get(lane, 0) + nbytes
             self.held_bytes += nbytes
             self.peak_bytes = max(self.peak_bytes, self.held_bytes)
+            self.high_water = max(self.high_water, self.held_bytes)
             self._count += 1
         if was_empty and self.on_first is not None:
             self.on_first()
@@ -96,6 +98,12 @@ class Intake:
                 del self._lanes[lane]
                 del self._lane_bytes[lane]
             return item
+
+    def take_high_water(self) -> int:
+        """The most bytes held at once since the last call (or the start)."""
+        with self._lock:
+            high, self.high_water = self.high_water, self.held_bytes
+        return high
 
     def take_refused(self) -> Counter:
         """The refusals counted since the last call (moved into the service's rejection counts)."""

@@ -16,6 +16,12 @@ its caller abandoned is not solved. Every query gets exactly one answer; a solve
 that raises is answered ``solve_error``. Refusals are counted by reason in
 the service's stats (in its loop), the queue wait and the solve time in its
 ``extra`` (:meth:`put_timing`).
+
+A pool may keep a light lane (``light_cost`` > 0): a second, smaller pool of
+one worker at the service's own priority for the queries whose ``prepare``
+gives a :class:`Sized` solve of at most ``light_cost`` (the association
+service: a robot's scan against its neighbourhood), so that heavy queries
+filling the pool never hold up the small ones a live service waits for.
 """
 
 from __future__ import annotations
@@ -27,6 +33,7 @@ import threading
 import time
 from collections import deque
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
 from typing import Callable
 
 import zenoh
@@ -37,6 +44,14 @@ log = logging.getLogger(__name__)
 
 Solve = Callable[[float], tuple[str, bytes]]  # the time budget (s) -> (reply key, reply payload)
 Outcome = tuple[str, bytes]  # (reply key, reply payload), or a QueryRefused
+
+
+@dataclass(frozen=True)
+class Sized:
+    """A solve with its cost (the cells of its largest array): what a pool's light lane is chosen by."""
+
+    solve: Solve
+    cost: float
 
 
 class QueryRefused(Exception):
@@ -79,8 +94,10 @@ class QueryPool:
     """A bounded queue of queries in front of ``workers`` solver threads, owned by one service (``shell``)."""
 
     def __init__(self, shell, workers: int, queue: int, deadline_s: float, nice: int = 0,
-                 clock: Callable[[], float] = time.monotonic):
+                 clock: Callable[[], float] = time.monotonic, light_cost: float = 0.0, light_queue: int = 0,
+                 name: str = "query"):
         self.shell = shell
+        self.name = name
         self.workers = workers
         self.queue = queue
         self.deadline_s = deadline_s
@@ -88,43 +105,60 @@ class QueryPool:
         self._lock = threading.Lock()
         self._pending = 0  # admitted and not yet answered: waiting or being solved
         self._closing = False
-        self._executor = ThreadPoolExecutor(workers, thread_name_prefix=f"{shell.name}-query", initializer=self._lower,
+        self._executor = ThreadPoolExecutor(workers, thread_name_prefix=f"{shell.name}-{name}", initializer=self._lower,
                                             initargs=(nice,))
         self.wait_ms: deque[float] = deque(maxlen=2000)
         self.solve_ms: deque[float] = deque(maxlen=2000)
         self.replies = 0
+        self.light_cost = light_cost
+        self.light = QueryPool(shell, 1, light_queue, deadline_s, 0, clock, name="light") if light_cost > 0 else None
+
+    def _full(self) -> bool:
+        with self._lock:
+            return self._pending >= self.workers + self.queue
+
+    def _reserve(self) -> bool:
+        """Take a place for one more query; False when ``workers + queue`` are already in."""
+        with self._lock:
+            if self._pending >= self.workers + self.queue:
+                return False
+            self._pending += 1
+            return True
 
     # ------------------------------------------------------------ admission (any thread)
-    def admit(self, query: zenoh.Query, tag: str, prepare: Callable[[], Solve]) -> None:
+    def admit(self, query: zenoh.Query, tag: str, prepare: Callable[[], Solve | Sized]) -> None:
         """Take one query (counted under ``tag``): ``busy`` when full; else ``prepare()`` (decode, validate, size:
-        QueryRefused is answered at once) gives the solve, which a worker runs."""
+        QueryRefused is answered at once) gives the solve, which a worker of its lane runs."""
         arrived = self.clock()
         self.shell.call_in_loop(self._count_in, tag)
-        with self._lock:
-            full = self._pending >= self.workers + self.queue
-            if not full:
-                self._pending += 1
-        if full:
-            self.answer(query, QueryRefused("busy", f"{self.workers} solving and {self.queue} waiting; ask again later"))
+        if self._full() and (self.light is None or self.light._full()):  # nothing is decoded then
+            lanes = [self] if self.light is None else [self, self.light]
+            self.answer(query, QueryRefused("busy", f"{' and '.join(lane._load() for lane in lanes)}; ask again later"))
             return
         try:
-            solve = prepare()
+            prepared = prepare()
         except QueryRefused as refusal:
-            self._release()
             self.answer(query, refusal)
             return
         except Exception as exc:  # noqa: BLE001 - the client must hear back, and the service must go on
-            self._release()
             log.debug("%s: preparing a query failed", self.shell.name, exc_info=True)
             self.answer(query, QueryRefused("solve_error", f"{type(exc).__name__}: {exc}"))
             return
+        solve, cost = (prepared.solve, prepared.cost) if isinstance(prepared, Sized) else (prepared, math.inf)
+        lane = self.light if self.light is not None and cost <= self.light_cost else self
+        if not lane._reserve():
+            self.answer(query, QueryRefused("busy", f"{lane._load()}; ask again later"))
+            return
         waits = caller_timeout(query)
-        deadline_s = self.deadline_s if waits is None else min(self.deadline_s, waits)
+        deadline_s = lane.deadline_s if waits is None else min(lane.deadline_s, waits)
         try:
-            self._executor.submit(self._run, query, solve, arrived, deadline_s)
+            lane._executor.submit(lane._run, query, solve, arrived, deadline_s)
         except RuntimeError:  # shut down: the service is stopping
-            self._release()
+            lane._release()
             self.answer(query, QueryRefused("stopping", "the service is stopping"))
+
+    def _load(self) -> str:
+        return f"{self.workers} solving and {self.queue} waiting in the {self.name} lane"
 
     # ------------------------------------------------------------ workers
     def _run(self, query: zenoh.Query, solve: Solve, arrived: float, deadline_s: float) -> None:
@@ -191,16 +225,26 @@ class QueryPool:
         self.wait_ms.append(wait_ms)
         self.solve_ms.append(solve_ms)
 
+    @property
+    def total_replies(self) -> int:
+        """Replies of this pool and its light lane."""
+        return self.replies + (self.light.replies if self.light is not None else 0)
+
     def put_stats(self) -> None:
-        """Replies, queries in, and the median/p99 of the queue wait and the solve time, into the service's extra."""
+        """Replies, queries in, and the median/p99 of the queue wait and the solve time, into the service's extra
+        (``query_*``; the light lane's as ``light_*``)."""
         with self._lock:
             pending = self._pending
-        self.shell.extra["query_replies"] = float(self.replies)
-        self.shell.extra["query_pending"] = float(pending)
-        self.shell.put_timing("query_wait_ms", self.wait_ms)
-        self.shell.put_timing("query_solve_ms", self.solve_ms)
+        self.shell.extra[f"{self.name}_replies"] = float(self.replies)
+        self.shell.extra[f"{self.name}_pending"] = float(pending)
+        self.shell.put_timing(f"{self.name}_wait_ms", self.wait_ms)
+        self.shell.put_timing(f"{self.name}_solve_ms", self.solve_ms)
+        if self.light is not None:
+            self.light.put_stats()
 
     def close(self) -> None:
         """Stop taking queries; those still waiting are answered ``stopping``, a running solve ends by its deadline."""
         self._closing = True
         self._executor.shutdown(wait=False)
+        if self.light is not None:
+            self.light.close()

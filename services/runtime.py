@@ -32,6 +32,9 @@ before it subscribes; the robots' publisher caches then send what came after.
 from __future__ import annotations
 
 import asyncio
+import ctypes
+import ctypes.util
+import functools
 import logging
 import os
 import signal
@@ -56,8 +59,26 @@ from services.intake import Intake
 from services.roster import ReorderBuffer, Roster, StreamEvent, Takeover
 
 ROBOT_TAGS = frozenset({"alive", "gone", "info", "odom", "scan", "refilled"})
+FIRST_RUN_S = 0.1  # the first stats and tick this soon after setup (s), then every period
+TRIM_AFTER_BYTES = 8 << 20  # a backlog that held this much: once worked off, its freed heap goes back to the system
 
 log = logging.getLogger(__name__)
+
+
+@functools.cache
+def _malloc_trim():
+    """glibc's ``malloc_trim``, or None (musl, macOS)."""
+    try:
+        return ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").malloc_trim
+    except (OSError, AttributeError):
+        return None
+
+
+def release_free_memory() -> bool:
+    """Give the heap's free pages back to the system (glibc's ``malloc_trim``); False without glibc. A backlog's
+    memory, once worked off, is free but still the process's: a long-running service would keep its peak."""
+    trim = _malloc_trim()
+    return trim is not None and bool(trim(0))
 
 
 class ServiceShell:
@@ -84,6 +105,7 @@ class ServiceShell:
         self.intake = Intake(int(settings.lane_mb * 2**20), int(settings.queue_mb * 2**20),
                              {"scan": settings.max_scan_kb * kb, "odom": settings.max_message_kb * kb,
                               "info": settings.max_message_kb * kb}, on_first=self._wake_up)
+        self._backlog_bytes = 0  # the most the intake held since memory was last given back
         self.session: zenoh.Session | None = None
         self._declared: list[Any] = []
         self.roster: Roster | None = None
@@ -502,15 +524,23 @@ class ServiceShell:
                 log.exception("%s: handler failed on %s", self.name, key)
             self._latencies_ms.append((time.perf_counter() - arrived) * 1e3)
 
-    async def _every(self, period: float, work) -> None:
+    async def _every(self, period: float, work, first_after: float | None = None) -> None:
+        """Run ``work`` every ``period`` seconds; the first time after ``first_after`` (default: one period)."""
+        delay = period if first_after is None else first_after
         while True:
-            await asyncio.sleep(period)
+            await asyncio.sleep(delay)
+            delay = period
             try:
                 await work()
             except Exception:  # noqa: BLE001
                 log.exception("%s: periodic work failed", self.name)
 
     async def _publish_stats(self) -> None:
+        self._backlog_bytes = max(self._backlog_bytes, self.intake.take_high_water())
+        if self._backlog_bytes >= TRIM_AFTER_BYTES and len(self.intake) == 0:
+            self._backlog_bytes = 0
+            if release_free_memory():
+                self.extra["memory_trims"] = self.extra.get("memory_trims", 0.0) + 1.0
         if self.roster is not None:
             dropped = self.roster.expire_pending()
             if dropped:
@@ -547,23 +577,32 @@ class ServiceShell:
         self._wake = asyncio.Event()
         self._stop = asyncio.Event()
         previous_handlers = self._install_signal_handlers()
-        if self.uses_kernels:
-            warm_up_s = await asyncio.to_thread(compiled.warm_up, self.uses_kernels)
-            self.extra["kernel_warm_up_s"] = warm_up_s
-            log.info("%s: kernels ready in %.2f s (%s)", self.name, warm_up_s,
-                     "numba" if compiled.AVAILABLE else "numpy references: numba is not installed")
+        # the kernels load (or compile) while the checkpoint is read and the router reached; nothing that uses them
+        # runs before setup subscribes
+        warming = asyncio.create_task(asyncio.to_thread(compiled.warm_up, self.uses_kernels)) if self.uses_kernels \
+            else None
         if self.checkpoints is not None:
             self.resume()
-        self.session = await asyncio.to_thread(open_session, self.settings)
+        try:
+            self.session = await asyncio.to_thread(open_session, self.settings)
+        finally:
+            if warming is not None:
+                warm_up_s = await warming
+                self.extra["kernel_warm_up_s"] = warm_up_s
+                log.info("%s: kernels ready in %.2f s (%s)", self.name, warm_up_s,
+                         "numba" if compiled.AVAILABLE else "numpy references: numba is not installed")
         tasks: list[asyncio.Task] = []
         try:
             self._stats_pub = StreamPublisher(self.session, self.keys.stats(self.name))
             self.setup(self.session)
             log.info("%s ready (%s)", self.instance, self.settings.zenoh_connect)
             tasks.append(asyncio.create_task(self._consume()))
-            tasks.append(asyncio.create_task(self._every(self.settings.stats_period_s, self._publish_stats)))
+            # the first stats and estimate soon after setup: a restarted service shows itself and its resumed state
+            tasks.append(asyncio.create_task(self._every(self.settings.stats_period_s, self._publish_stats,
+                                                         first_after=min(FIRST_RUN_S, self.settings.stats_period_s))))
             if self.tick_period_s:
-                tasks.append(asyncio.create_task(self._every(self.tick_period_s, self.tick)))
+                tasks.append(asyncio.create_task(self._every(self.tick_period_s, self.tick,
+                                                             first_after=min(FIRST_RUN_S, self.tick_period_s))))
             if self.checkpoints is not None:
                 tasks.append(asyncio.create_task(self._every(self.settings.checkpoint_period_s, self._write_checkpoint)))
             if self.roster is not None:  # events whose wait ran out while no message came

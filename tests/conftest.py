@@ -21,11 +21,19 @@ def pytest_addoption(parser):
     parser.addoption("--crash-seed", type=int, default=20261123,
                      help="seed of the kill moments of tests/integration/test_crash_restart.py "
                      "(benchmarks/crash_restart.py runs it over many seeds)")
+    parser.addoption("--crash-kills", choices=("all", "none"), default="all",
+                     help="none: test_crash_restart.py kills nothing, so copy B against copy A measures how far two "
+                     "untouched live runs differ (the benchmark's control)")
 
 
 @pytest.fixture
 def crash_seed(request) -> int:
     return request.config.getoption("--crash-seed")
+
+
+@pytest.fixture
+def crash_kills(request) -> bool:
+    return request.config.getoption("--crash-kills") == "all"
 
 
 @pytest.fixture(autouse=True)

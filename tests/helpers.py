@@ -126,3 +126,27 @@ class Collector:
 
 def client_session(endpoint: str) -> zenoh.Session:
     return open_session(FleetSettings(zenoh_connect=endpoint, connect_timeout_s=10.0))
+
+
+class Asked:
+    """Replies to one query sent without waiting: each (ok, payload, seconds after sending) as it comes, and when the
+    query ended."""
+
+    def __init__(self, session: zenoh.Session, key: str, payload: bytes | None, timeout: float = 20.0):
+        self.replies: list[tuple[bool, bytes, float]] = []
+        self.ended = threading.Event()
+        self.sent = time.monotonic()
+        session.get(key, zenoh.handlers.Callback(self._on_reply, self.ended.set), payload=payload, timeout=timeout)
+
+    def _on_reply(self, reply: zenoh.Reply) -> None:
+        late = time.monotonic() - self.sent
+        if reply.ok is not None:
+            self.replies.append((True, reply.ok.payload.to_bytes(), late))
+        else:
+            self.replies.append((False, reply.err.payload.to_bytes(), late))
+
+    def one(self, within: float = 20.0) -> tuple[bool, bytes, float]:
+        """The query's only reply, once the query ended."""
+        assert self.ended.wait(within), "the query never ended"
+        assert len(self.replies) == 1, self.replies
+        return self.replies[0]

@@ -12,7 +12,8 @@ Queries are bounded (:class:`~services.query_pool.QueryPool`): a request is
 decoded and sized (:func:`~services.association.core.query_cells` against
 ``max_query_cells``) on Zenoh's callback thread and refused at once when too
 large or when ``query_queue`` requests already wait (``busy``); the others
-are solved by ``query_workers`` threads within ``query_deadline_s``.
+are solved by ``query_workers`` threads within ``query_deadline_s``; those of at most ``light_query_cells`` cells
+(what a live D-SLAM asks) by a worker of their own, so that heavy queries never hold them up.
 
 A query on a wildcard (``{prefix}/assoc/**``, ``{prefix}/assoc/*``) reaches
 every queryable of an instance, but is solved and answered once per
@@ -46,7 +47,7 @@ from schemas.codec import encode
 from schemas.config import AssocSettings, add_settings_arguments, settings_from_args
 from services.association.client import instance_key, instances_key
 from services.association.core import AssociationError, associate, query_cells
-from services.query_pool import QueryPool, QueryRefused, Solve, decode_query, is_wildcard
+from services.query_pool import QueryPool, QueryRefused, Sized, decode_query, is_wildcard
 from services.runtime import ServiceShell
 
 log = logging.getLogger(__name__)
@@ -65,7 +66,8 @@ class AssocService(ServiceShell):
         self.settings: AssocSettings = settings
         self.methods = settings.methods.split(",")
         self.pool = QueryPool(self, settings.query_workers, settings.query_queue, settings.query_deadline_s,
-                              settings.query_nice)
+                              settings.query_nice, light_cost=settings.light_query_cells,
+                              light_queue=settings.light_query_queue)
         self._wildcard_order: list[zenoh.KeyExpr] = []
 
     def setup(self, session: zenoh.Session) -> None:
@@ -95,8 +97,9 @@ class AssocService(ServiceShell):
                 return str(candidate) == key
         return False
 
-    def _prepare(self, method: str, key: str, query: zenoh.Query) -> Solve:
-        """Decode and size the request on the callback's thread (QueryRefused at once); the solve for a worker."""
+    def _prepare(self, method: str, key: str, query: zenoh.Query) -> Sized:
+        """Decode and size the request on the callback's thread (QueryRefused at once); the solve for a worker, with
+        its cells (the light lane takes the small ones)."""
         request = decode_query(query, AssociationRequest)
         s = self.settings
         m, n = request.size
@@ -117,11 +120,11 @@ class AssocService(ServiceShell):
                 raise QueryRefused(error.reason, error.detail) from None
             return key, encode(reply)
 
-        return solve
+        return Sized(solve, cells)
 
     def stats(self):
         self.pool.put_stats()
-        self.published = self.pool.replies
+        self.published = self.pool.total_replies
         return super().stats()
 
     def on_stop(self) -> None:

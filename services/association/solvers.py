@@ -32,7 +32,6 @@ from typing import Callable
 
 import numpy as np
 from scipy import sparse
-from scipy.optimize import linear_sum_assignment, linprog
 
 from robots.gaussian import chi2_quantile
 from services.association import kernels
@@ -119,6 +118,8 @@ def solve_exact(cost: np.ndarray) -> Pairs:
     big[np.arange(m), n + np.arange(m)] = 0.0
     big[m + np.arange(n), np.arange(n)] = 0.0
     big[m:, n:] = 0.0
+    from scipy.optimize import linear_sum_assignment  # scipy.optimize takes 0.1 s to load: only where it is used
+
     rows, cols = linear_sum_assignment(big)
     keep = (rows < m) & (cols < n)
     return rows[keep].astype(np.int64), cols[keep].astype(np.int64)
@@ -145,6 +146,8 @@ def lp_relaxation(weights: np.ndarray, rows: np.ndarray, cols: np.ndarray, n_row
         (np.ones(2 * e), (np.concatenate([rows, n_rows + cols]), np.concatenate([index, index]))),
         shape=(n_rows + n_cols, e),
     )
+    from scipy.optimize import linprog
+
     options = {} if time_limit is None else {"time_limit": max(float(time_limit), 1e-3)}
     result = linprog(weights, A_ub=a_ub, b_ub=np.ones(n_rows + n_cols), bounds=(0.0, 1.0), method="highs",
                      options=options)

@@ -34,10 +34,9 @@ run: those messages are refused as out of order.
 from __future__ import annotations
 
 import argparse
-import bisect
+import asyncio
 import logging
 from collections import Counter
-from dataclasses import dataclass, field
 
 import numpy as np
 import zenoh
@@ -51,39 +50,57 @@ from services.runtime import ServiceShell
 log = logging.getLogger("fleetslam.evaluate")
 
 
-@dataclass
 class Series:
-    """A growing trajectory; when it reaches ``limit`` samples every other one is dropped (the span stays).
-    Its stamps only go forward (:meth:`add`)."""
+    """A trajectory in arrays of a fixed capacity (``limit`` samples, allocated and touched when it is created,
+    so that its memory does not grow as it fills): when full, every other sample is dropped (the span stays, the
+    resolution halves). Its stamps only go forward (:meth:`add`)."""
 
-    limit: int
-    stamps: list[float] = field(default_factory=list)
-    poses: list[np.ndarray] = field(default_factory=list)
-    covs: list[np.ndarray] = field(default_factory=list)
+    def __init__(self, limit: int):
+        self.limit = limit
+        self.size = 0
+        self.stamps = np.full(limit, np.nan)
+        self.poses = np.full((limit, 3), np.nan)
+        self.covs: np.ndarray | None = None  # allocated at the first sample that has a covariance
+
+    def __len__(self) -> int:
+        return self.size
 
     def add(self, stamp: float, pose: np.ndarray, cov: np.ndarray | None = None) -> None:
         """Append a sample; one at the stamp of the last replaces it, and one before the last drops the samples
         after it (they belong to an earlier run of the robot: see the module docstring)."""
-        if self.stamps and stamp < self.stamps[-1]:
-            kept = bisect.bisect_left(self.stamps, stamp)
-            del self.stamps[kept:], self.poses[kept:], self.covs[kept:]
-        if self.stamps and stamp == self.stamps[-1]:
-            self.poses[-1] = pose
-            if cov is not None and self.covs:
-                self.covs[-1] = cov
-            return
-        self.stamps.append(stamp)
-        self.poses.append(pose)
-        if cov is not None:
-            self.covs.append(cov)
-        if len(self.stamps) >= self.limit:
-            self.stamps, self.poses = self.stamps[::2], self.poses[::2]
-            self.covs = self.covs[::2]
+        n = self.size
+        if n and stamp < self.stamps[n - 1]:
+            n = self.size = int(np.searchsorted(self.stamps[:n], stamp, side="left"))
+        if cov is not None and self.covs is None:
+            self.covs = np.full((self.limit, 3, 3), np.nan)
+        if n and stamp == self.stamps[n - 1]:
+            index = n - 1
+        else:
+            if n == self.limit:
+                n = self.size = self._thin()
+            index = n
+            self.size = n + 1
+            self.stamps[index] = stamp
+        self.poses[index] = pose
+        if self.covs is not None:
+            self.covs[index] = np.nan if cov is None else cov
+
+    def _thin(self) -> int:
+        """Keep every other sample, in place; the samples kept."""
+        kept = (self.size + 1) // 2
+        self.stamps[:kept] = self.stamps[: self.size : 2]
+        self.poses[:kept] = self.poses[: self.size : 2]
+        if self.covs is not None:
+            self.covs[:kept] = self.covs[: self.size : 2]
+        return kept
 
     def trajectory(self):
+        """A copy of the samples so far (the arrays go on filling while it is scored elsewhere)."""
         from services.evaluation.metrics import Trajectory
 
-        return Trajectory.from_lists(self.stamps, self.poses, self.covs if self.covs else None)
+        n = self.size
+        return Trajectory(self.stamps[:n].copy(), self.poses[:n].copy(),
+                          None if self.covs is None else self.covs[:n].copy())
 
 
 class Evaluator(ServiceShell):
@@ -208,21 +225,28 @@ class Evaluator(ServiceShell):
 
     def collected(self) -> tuple[dict, dict]:
         """(truth per robot, trajectories per estimator and robot) received so far."""
-        truth = {rid: series.trajectory() for rid, series in self.truth.items() if series.stamps}
-        trajectories = {name: {rid: s.trajectory() for rid, s in robots.items() if s.stamps}
+        truth = {rid: series.trajectory() for rid, series in self.truth.items() if len(series)}
+        trajectories = {name: {rid: s.trajectory() for rid, s in robots.items() if len(s)}
                         for name, robots in self.estimates.items()}
         return truth, trajectories
 
     def score(self) -> tuple[dict, dict]:
         """Score everything received so far: (metrics, curves)."""
+        return self._scorer()()
+
+    def _scorer(self):
+        """A scoring of a copy of everything received so far, to run in any thread: the loop goes on filling."""
         from services.evaluation.metrics import score_estimates
 
         truth, trajectories = self.collected()
-        return score_estimates(trajectories, truth, self.maps, self.true_landmarks, self.truth_offset,
-                               self.settings.map_cutoff_m, self.settings.rpe_delta_s, self.settings.max_gap_s)
+        maps, true_landmarks = dict(self.maps), self.true_landmarks
+        s = self.settings
+        return lambda: score_estimates(trajectories, truth, maps, true_landmarks, self.truth_offset, s.map_cutoff_m,
+                                       s.rpe_delta_s, s.max_gap_s)
 
     async def tick(self) -> None:
-        metrics, _ = self.score()
+        """Score in a worker thread, so that messages are handled meanwhile; publish the figures in ``extra``."""
+        metrics, _ = await asyncio.to_thread(self._scorer())
         restarts = sum(self.runs_ended.values())
         extra: dict[str, float] = {"robots_with_truth": float(len(self.truth) - restarts),  # not the runs set aside
                                    "robot_restarts": float(restarts)}

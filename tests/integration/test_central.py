@@ -10,7 +10,7 @@ from robots.simulator import simulate
 from schemas.codec import decode, encode
 from schemas.keys import Keys
 from schemas.messages import Estimate, MclPose, ServiceStats
-from tests.helpers import Collector, wait_until
+from tests.helpers import Asked, Collector, wait_until
 
 pytestmark = pytest.mark.integration
 
@@ -41,7 +41,8 @@ def test_three_robots_one_map(router, processes, zsession, prefix):
     keys = Keys(prefix)
     estimates = Collector(zsession, keys.central_estimate)
     stats = Collector(zsession, keys.stats("central"))
-    processes.start("central", "central", "--association", "nn", "--particles", "50", "--estimate-rate-hz", "4")
+    processes.start("central", "central", "--association", "nn", "--particles", "50", "--estimate-rate-hz", "4",
+                    "--max-state-queries", "16")
     wait_until(lambda: stats.count() > 0, 60, what="the central service's first stats")
     robots = [processes.start(rid, *robot_args(rid)) for rid in ROBOTS]
     for process in robots:
@@ -69,6 +70,18 @@ def test_three_robots_one_map(router, processes, zsession, prefix):
     for robot in state.robots:
         error = robot.pose[:2] - data[robot.robot_id].truth_pose[-1, :2]
         assert np.hypot(*error) < 0.3, (robot.robot_id, error)
+    # a flood of state queries: each answered once, with the estimate or busy, and one estimate built per turn
+    flood = [Asked(zsession, keys.central_state, None) for _ in range(200)]
+    outcomes = [asked.one() for asked in flood]
+    answered = [decode(payload, Estimate) for ok, payload, _ in outcomes if ok]
+    busy = [payload for ok, payload, _ in outcomes if not ok]
+    assert answered and all(payload.startswith(b"busy: ") for payload in busy)
+    assert all(len(estimate.landmarks) == len(state.landmarks) for estimate in answered)
+    flooded = wait_until(lambda: next((s for s in reversed(stats.decoded(ServiceStats))
+                                       if s.extra.get("state_answered") == len(answered) + 1), None), 15,
+                         what="stats counting the state queries")
+    assert flooded.rejected == ({"busy": len(busy)} if busy else {})
+
     published = estimates.decoded(Estimate)
     assert len(published) >= 3
     seqs = [e.seq for e in published]

@@ -4,7 +4,6 @@ its deadline, and MCL keeps tracking its robots while a heavy query is solved.""
 
 from __future__ import annotations
 
-import threading
 import time
 
 import numpy as np
@@ -18,34 +17,10 @@ from schemas.keys import Keys
 from schemas.mcl import LocalizeReply, LocalizeRequest
 from schemas.messages import ServiceStats
 from services.association.client import query_associate
-from tests.helpers import Collector, wait_until
+from tests.helpers import Asked, Collector, wait_until
 from tests.unit.test_query_limits import dense_request
 
 pytestmark = pytest.mark.integration
-
-
-class Asked:
-    """Replies to one query sent without waiting: each (ok, payload, seconds after sending) as it comes, and when the
-    query ended."""
-
-    def __init__(self, session: zenoh.Session, key: str, payload: bytes | None, timeout: float = 20.0):
-        self.replies: list[tuple[bool, bytes, float]] = []
-        self.ended = threading.Event()
-        self.sent = time.monotonic()
-        session.get(key, zenoh.handlers.Callback(self._on_reply, self.ended.set), payload=payload, timeout=timeout)
-
-    def _on_reply(self, reply: zenoh.Reply) -> None:
-        late = time.monotonic() - self.sent
-        if reply.ok is not None:
-            self.replies.append((True, reply.ok.payload.to_bytes(), late))
-        else:
-            self.replies.append((False, reply.err.payload.to_bytes(), late))
-
-    def one(self, within: float = 20.0) -> tuple[bool, bytes, float]:
-        """The query's only reply, once the query ended."""
-        assert self.ended.wait(within), "the query never ended"
-        assert len(self.replies) == 1, self.replies
-        return self.replies[0]
 
 
 def latest_stats(collector: Collector, check) -> ServiceStats:
@@ -56,7 +31,8 @@ def latest_stats(collector: Collector, check) -> ServiceStats:
 def test_a_flood_of_association_queries_is_answered_with_results_or_busy_and_counted(processes, zsession, prefix):
     keys = Keys(prefix)
     stats = Collector(zsession, keys.stats("assoc"))
-    processes.start("assoc", "assoc", "--query-workers", "1", "--query-queue", "2", "--stats-period-s", "0.3")
+    processes.start("assoc", "assoc", "--query-workers", "1", "--query-queue", "2", "--light-query-cells", "0",
+                    "--stats-period-s", "0.3")  # one lane: every query competes for the one worker
     wait_until(lambda: stats.count() > 0, 60, what="the assoc service's stats")
     heavy = encode(dense_request(200, 200))  # an LP of 40,000 pairs, a fifth of a second: the queue stays full
     flood = [Asked(zsession, keys.assoc("ihgr"), heavy) for _ in range(40)]
@@ -82,19 +58,22 @@ def test_association_refuses_oversize_at_once_cuts_at_the_deadline_and_answers_a
     wait_until(lambda: stats.count() > 0, 60, what="the assoc service's stats")
     slow = Asked(zsession, keys.assoc("jcbb"), encode(dense_request(150, 150)))  # holds the only worker 1.5 s
     oversize = Asked(zsession, keys.assoc("exact"), encode(dense_request(800, 400)))  # (800 + 400)² cells
+    small = encode(dense_request(5, 5))
+    light = Asked(zsession, keys.assoc("auto"), small)  # as D-SLAM asks: the light lane, while the worker is held
     ok, payload, late = oversize.one()
     assert not ok and payload.startswith(b"too_large: ") and b"max_query_cells 1000000" in payload and late < 0.5
+    ok, payload, late = light.one()
+    assert ok and late < 1.0 and not slow.ended.is_set()
     ok, payload, late = slow.one()
     assert ok and decode(payload, AssociationReply).truncated and 1.4 < late < 3.0
 
-    small = encode(dense_request(5, 5))
     for key in (f"{prefix}/assoc/**", f"{prefix}/assoc/*", f"{prefix}/*/*"):
         ok, payload, _ = Asked(zsession, key, small).one()
         assert ok and decode(payload, AssociationReply).method in ("exact", "jcbb")  # auto's choice
     ok, payload, _ = Asked(zsession, keys.assoc("nn"), small).one()  # a concrete key: its own method, as before
     assert ok and decode(payload, AssociationReply).method == "nn"
-    last = latest_stats(stats, lambda s: s.extra.get("query_replies") == 5.0)
-    assert last.rejected == {"too_large": 1} and sum(last.messages_in.values()) == 6
+    last = latest_stats(stats, lambda s: s.extra.get("query_replies") == 1.0 and s.extra.get("light_replies") == 5.0)
+    assert last.rejected == {"too_large": 1} and sum(last.messages_in.values()) == 7
     stats.undeclare()
 
 

@@ -8,7 +8,7 @@ import pytest
 from schemas.codec import encode
 from schemas.config import EvaluateSettings
 from schemas.messages import Estimate, GroundTruth, PoseEstimate, RobotEstimate
-from services.evaluation.service import Evaluator
+from services.evaluation.service import Evaluator, Series
 
 PREFIX = "fleet"
 FIRST_RUN = np.array([1.0, 0.0, 0.0])  # the direction each run drives in: the two runs share stamps, not poses
@@ -79,3 +79,38 @@ async def test_truth_going_back_while_the_token_stays_is_out_of_order(tmp_path):
     assert judge.runs_ended == {}
     truth, _ = judge.collected()
     assert {rid: len(t) for rid, t in truth.items()} == {"r1": 51}
+
+
+def test_a_series_keeps_its_span_in_fixed_arrays_when_thinned():
+    series = Series(limit=100)
+    allocated = series.stamps.nbytes + series.poses.nbytes
+    for k in range(1000):
+        series.add(0.1 * k, np.array([0.1 * k, 0.0, 0.0]), np.eye(3) * k)
+    path = series.trajectory()
+    assert series.stamps.nbytes + series.poses.nbytes == allocated and series.covs.shape == (100, 3, 3)
+    assert 50 <= len(path) <= 100
+    assert path.stamps[0] == 0.0 and path.stamps[-1] == pytest.approx(99.9)
+    assert np.all(np.diff(path.stamps) > 0)
+    assert np.allclose(path.poses[:, 0], path.stamps) and np.allclose(path.covs[:, 0, 0], path.stamps * 10)
+
+
+def test_a_series_replaces_a_repeated_stamp_and_drops_what_a_step_back_overtakes():
+    series = Series(limit=100)
+    for k in range(10):
+        series.add(float(k), np.array([k, 0.0, 0.0]))
+    series.add(9.0, np.array([90.0, 0.0, 0.0]), np.eye(3))  # the same stamp: replaced, with a covariance now
+    assert len(series) == 10 and series.trajectory().poses[-1, 0] == 90.0
+    series.add(4.5, np.array([-1.0, 0.0, 0.0]))  # back in time: the samples after 4.5 go
+    path = series.trajectory()
+    assert path.stamps.tolist() == [0.0, 1.0, 2.0, 3.0, 4.0, 4.5] and path.poses[-1, 0] == -1.0
+    assert np.all(np.isnan(path.covs))  # only the dropped sample had one
+
+
+def test_a_copy_scored_elsewhere_does_not_move_while_the_series_fills():
+    series = Series(limit=4)
+    for k in range(4):
+        series.add(float(k), np.array([k, 0.0, 0.0]))
+    path = series.trajectory()
+    for k in range(4, 8):
+        series.add(float(k), np.array([k, 0.0, 0.0]))  # thins in place
+    assert path.stamps.tolist() == [0.0, 1.0, 2.0, 3.0]

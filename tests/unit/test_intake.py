@@ -34,3 +34,27 @@ def test_a_lane_and_the_whole_intake_are_bounded_in_bytes():
     assert [intake.get() for _ in range(4)] == [1, 4, 2, None]
     assert intake.held_bytes == 0 and intake.put("scan", "a", 6, 100) is None
     assert dict(intake.take_refused()) == {"rate_limited": 1, "queue_full": 1} and not intake.refused
+
+
+def test_the_high_water_mark_is_the_most_held_since_it_was_last_taken():
+    intake = Intake(lane_bytes=1000, total_bytes=1000)
+    for k in range(3):
+        intake.put("scan", "r1", k, 100)
+    intake.get()
+    assert intake.take_high_water() == 300
+    assert intake.take_high_water() == 200  # what is still held
+    intake.get(), intake.get()
+    assert intake.take_high_water() == 200 and intake.take_high_water() == 0 and intake.peak_bytes == 300
+
+
+def test_free_heap_memory_is_given_back_where_glibc_is():
+    import platform
+
+    from services.runtime import release_free_memory
+
+    blocks = [bytearray(4096) for _ in range(20000)]  # 80 MB in small blocks, then freed: a worked-off backlog
+    del blocks
+    given_back = release_free_memory()
+    assert isinstance(given_back, bool)
+    if platform.system() == "Linux" and platform.libc_ver()[0] == "glibc":
+        assert given_back

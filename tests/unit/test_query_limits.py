@@ -23,7 +23,7 @@ from services.mcl.config import MclConfig
 from services.mcl.core import MonteCarloLocalizer
 from services.mcl.fleet import MclFleet
 from services.mcl.service import localize_refusal
-from services.query_pool import QueryPool, QueryRefused, caller_timeout, decode_query, is_wildcard
+from services.query_pool import QueryPool, QueryRefused, Sized, caller_timeout, decode_query, is_wildcard
 
 R = np.diag([0.05**2, math.radians(1.0) ** 2])
 
@@ -352,3 +352,35 @@ def test_decode_query_refuses_empty_and_malformed_payloads():
 def test_wildcards_are_told_from_concrete_keys():
     assert is_wildcard("fleet/assoc/**") and is_wildcard("fleet/*/localize") and is_wildcard("fleet/assoc/$*o")
     assert not is_wildcard("fleet/assoc/auto") and not is_wildcard("fleet/mcl/localize")
+
+
+def test_light_queries_have_a_lane_of_their_own_that_heavy_ones_cannot_fill():
+    shell, release = Shell(), threading.Event()
+    pool = QueryPool(shell, workers=1, queue=0, deadline_s=60.0, light_cost=100.0, light_queue=0)
+
+    def heavy(_budget):
+        assert release.wait(10)
+        return "k", b"heavy"
+
+    blocker, second_heavy, light, second_light = Query(), Query(), Query(), Query()
+    pool.admit(blocker, "q", lambda: Sized(heavy, cost=1e6))
+    pool.admit(second_heavy, "q", lambda: Sized(heavy, cost=1e6))  # the heavy lane is full
+    assert second_heavy.answers[0][1].startswith("busy:") and "query lane" in second_heavy.answers[0][1]
+    gate = threading.Event()
+
+    def light_solve(_budget):
+        assert gate.wait(10)
+        return "k", b"light"
+
+    pool.admit(light, "q", lambda: Sized(light_solve, cost=50.0))
+    pool.admit(second_light, "q", lambda: Sized(light_solve, cost=50.0))  # its one worker is taken
+    assert "light lane" in second_light.answers[0][1] and "query lane" in second_light.answers[0][1]
+    gate.set()
+    assert wait_answered(light) == ("ok", b"light")  # while the heavy query still runs
+    assert not blocker.dropped.is_set()
+    release.set()
+    assert wait_answered(blocker) == ("ok", b"heavy")
+    pool.put_stats()
+    pool.close()
+    assert pool.total_replies == 2 and shell.rejected == Counter(busy=2)
+    assert shell.extra["light_replies"] == 1.0 and shell.extra["query_replies"] == 1.0
