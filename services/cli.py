@@ -12,7 +12,9 @@ with one line and exit code 2, never a traceback.
 from __future__ import annotations
 
 import argparse
+import faulthandler
 import logging
+import signal
 import sys
 from importlib.metadata import PackageNotFoundError, version
 from types import ModuleType
@@ -153,6 +155,8 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser(command if command in COMMANDS else None).parse_args(argv)
     level = getattr(args, "log_level", None)
     configure_logging(level if level in ("DEBUG", "INFO", "WARNING", "ERROR") else "INFO")
+    if hasattr(signal, "SIGUSR1"):  # `kill -USR1 PID` prints where every thread is: for a process that hangs
+        faulthandler.register(signal.SIGUSR1, all_threads=True)
     try:
         return int(args._module.main(args) or 0)
     except SettingsError as error:

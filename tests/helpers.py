@@ -75,16 +75,26 @@ class Processes:
         return path.read_text() if path.exists() else ""
 
     def stop(self, process: subprocess.Popen, sig: int = signal.SIGTERM, timeout: float = 10.0) -> float:
-        """Signal and wait; return the seconds it took to exit (kill after ``timeout``)."""
+        """Signal and wait; return the seconds it took to exit (kill after ``timeout``, once its threads' stacks are
+        in its log)."""
         started = time.monotonic()
         if process.poll() is None:
             process.send_signal(sig)
         try:
             process.wait(timeout=timeout)
         except subprocess.TimeoutExpired:
+            self._kill(process)
+        return time.monotonic() - started
+
+    @staticmethod
+    def _kill(process: subprocess.Popen) -> None:
+        """SIGKILL a process that hangs, after asking it where its threads are (``fleetslam`` dumps them on SIGUSR1)."""
+        process.send_signal(signal.SIGUSR1)
+        try:
+            process.wait(timeout=1.0)
+        except subprocess.TimeoutExpired:
             process.kill()
             process.wait()
-        return time.monotonic() - started
 
     def stop_all(self) -> None:
         for _, process in reversed(self.started):
@@ -94,8 +104,7 @@ class Processes:
             try:
                 process.wait(timeout=10)
             except subprocess.TimeoutExpired:
-                process.kill()
-                process.wait()
+                self._kill(process)
 
 
 class Collector:
