@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import faulthandler
+import io
 import logging
 import signal
 import sys
@@ -156,7 +157,10 @@ def main(argv: list[str] | None = None) -> int:
     level = getattr(args, "log_level", None)
     configure_logging(level if level in ("DEBUG", "INFO", "WARNING", "ERROR") else "INFO")
     if hasattr(signal, "SIGUSR1"):  # `kill -USR1 PID` prints where every thread is: for a process that hangs
-        faulthandler.register(signal.SIGUSR1, all_threads=True)
+        try:
+            faulthandler.register(signal.SIGUSR1, all_threads=True)
+        except (AttributeError, ValueError, io.UnsupportedOperation):  # a stderr without a file (called in-process)
+            pass
     try:
         return int(args._module.main(args) or 0)
     except SettingsError as error:

@@ -90,7 +90,10 @@ def run(settings: RecordSettings, shutdown: Shutdown) -> Path:
     instance = f"record-{os.getpid()}"
     try:
         with session_scope(settings) as session:
-            subscriber = session.declare_subscriber(keys.everything, recorder.on_sample)
+            # the fleet's samples, not this process's own stats: a callback fed by our own puts is a lock cycle
+            # waiting to happen (zenoh delivers local samples on the publishing thread)
+            subscriber = session.declare_subscriber(keys.everything, recorder.on_sample,
+                                                    allowed_origin=zenoh.Locality.REMOTE)
             stats = StreamPublisher(session, keys.stats("record"))
             log.info("recording %s to %s (Ctrl-C stops and finishes the file)", keys.everything, writer.path)
             begin = time.monotonic()
