@@ -29,9 +29,8 @@ from schemas.codec import encode
 from schemas.config import RobotSettings, add_settings_arguments, settings_from_args
 from schemas.keys import Keys
 from schemas.messages import WorldTruth
-from schemas.transport import (ConnectError, Shutdown, StreamPublisher, answer_history, answer_with, cache_samples,
-                               declare_robot_tokens,
-                               linger_time, session_scope, undeclare_all)
+from schemas.transport import (Shutdown, StreamPublisher, answer_history, answer_with, cache_samples,
+                               declare_robot_tokens, linger_time, run_command, session_scope, undeclare_all)
 
 log = logging.getLogger("fleetslam.robot")
 
@@ -136,14 +135,4 @@ def run(settings: RobotSettings, shutdown: Shutdown) -> dict[str, int]:
 
 
 def main(args: argparse.Namespace) -> int:
-    settings = settings_from_args(RobotSettings, args)
-    shutdown = Shutdown()
-    try:
-        run(settings, shutdown)
-    except ConnectError as exc:
-        log.error("%s", exc)
-        return 2
-    except (ValueError, FileNotFoundError) as exc:
-        log.error("cannot start robot: %s", exc)
-        return 2
-    return 0
+    return run_command(run, settings_from_args(RobotSettings, args), log, "cannot start robot", (ValueError, FileNotFoundError))

@@ -19,7 +19,7 @@ from schemas.codec import encode
 from schemas.config import WorldSettings, add_settings_arguments, settings_from_args
 from schemas.keys import Keys
 from schemas.messages import WorldTruth
-from schemas.transport import ConnectError, Shutdown, StreamPublisher, answer_with, session_scope, undeclare_all
+from schemas.transport import Shutdown, StreamPublisher, answer_with, run_command, session_scope, undeclare_all
 
 log = logging.getLogger("fleetslam.world")
 
@@ -63,14 +63,4 @@ def run(settings: WorldSettings, shutdown: Shutdown) -> int:
 
 
 def main(args: argparse.Namespace) -> int:
-    settings = settings_from_args(WorldSettings, args)
-    shutdown = Shutdown()
-    try:
-        run(settings, shutdown)
-    except ConnectError as exc:
-        log.error("%s", exc)
-        return 2
-    except (OSError, ValueError) as exc:
-        log.error("world: %s", exc)
-        return 2
-    return 0
+    return run_command(run, settings_from_args(WorldSettings, args), log, "world", (OSError, ValueError))

@@ -22,7 +22,7 @@ import threading
 from collections import deque
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Iterator
+from typing import Callable, Iterator
 
 import zenoh
 import zenoh.ext
@@ -292,3 +292,18 @@ class Shutdown:
 
     def wait(self, timeout: float | None = None) -> bool:
         return self.event.wait(timeout)
+
+
+def run_command(run: Callable, settings, logger: logging.Logger, refused: str,
+                errors: tuple[type[BaseException], ...]) -> int:
+    """A command's exit code: ``run(settings, Shutdown())`` until a signal, 0; 2 with one logged line when the
+    router cannot be reached, or on one of ``errors`` (logged after ``refused``, e.g. "cannot record")."""
+    try:
+        run(settings, Shutdown())
+    except ConnectError as exc:
+        logger.error("%s", exc)
+        return 2
+    except errors as exc:
+        logger.error("%s: %s", refused, exc)
+        return 2
+    return 0

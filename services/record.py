@@ -27,7 +27,7 @@ from schemas.config import RecordSettings, add_settings_arguments, settings_from
 from schemas.keys import Keys
 from schemas.mcap_file import RecordingWriter
 from schemas.messages import ServiceStats
-from schemas.transport import ConnectError, Shutdown, StreamPublisher, session_scope
+from schemas.transport import Shutdown, StreamPublisher, run_command, session_scope
 from services.cli import package_version
 
 log = logging.getLogger("fleetslam.record")
@@ -129,14 +129,4 @@ def run(settings: RecordSettings, shutdown: Shutdown) -> Path:
 
 
 def main(args: argparse.Namespace) -> int:
-    settings = settings_from_args(RecordSettings, args)
-    shutdown = Shutdown()
-    try:
-        run(settings, shutdown)
-    except ConnectError as exc:
-        log.error("%s", exc)
-        return 2
-    except OSError as exc:
-        log.error("cannot record: %s", exc)
-        return 2
-    return 0
+    return run_command(run, settings_from_args(RecordSettings, args), log, "cannot record", (OSError,))
