@@ -133,6 +133,13 @@ class Collector:
         self._subscriber.undeclare()
 
 
+def put_until_seen(session: zenoh.Session, key: str, payload: bytes, seen: Collector, timeout: float = 10.0) -> None:
+    """Put ``payload`` on ``key`` every 0.2 s until ``seen`` holds it: a single put is lost while the router has
+    not yet learnt of the subscriber, and on a loaded machine that can take seconds."""
+    wait_until(lambda: (session.put(key, payload), (key, payload) in seen.snapshot())[1], timeout, 0.2,
+               what=f"{payload!r} on {key}")
+
+
 def client_session(endpoint: str) -> zenoh.Session:
     return open_session(FleetSettings(zenoh_connect=endpoint, connect_timeout_s=10.0))
 

@@ -31,7 +31,7 @@ import zenoh
 from schemas.config import FleetSettings, RouterSettings
 from schemas.transport import ConnectError, open_session
 from services.credentials import DEFAULT_ROBOTS, DEFAULT_SERVICES, WORLD_USER, parse_robots, parse_services, secure_folder
-from tests.helpers import REPO, Collector, Processes, free_port, wait_for_port, wait_until
+from tests.helpers import REPO, Collector, Processes, free_port, put_until_seen, wait_for_port, wait_until
 from tests.integration.compose import compose_config
 
 pytestmark = pytest.mark.integration
@@ -156,10 +156,11 @@ def test_a_robot_cannot_write_into_another_robots_keys(secured, processes, keep)
     assert f"{secured.prefix}/robots/r2/alive" not in tokens and f"{secured.prefix}/robots/r1/alive" in tokens
     # a robot may not write where a service writes, a service may not write as a robot
     r1, central = keep(secured.session("r1")), keep(secured.session("central"))
+    put_until_seen(r1, own + "odom", b"route", seen)  # both routes known before anything is forged
+    put_until_seen(central, f"{secured.prefix}/central/estimate", b"fine", seen)
     r1.put(f"{secured.prefix}/central/estimate", b"forged")
     central.put(f"{secured.prefix}/robots/r1/odom", b"forged")
-    central.put(f"{secured.prefix}/central/estimate", b"fine")
-    wait_until(lambda: seen.count(lambda k: k.endswith("/central/estimate")) >= 1, 5, what="the central estimate")
+    put_until_seen(central, f"{secured.prefix}/central/estimate", b"fine again", seen)
     assert not any(payload == b"forged" for _, payload in seen.snapshot())
 
 
@@ -170,11 +171,12 @@ def test_only_the_world_user_writes_or_answers_the_world_map(secured, keep):
     watcher, r1, world = (keep(secured.session(user)) for user in ("monitor", "r1", WORLD_USER))
     seen = Collector(watcher, f"{secured.prefix}/**")
     forged_answer = r1.declare_queryable(truth, lambda query: query.reply(truth, b"forged"))
+    put_until_seen(r1, f"{secured.prefix}/robots/r1/odom", b"route", seen)  # both routes known before forging
+    put_until_seen(world, truth, b"true map", seen)
     r1.put(truth, b"forged")
     world.put(f"{secured.prefix}/robots/r1/odom", b"forged")  # nor may the world user write as a robot
-    world.put(truth, b"true map")
-    wait_until(lambda: seen.count(lambda k: k == truth) >= 1, 5, what="the world user's map")
-    assert [p for k, p in seen.snapshot()] == [b"true map"]
+    put_until_seen(world, truth, b"true map again", seen)
+    assert {p for k, p in seen.snapshot()} == {b"route", b"true map", b"true map again"}
     assert _replies(watcher, truth) == []  # r1's queryable is never asked
     honest_answer = world.declare_queryable(truth, lambda query: query.reply(truth, b"true map"))
     assert wait_until(lambda: _replies(watcher, truth), 5, what="the world user's answer") == [b"true map"]
@@ -298,11 +300,10 @@ def test_a_tls_client_whose_certificate_names_another_user_can_do_nothing(proces
     assert _replies(mixed, f"{p}/monitor/ask") == [] and asked == []
     honest_token = r1.liveliness().declare_token(f"{p}/robots/r1/alive/honest")
     honest_answer = r1.declare_queryable(f"{p}/robots/r1/history", lambda q: q.reply(q.key_expr, b"ok"))
-    r1.put(f"{p}/robots/r1/scan", b"ok")
-    wait_until(lambda: seen.count(lambda k: k == f"{p}/robots/r1/scan") == 1, 5, what="r1's honest scan")
+    put_until_seen(r1, f"{p}/robots/r1/scan", b"ok", seen)
     wait_until(lambda: f"{p}/robots/r1/alive/honest" in tokens, 5, what="r1's honest token")
     assert wait_until(lambda: _replies(watcher, f"{p}/robots/r1/*"), 5, what="r1's honest answer") == [b"ok"]
-    assert [payload for _, payload in seen.snapshot()] == [b"ok"]
+    assert {payload for _, payload in seen.snapshot()} == {b"ok"}
     assert tokens == [f"{p}/robots/r1/alive/honest"]
     # the mixed client hears only itself (a session delivers its own puts and tokens locally)
     assert [payload for _, payload in mixed_seen.snapshot() if payload != b"forged"] == []
