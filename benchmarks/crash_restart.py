@@ -7,7 +7,8 @@ once) for the seeds ``--first-seed`` .. ``--first-seed + --seeds - 1`` (pytest o
 a fresh pytest process, reads each run's ``CRASH-RESTART {json}`` line and prints JSON: how many runs passed,
 failed and were skipped; per service, over the seeds (median and worst), the error of copy B against copy A for
 each measure as the ratio B/A and as the difference B−A in metres (A's errors are a few cm, so the ratio of two
-small numbers is noisy), the seconds from each restart to the service's first stats and, for the central
+small numbers is noisy) and, in ``agreement``, in how many runs B ended exactly where A did and in how many
+within 5 % of A's error, the seconds from each restart to the service's first stats and, for the central
 service, to its first estimate (whatever ``*_after_s`` figures the test prints per restart), the same split
 by kills in the first half of the run (``killed_early``) and the second (``killed_late``); "lost": the test
 asserts that no service of B misses a message, so a run that printed its figures lost nothing, and a run that
@@ -133,6 +134,18 @@ def service_summary(runs: list[dict], service: str) -> dict:
     return summary
 
 
+def agreement(runs: list[dict]) -> dict:
+    """Per measure, over the runs that printed their figures: in how many B ended exactly where A did (the test's
+    ``exact``: same number to the last bit) and in how many within the issue's 5 % of A's error."""
+    out = {}
+    for measure in (m for measures in MEASURES.values() for m in measures):
+        rows = [run for run in runs if measure in run.get("errors_A", {}) and measure in run.get("errors_B", {})]
+        out[measure] = {"runs": len(rows), "exact": sum(bool(run.get("exact", {}).get(measure)) for run in rows),
+                        "within_5_percent": sum(run["errors_B"][measure] <= 1.05 * run["errors_A"][measure]
+                                                for run in rows)}
+    return out
+
+
 def router_summary(runs: list[dict]) -> dict:
     """When the router was killed: the spread of its kill times, and in how many runs early and late."""
     kills = [{"killed_at_s": at} for run in runs for at, name in run.get("plan_s", []) if name == "router"]
@@ -203,6 +216,7 @@ def main() -> None:
         "test": TEST, "seeds": [run["seed"] for run in runs], "seeds_asked": seeds, **count_outcomes(runs),
         "run_wall_s": RUN_WALL_S, "early_before_s": EARLY_BEFORE_S,
         "services": {service: service_summary(runs, service) for service in MEASURES},
+        "agreement": agreement(runs),
         "router": router_summary(runs),
         "lost": lost_summary(runs),
         "failures": [{"seed": run["seed"], "why": run["why"], "failed_at": run.get("failed_at")}
@@ -213,6 +227,7 @@ def main() -> None:
         result["control"] = {"runs": len(controls), **count_outcomes(controls),
                              "errors": {service: errors_over_seeds(service_rows(controls, service), service)
                                         for service in MEASURES},
+                             "agreement": agreement(controls),
                              "per_run": controls}
     emit(result, args.out)
 

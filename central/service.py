@@ -74,6 +74,7 @@ class CentralService(ServiceShell):
         self.estimate_seq = 0
         self.last_stamp = 0.0
         self.announced_waiting: dict[str, float] = {}  # robots announced without a pose: when (wall clock)
+        self.joining: dict[str, RobotInfo] = {}  # robots announced with a start pose, before their first event
         self._state_lock = threading.Lock()
         self._state_queries: list[zenoh.Query] = []  # waiting for the next estimate (Zenoh's threads append)
         self.state_answered = 0
@@ -110,7 +111,10 @@ class CentralService(ServiceShell):
     # ------------------------------------------------------------ robots
     async def robot_announced(self, info: RobotInfo) -> None:
         rid = info.robot_id
-        if self.slam.add_robot(info):
+        if info.start_pose is not None and rid not in self.slam.robots and not self.slam.is_waiting(rid):
+            self.joining[rid] = info  # into the filter at its first event (:meth:`robot_event`)
+            await self.admit(rid)
+        elif self.slam.add_robot(info):
             await self.admit(rid)
         else:
             self.announced_waiting.setdefault(rid, time.monotonic())
@@ -120,7 +124,7 @@ class CentralService(ServiceShell):
         """With ``anchor_first``: when no robot has been placed ``anchor_after_s`` after the first robot without a
         start pose was announced, that robot anchors the world frame at the origin (a robot with a start pose
         announced meanwhile is placed instead, and the frame stays the one its start pose is given in)."""
-        if not self.settings.anchor_first or self.slam.robot_count or self.prior_landmarks:
+        if not self.settings.anchor_first or self.slam.robot_count or self.joining or self.prior_landmarks:
             return
         waiting = [(t, rid) for rid, t in self.announced_waiting.items() if self.slam.is_waiting(rid)]
         if not waiting or time.monotonic() - min(waiting)[0] < self.settings.anchor_after_s:
@@ -131,7 +135,11 @@ class CentralService(ServiceShell):
             await self.admit(rid)
 
     async def robot_event(self, event: StreamEvent) -> None:
-        """Into the filter, in stamp order across every robot."""
+        """Into the filter, in stamp order across every robot; a robot announced with its start pose enters the
+        filter here, at its first event: its particles' start poses are drawn in stamp order, not in the order the
+        robots' RobotInfo happened to arrive, so two runs of the same data draw the same numbers."""
+        if event.robot_id in self.joining:
+            self.slam.add_robot(self.joining.pop(event.robot_id))
         started = time.perf_counter()
         accepted = self.slam.on_odometry(event) if isinstance(event, OdomEvent) else self.slam.on_scan(event)
         self.compute_ms.append((time.perf_counter() - started) * 1e3)
@@ -143,11 +151,17 @@ class CentralService(ServiceShell):
         """It leaves the filter (the landmarks it mapped stay) and rejoins from its RobotInfo."""
         self.slam.remove_robot(robot_id)
         self.announced_waiting.pop(robot_id, None)
+        self.joining.pop(robot_id, None)
 
     def robot_joined_late(self, robot_id: str) -> None:
         """With ``late_join`` = ``wait`` it is taken out (or kept out) of the filter until MCL places it; with
         ``start_pose`` it keeps its announced start pose (counted; the map may suffer)."""
-        if self.settings.late_join == "wait" and self.slam.unplace(robot_id) is not None:
+        if self.settings.late_join != "wait":
+            return
+        joining = self.joining.pop(robot_id, None)
+        if joining is not None:
+            self.slam.add_robot(joining.model_copy(update={"start_pose": None, "start_pose_cov": None}))
+        if joining is not None or self.slam.unplace(robot_id) is not None:
             self.roster.hold(robot_id)
             log.info("robot %s waits for a pose from MCL", robot_id)
 
@@ -163,7 +177,7 @@ class CentralService(ServiceShell):
     def checkpoint_state(self) -> dict:
         return {"slam": self.slam, "processed": self.processed,
                 "estimate_seq": self.estimate_seq, "last_stamp": self.last_stamp,
-                "waiting_robots": sorted(self.announced_waiting)}
+                "waiting_robots": sorted(self.announced_waiting), "joining": self.joining}
 
     def restore_state(self, state: dict) -> None:
         """The filter (particles, maps, random generator); robots waiting for a pose wait afresh."""
@@ -171,6 +185,7 @@ class CentralService(ServiceShell):
         self.processed.update(state["processed"])
         self.estimate_seq = state["estimate_seq"]
         self.last_stamp = state["last_stamp"]
+        self.joining = state["joining"]
         now = time.monotonic()
         self.announced_waiting = {rid: now for rid in state["waiting_robots"]}
 

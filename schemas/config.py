@@ -76,6 +76,9 @@ class FleetSettings(ProcessSettings):
     reorder_window_s: float = Field(0.1, ge=0, le=10, description="longest wall time a robot message waits for the "
                                     "other streams (the robot's own, other robots') so that events are handled in time "
                                     "order, also when a link cut or restart recovers one stream later (0: as they come)")
+    join_wait_s: float = Field(1.0, ge=0, le=30, description="longest wall time the fleet's messages wait for a robot "
+                               "that has announced itself (session token) and sent nothing yet, so that robots starting "
+                               "a moment apart are still handled in time order")
     waiting_mb: float = Field(64.0, gt=0, description="megabytes of a robot's messages kept while it waits to join "
                               "(for its RobotInfo, or for a pose from MCL); the oldest go, counted, past this")
     unannounced_mb: float = Field(8.0, gt=0, description="megabytes of messages kept, all robot ids together, for ids "

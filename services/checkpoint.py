@@ -27,7 +27,7 @@ from typing import Any
 log = logging.getLogger(__name__)
 
 MAGIC = b"fleetslam-checkpoint\n"
-FORMAT = 1
+FORMAT = 2  # 2: the reorder buffer breaks stamp ties by robot id and waits for announced robots
 
 
 class CheckpointError(ValueError):

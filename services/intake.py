@@ -99,6 +99,11 @@ class Intake:
                 del self._lane_bytes[lane]
             return item
 
+    def lanes(self) -> list[Hashable]:
+        """The lanes holding items now."""
+        with self._lock:
+            return list(self._lanes)
+
     def take_high_water(self) -> int:
         """The most bytes held at once since the last call (or the start)."""
         with self._lock:

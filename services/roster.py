@@ -44,7 +44,7 @@ import heapq
 import time
 from collections import Counter, deque
 from dataclasses import dataclass, field
-from typing import Callable
+from typing import Callable, Iterable
 
 from schemas.contract import OdomEvent, ScanEvent, event_nbytes, stream_event
 from schemas.messages import Odometry, RobotInfo, Scan
@@ -393,6 +393,7 @@ class Roster:
 class _Held:
     stamp: float
     rank: int  # at equal stamps odometry (0) before scans (1): a control ends at its stamp
+    robot: str  # then by robot id, not by arrival: robots on one clock share stamps, and runs must not differ
     order: int
     arrived: float = field(compare=False)
     event: StreamEvent = field(compare=False)
@@ -409,22 +410,34 @@ class ReorderBuffer:
       restart one stream of a robot may come back seconds after the other), and its robot's later events with it,
       while the other robots' events go on;
     - the other robots' streams, up to ``window_s`` of silence (0: no waiting);
-    - after a restart from a checkpoint (:meth:`restart_clock`), every known stream, up to ``recovery_window_s``:
-      the time the publishers' caches take to send what was missed.
+    - the streams of a robot that has announced itself (its session token, :meth:`announce`) and sent nothing yet,
+      up to ``join_wait_s`` after the announcement: robots of one fleet start at slightly different wall times with
+      stamps on one clock, and without this the first robot's events would go before a second robot's older ones
+      whenever it happened to start first, so two runs of the same data would differ;
+    - for ``recovery_window_s`` after a restart from a checkpoint (:meth:`restart_clock`) or a change of the link to
+      the router (:meth:`link_changed`), every known stream, up to ``recovery_window_s`` of silence, whether its
+      robot's session token is seen or not: the publishers' caches send what was missed in several parts, and a
+      router restart takes every token away at once while the streams come back one by one; without this the
+      first one back would run ahead;
+    - a robot with messages received and not yet handled (``queued`` in :meth:`release`), up to
+      ``recovery_window_s``: a service working off a backlog has not heard what waits in its intake.
 
     :meth:`release` with ``flush`` releases everything.
     """
 
     def __init__(self, window_s: float, clock: Callable[[], float] = time.perf_counter,
-                 recovery_window_s: float = 5.0):
+                 recovery_window_s: float = 5.0, join_wait_s: float = 1.0):
         self.window_s = window_s
         self.recovery_window_s = recovery_window_s
+        self.join_wait_s = join_wait_s
+        self.expected: dict[tuple[str, str], float] = {}  # (robot, stream) announced, nothing pushed → when announced
         self.clock = clock
         self._heap: list[_Held] = []
-        self._order = 0  # ties in stamp go out in arrival order
+        self._order = 0  # ties in stamp, kind and robot go out in arrival order
         self.newest: dict[tuple[str, str], float] = {}  # (robot, stream) → newest stamp pushed
         self.heard: dict[tuple[str, str], float] = {}  # (robot, stream) → wall time of its last push
-        self.resuming: set[tuple[str, str]] = set()  # streams not heard from since a restart
+        self.resuming: set[tuple[str, str]] = set()  # streams being recovered after a restart or a link change
+        self.resuming_until = float("-inf")  # ... until then (wall clock)
 
     def __len__(self) -> int:
         return len(self._heap)
@@ -435,9 +448,17 @@ class ReorderBuffer:
         arrived = self.clock() if arrived is None else arrived
         self.newest[stream] = max(self.newest.get(stream, float("-inf")), event.stamp)
         self.heard[stream] = arrived
-        self.resuming.discard(stream)
+        self.expected.pop(stream, None)
         self._order += 1
-        heapq.heappush(self._heap, _Held(event.stamp, 0 if is_odom else 1, self._order, arrived, event))
+        heapq.heappush(self._heap, _Held(event.stamp, 0 if is_odom else 1, event.robot_id, self._order, arrived, event))
+
+    def announce(self, robot_id: str) -> None:
+        """A robot declared its session token: until it sends (at most ``join_wait_s``), the other robots' later
+        events wait for its streams."""
+        now = self.clock()
+        for stream in ((robot_id, "odom"), (robot_id, "scan")):
+            if stream not in self.newest:
+                self.expected[stream] = now
 
     def restart_clock(self) -> None:
         """Restored from a checkpoint in a new process (whose clock started afresh): held events arrived now, and
@@ -445,8 +466,16 @@ class ReorderBuffer:
         now = self.clock()
         for held in self._heap:
             held.arrived = now
+        self.link_changed()
+        self.expected = {stream: now for stream in self.expected}
+
+    def link_changed(self) -> None:
+        """The link to the router closed or opened again: every known stream is waited for ``recovery_window_s``
+        from now, until it is heard from."""
+        now = self.clock()
         self.heard = {stream: now for stream in self.newest}
         self.resuming = set(self.newest)
+        self.resuming_until = now + self.recovery_window_s
 
     def drop_robot(self, robot_id: str) -> None:
         """Forget a robot's held events and its streams (a new run of it)."""
@@ -456,23 +485,38 @@ class ReorderBuffer:
             for stream in [stream for stream in table if stream[0] == robot_id]:
                 del table[stream]
         self.resuming = {stream for stream in self.resuming if stream[0] != robot_id}
+        self.expected = {stream: at for stream, at in self.expected.items() if stream[0] != robot_id}
 
-    def _waited_for(self, stream: tuple[str, str], own: bool, now: float) -> bool:
-        """Is ``stream`` still waited for: heard from within its patience?"""
-        patience = self.recovery_window_s if own or stream in self.resuming else self.window_s
+    def _waited_for(self, stream: tuple[str, str], own: bool, now: float, queued: set[str]) -> bool:
+        """Is ``stream`` still waited for: heard from within its patience, or within the recovery window with
+        messages of its robot queued, not yet handled (a robot whose lane is full of messages that never advance the
+        stream holds the others back no longer than that)?"""
+        resuming = stream in self.resuming and now < self.resuming_until
+        patience = self.recovery_window_s if own or resuming or stream[0] in queued else self.window_s
         return now - self.heard.get(stream, float("-inf")) < patience
 
-    def release(self, live: list[str], flush: bool = False) -> list[tuple[StreamEvent, float]]:
+    def release(self, live: list[str], flush: bool = False, announced: Iterable[str] = (),
+                queued: Iterable[str] = ()) -> list[tuple[StreamEvent, float]]:
         """(event, arrival time) of every event due now, oldest stamp first within each robot. ``live``: the
-        robots whose streams are waited for (alive and taken in)."""
+        robots whose streams are waited for (alive and taken in); ``announced``: the robots alive, whose streams
+        are waited for from their announcement on even before they are taken in; ``queued``: the robots with
+        messages received and not yet handled (a service busy with a backlog must not count them as silent)."""
         if flush or self.window_s == 0:
             out = [(held.event, held.arrived) for held in sorted(self._heap)]
             self._heap = []
             return out
         live = set(live)
         now = self.clock()
-        streams = [(stamp, stream) for stream, stamp in self.newest.items() if stream[0] in live]
+        recovering = self.resuming if now < self.resuming_until else set()
+        streams = [(stamp, stream) for stream, stamp in self.newest.items() if stream[0] in live or stream in recovering]
+        announced = set(announced)
+        queued = set(queued)
+        joining = any(stream[0] in announced and now - at < (self.recovery_window_s if stream[0] in queued
+                                                              else self.join_wait_s)
+                      for stream, at in self.expected.items())
         out, kept, waiting_robots = [], [], set()
+        if joining:
+            return out
         while self._heap:
             held = heapq.heappop(self._heap)
             rid = held.event.robot_id
@@ -480,11 +524,11 @@ class ReorderBuffer:
                 kept.append(held)
                 continue
             behind = [(stream, stream[0] == rid) for stamp, stream in streams if stamp < held.stamp]
-            if any(own and self._waited_for(stream, True, now) for stream, own in behind):
+            if any(own and self._waited_for(stream, True, now, queued) for stream, own in behind):
                 waiting_robots.add(rid)  # its own other stream is being recovered: it waits, the others go on
                 kept.append(held)
                 continue
-            if any(not own and self._waited_for(stream, False, now) for stream, own in behind):
+            if any(not own and self._waited_for(stream, False, now, queued) for stream, own in behind):
                 kept.append(held)
                 break
             out.append((held.event, held.arrived))

@@ -58,8 +58,9 @@ from services.checkpoint import CheckpointStore, encode_checkpoint
 from services.intake import Intake
 from services.roster import ReorderBuffer, Roster, StreamEvent, Takeover
 
-ROBOT_TAGS = frozenset({"alive", "gone", "info", "odom", "scan", "refilled"})
+ROBOT_TAGS = frozenset({"alive", "gone", "info", "odom", "scan", "refilled", "router_link"})
 FIRST_RUN_S = 0.1  # the first stats and tick this soon after setup (s), then every period
+ROUTER_LINK_GRACE_S = 2.0  # tokens that go this soon after the router link changed went with the link (s)
 TRIM_AFTER_BYTES = 8 << 20  # a backlog that held this much: once worked off, its freed heap goes back to the system
 
 log = logging.getLogger(__name__)
@@ -105,11 +106,12 @@ class ServiceShell:
         self.intake = Intake(int(settings.lane_mb * 2**20), int(settings.queue_mb * 2**20),
                              {"scan": settings.max_scan_kb * kb, "odom": settings.max_message_kb * kb,
                               "info": settings.max_message_kb * kb}, on_first=self._wake_up)
+        self._router_link_changed_at = float("-inf")
         self._backlog_bytes = 0  # the most the intake held since memory was last given back
         self.session: zenoh.Session | None = None
         self._declared: list[Any] = []
         self.roster: Roster | None = None
-        self.reorder = ReorderBuffer(settings.reorder_window_s)
+        self.reorder = ReorderBuffer(settings.reorder_window_s, join_wait_s=settings.join_wait_s)
         self._release_lock = asyncio.Lock()
         self.hold_ms: deque[float] = deque(maxlen=5000)
         state_dir = getattr(settings, "state_dir", None)
@@ -170,6 +172,7 @@ class ServiceShell:
             self.roster.resume()
         self.reorder = state["reorder"]
         self.reorder.window_s = self.settings.reorder_window_s
+        self.reorder.join_wait_s = self.settings.join_wait_s
         self.reorder.restart_clock()
         self.messages_in.update(state["messages_in"])
         self.rejected.update(state["rejected"])
@@ -201,8 +204,25 @@ class ServiceShell:
 
         self._declared.append(self.session.liveliness().declare_subscriber(self.keys.session_tokens_any, on_token,
                                                                            history=True))
+
+        def on_transport(event: zenoh.TransportEvent) -> None:
+            if event.transport.whatami == zenoh.WhatAmI.ROUTER:
+                self._router_link_changed_at = time.monotonic()  # now, for the tokens that go with the link
+                self.enqueue("router_link", "open" if event.kind == zenoh.SampleKind.PUT else "closed", b"")
+
+        self._declared.append(self.session.info.declare_transport_events_listener(on_transport))
         if self.roster.resumed:
             self.refill_from_robots()
+
+    def _router_link_lost(self) -> bool:
+        """Whether this session has no router now, or its link to one changed in the last
+        ``ROUTER_LINK_GRACE_S``: a token going away then says nothing about its robot."""
+        if time.monotonic() - self._router_link_changed_at < ROUTER_LINK_GRACE_S:
+            return True
+        try:
+            return not list(self.session.info.routers_zid())
+        except zenoh.ZError:
+            return True
 
     def ask_info(self, robot_id: str) -> None:
         """Query a robot's RobotInfo (a robot answers late joiners); replies come back through the queue."""
@@ -220,19 +240,27 @@ class ServiceShell:
     async def admit(self, robot_id: str, after: float | None = None) -> None:
         """Take a robot in: the events it held go to :meth:`robot_event` in order (with ``after``, only those
         after that stamp; the others are counted)."""
-        events, dropped = self.roster.admit(robot_id, after)
-        if dropped:
-            self.rejected["before_placement"] += dropped
-        for event in events:
-            self.reorder.push(event)
+        await self.admit_all([robot_id], after)
+
+    async def admit_all(self, robot_ids: list[str], after: float | None = None) -> None:
+        """Take several robots in at once: their held events go out in stamp order together, not one robot's
+        backlog before the other's."""
+        for robot_id in robot_ids:
+            events, dropped = self.roster.admit(robot_id, after)
+            if dropped:
+                self.rejected["before_placement"] += dropped
+            for event in events:
+                self.reorder.push(event)
         await self.release_events()
 
     async def release_events(self, flush: bool = False) -> None:
         """Hand :meth:`robot_event` the events the reorder buffer releases: in stamp order across the streams of
         the robots alive and admitted, each after at most ``reorder_window_s`` (every one when ``flush``)."""
         async with self._release_lock:  # one release at a time: a robot's events are handled one after the other
-            live = [rid for rid in self.roster.alive_ids() if self.roster.is_admitted(rid)]
-            for event, arrived in self.reorder.release(live, flush):
+            alive = self.roster.alive_ids()
+            live = [rid for rid in alive if self.roster.is_admitted(rid)]
+            queued = {lane[0] for lane in self.intake.lanes() if isinstance(lane, tuple)}
+            for event, arrived in self.reorder.release(live, flush, announced=alive, queued=queued):
                 self.hold_ms.append((time.perf_counter() - arrived) * 1e3)
                 await self.robot_event(event)
 
@@ -267,6 +295,11 @@ class ServiceShell:
 
     async def _robot_item(self, tag: str, key: str, payload: bytes, source: str | None = None) -> None:
         roster = self.roster
+        if tag == "router_link":
+            log.info("%s: the link to the router %s; every robot stream is waited for while it is recovered",
+                     self.name, "opened again" if key == "open" else "closed")
+            self.reorder.link_changed()
+            return
         if tag in ("alive", "gone"):
             token = self.keys.parse_session_token(key)
             if token is None:
@@ -275,12 +308,16 @@ class ServiceShell:
                 takeover, refused = roster.on_token(*token)
                 if refused:
                     self.reject(*refused)
+                else:
+                    self.reorder.announce(token[0])
                 await self._take_over(token[0], takeover)
             else:
                 takeover, left = roster.on_token_gone(*token)
                 if left:
                     log.info("%s: robot %s left (its state stays, for a return after a link cut)", self.name, token[0])
                     self.robot_left(token[0])
+                    if self._router_link_lost():  # every token goes with the router: its streams will come back
+                        self.reorder.link_changed()
                     await self.release_events()
                 await self._take_over(token[0], takeover)
             return

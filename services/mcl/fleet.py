@@ -6,12 +6,15 @@ come later) and the offline estimator ``fleetslam run --estimator mcl``
 (:func:`make_estimator`: a prior map, every robot from no pose, and with the
 truth the time each robot took to converge). It offers the
 :class:`~schemas.contract.Estimator` protocol. Every filter it builds draws
-from its own stream ``[seed, n]``, n counting the filters built so far.
+from its own stream ``[seed, crc32(robot id), n]``, n counting the filters
+built for that robot so far: not from the order robots happened to announce
+themselves, so two runs of the same data draw the same numbers.
 """
 
 from __future__ import annotations
 
 import time
+import zlib
 from dataclasses import dataclass
 from typing import Callable
 
@@ -61,7 +64,7 @@ class MclFleet:
         self.truth = {rid: (np.asarray(s, float), np.asarray(p, float)) for rid, (s, p) in (truth or {}).items()}
         self.use_start_pose = use_start_pose
         self.robots: dict[str, RobotState] = {}
-        self.filters_built = 0
+        self.filters_built: dict[str, int] = {}
 
     # ------------------------------------------------------------ membership
 
@@ -91,8 +94,10 @@ class MclFleet:
             return None
         if not self.use_start_pose:
             info = info.model_copy(update={"start_pose": None, "start_pose_cov": None})
-        rng = np.random.default_rng([self.config.seed, self.filters_built])
-        self.filters_built += 1
+        rid = info.robot_id
+        built = self.filters_built.get(rid, 0)
+        self.filters_built[rid] = built + 1
+        rng = np.random.default_rng([self.config.seed, zlib.crc32(rid.encode()), built])
         return MonteCarloLocalizer(self.landmarks, info, self.config, rng, self.landmark_ids)
 
     # ---------------------------------------------------------------- events

@@ -173,7 +173,11 @@ class MclService(ServiceShell):
 
     async def handle(self, tag: str, key: str, payload) -> None:
         if tag == "map":
+            had_map = self.fleet.landmarks is not None
             self._on_map(payload)
+            if not had_map and self.fleet.landmarks is not None:
+                waited = sorted(rid for rid in self.fleet.robots if not self.roster.is_admitted(rid))
+                await self.admit_all(waited)  # the robots that waited for the map, with what they sent meanwhile
         self._refresh_extra()
 
     def _on_map(self, payload: bytes) -> None:
@@ -213,6 +217,10 @@ class MclService(ServiceShell):
             log.info("localizing robot %s (%s start pose)", rid, "unknown" if info.start_pose is None else "known")
             self.fleet.add_robot(info)
             self._pose_pub(rid)
+            if self.fleet.landmarks is None:  # its events wait for the map (within waiting_mb), not dropped
+                log.info("robot %s waits for the map", rid)
+                self._refresh_extra()
+                return
         await self.admit(rid)
         self._refresh_extra()
 

@@ -179,6 +179,80 @@ def test_reorder_buffer_waits_for_each_stream_of_a_robot():
     assert [(type(e).__name__, e.stamp) for e, _ in released] == [("OdomEvent", 1.9), ("ScanEvent", 2.0)]
 
 
+def test_a_robot_that_announced_itself_is_waited_for_until_it_sends_or_for_the_join_wait():
+    """r2 declared its session token and has sent nothing: r1's events wait (r2 may start a moment later on the same
+    clock); once r2 sends, everything goes in stamp order. A robot announced and silent holds the others back only
+    ``join_wait_s``, and only while it is alive."""
+    clock = Clock()
+    buffer = ReorderBuffer(window_s=0.1, clock=clock, join_wait_s=1.0)
+
+    def both(rid, stamp):
+        buffer.push(event(rid, stamp))
+        buffer.push(ScanEvent(rid, 0, stamp, np.ones(1), np.zeros(1), None, np.eye(2) * 1e-3))
+
+    buffer.announce("r1")
+    buffer.announce("r2")
+    both("r1", 0.0)
+    both("r1", 0.1)
+    clock.now = 0.5  # longer than the window: without the announcement r1's events would have gone
+    assert buffer.release(live=["r1"], announced=["r1", "r2"]) == []
+    both("r2", 0.05)
+    both("r2", 0.1)
+    released = buffer.release(live=["r1", "r2"], announced=["r1", "r2"])
+    assert [(e.robot_id, e.stamp) for e, _ in released] == [("r1", 0.0), ("r1", 0.0), ("r2", 0.05), ("r2", 0.05),
+                                                            ("r1", 0.1), ("r2", 0.1), ("r1", 0.1), ("r2", 0.1)]
+    buffer.announce("r3")
+    both("r1", 0.2)
+    both("r2", 0.2)
+    assert buffer.release(live=["r1", "r2"], announced=["r1", "r2", "r3"]) == []
+    assert len(buffer.release(live=["r1", "r2"], announced=["r1", "r2"])) == 4  # r3 went: no longer waited for
+    both("r1", 0.3)
+    both("r2", 0.3)
+    assert buffer.release(live=["r1", "r2"], announced=["r1", "r2", "r3"]) == []  # r3 back, still silent
+    clock.now = 1.6  # r3 silent for the join wait since its announcement at 0.5
+    assert len(buffer.release(live=["r1", "r2"], announced=["r1", "r2", "r3"])) == 4
+
+
+def test_after_the_router_link_changes_every_stream_is_waited_for_until_it_is_recovered():
+    """A router restart takes every robot's token away and brings the streams back one by one: r1's recovered
+    events wait for r2's stream (token not back yet) up to the recovery window, and go in stamp order once r2's
+    come."""
+    clock = Clock()
+    buffer = ReorderBuffer(window_s=0.1, clock=clock, recovery_window_s=5.0)
+    for rid in ("r1", "r2"):
+        buffer.push(event(rid, 1.0))
+    assert len(buffer.release(live=["r1", "r2"])) == 2
+    buffer.link_changed()
+    clock.now = 1.0
+    buffer.push(event("r1", 1.1))
+    buffer.push(event("r1", 1.2))
+    assert buffer.release(live=["r1"]) == []  # r2 is not live (token gone) but its stream is being recovered
+    buffer.push(event("r2", 1.15))  # its token back with it
+    assert [(e.robot_id, e.stamp) for e, _ in buffer.release(live=["r1", "r2"])] == [("r1", 1.1), ("r2", 1.15)]
+    buffer.link_changed()
+    buffer.push(event("r1", 1.3))
+    assert buffer.release(live=["r1"]) == []
+    clock.now = 6.5  # r2 silent for the recovery window since the link changed
+    assert [e.stamp for e, _ in buffer.release(live=["r1"])] == [1.2, 1.3]
+
+
+def test_a_robot_with_messages_still_queued_is_not_silent():
+    """A service working off a backlog takes r2's queued messages later than they came: r2 is waited for while its
+    messages wait in the intake (up to the recovery window), not only for the window since its last one was handled."""
+    clock = Clock()
+    buffer = ReorderBuffer(window_s=0.1, clock=clock, recovery_window_s=5.0)
+    buffer.push(event("r1", 1.0))
+    buffer.push(event("r2", 1.0))
+    buffer.push(event("r1", 2.0))
+    clock.now = 1.0
+    released = buffer.release(live=["r1", "r2"], queued=["r2"])
+    assert [(e.robot_id, e.stamp) for e, _ in released] == [("r1", 1.0), ("r2", 1.0)]
+    assert [e.stamp for e, _ in buffer.release(live=["r1", "r2"])] == [2.0]  # r2 silent, nothing queued
+    buffer.push(event("r1", 3.0))
+    clock.now = 6.5  # queued for longer than the recovery window: no longer waited for
+    assert [e.stamp for e, _ in buffer.release(live=["r1", "r2"], queued=["r2"])] == [3.0]
+
+
 def test_a_restarted_robot_process_is_a_new_run_even_if_its_token_never_went_away():
     roster = Roster()
     roster.on_info("r1", info())
