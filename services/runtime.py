@@ -255,7 +255,8 @@ class ServiceShell:
 
     async def release_events(self, flush: bool = False) -> None:
         """Hand :meth:`robot_event` the events the reorder buffer releases: in stamp order across the streams of
-        the robots alive and admitted, each after at most ``reorder_window_s`` (every one when ``flush``)."""
+        the robots alive and admitted, each once the streams behind it have passed it or stopped being waited for
+        (:class:`~services.roster.ReorderBuffer` says how long each is; every one when ``flush``)."""
         async with self._release_lock:  # one release at a time: a robot's events are handled one after the other
             alive = self.roster.alive_ids()
             live = [rid for rid in alive if self.roster.is_admitted(rid)]
