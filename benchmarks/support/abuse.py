@@ -694,12 +694,15 @@ class Fleet:
     def _service_words(self, name: str) -> tuple[str, ...]:
         plan, period = self.plan, ("--stats-period-s", str(self.plan.stats_period_s))
         seed = ("--seed", str(self.scene.seed))
+        # a robot announced is waited for until it sends: the last one starts its streams this long after its token
+        join = ("--join-wait-s", str(0.5 + (len(plan.robots) - 1) * plan.stagger_s + 2.0))
         return {
             "central": ("central", "--association", "known", "--particles", str(plan.central_particles),
-                        "--estimate-rate-hz", "4", *seed, *period),
+                        "--estimate-rate-hz", "4", *seed, *period, *join),
             "dslam": ("dslam", "--association", "nn" if plan.assoc else "known", "--map-period-s", "0.5",
-                      "--assoc-timeout-s", "0.5", *period),
-            "mcl": ("mcl", "--source", "truth", "--all-robots", "--particles", str(plan.mcl_particles), *seed, *period),
+                      "--assoc-timeout-s", "0.5", *period, *join),
+            "mcl": ("mcl", "--source", "truth", "--all-robots", "--particles", str(plan.mcl_particles), *seed, *period,
+                    *join),
             "assoc": ("assoc", *period),
         }[name]
 
