@@ -111,7 +111,7 @@ class CentralService(ServiceShell):
     # ------------------------------------------------------------ robots
     async def robot_announced(self, info: RobotInfo) -> None:
         rid = info.robot_id
-        if info.start_pose is not None and rid not in self.slam.robots and not self.slam.is_waiting(rid):
+        if info.start_pose is not None and not self.slam.has_robot(rid) and not self.slam.is_waiting(rid):
             self.joining[rid] = info  # into the filter at its first event (:meth:`robot_event`)
             await self.admit(rid)
         elif self.slam.add_robot(info):
