@@ -73,3 +73,17 @@ def median_rate(stamps: np.ndarray) -> float:
     steps = np.diff(stamps)
     steps = steps[steps > 0]
     return float(1.0 / np.median(steps)) if steps.size else 1.0
+
+
+def gps_spikes(stamps: np.ndarray, xy: np.ndarray, max_speed: float, slack: float) -> np.ndarray:
+    """Mask of GPS fixes that jump away from both neighbours and back: farther from the previous and from the
+    next fix than the vehicle can drive in between (``max_speed`` · dt + ``slack`` m). A failing receiver's
+    isolated jumps (Victoria Park: one fix 141 m off) would otherwise dominate an RMSE against it."""
+    stamps, xy = np.asarray(stamps, float), np.asarray(xy, float)
+    spikes = np.zeros(stamps.size, bool)
+    if stamps.size < 3:
+        return spikes
+    step = np.linalg.norm(np.diff(xy, axis=0), axis=1)
+    too_far = step > max_speed * np.diff(stamps) + slack
+    spikes[1:-1] = too_far[:-1] & too_far[1:]
+    return spikes
