@@ -487,12 +487,12 @@ class ReorderBuffer:
         self.resuming = {stream for stream in self.resuming if stream[0] != robot_id}
         self.expected = {stream: at for stream, at in self.expected.items() if stream[0] != robot_id}
 
-    def _waited_for(self, stream: tuple[str, str], own: bool, now: float, queued: set[str]) -> bool:
-        """Is ``stream`` still waited for: heard from within its patience, or within the recovery window with
-        messages of its robot queued, not yet handled (a robot whose lane is full of messages that never advance the
-        stream holds the others back no longer than that)?"""
-        resuming = stream in self.resuming and now < self.resuming_until
-        patience = self.recovery_window_s if own or resuming or stream[0] in queued else self.window_s
+    def _waited_for(self, stream: tuple[str, str], own: bool, now: float, recovering: set[tuple[str, str]],
+                    queued: set[str]) -> bool:
+        """Is ``stream`` still waited for: heard from within its patience, or within the recovery window while it is
+        being recovered or with messages of its robot queued, not yet handled (a robot whose lane is full of messages
+        that never advance the stream holds the others back no longer than that)?"""
+        patience = self.recovery_window_s if own or stream in recovering or stream[0] in queued else self.window_s
         return now - self.heard.get(stream, float("-inf")) < patience
 
     def release(self, live: list[str], flush: bool = False, announced: Iterable[str] = (),
@@ -524,11 +524,11 @@ class ReorderBuffer:
                 kept.append(held)
                 continue
             behind = [(stream, stream[0] == rid) for stamp, stream in streams if stamp < held.stamp]
-            if any(own and self._waited_for(stream, True, now, queued) for stream, own in behind):
+            if any(own and self._waited_for(stream, True, now, recovering, queued) for stream, own in behind):
                 waiting_robots.add(rid)  # its own other stream is being recovered: it waits, the others go on
                 kept.append(held)
                 continue
-            if any(not own and self._waited_for(stream, False, now, queued) for stream, own in behind):
+            if any(not own and self._waited_for(stream, False, now, recovering, queued) for stream, own in behind):
                 kept.append(held)
                 break
             out.append((held.event, held.arrived))
