@@ -6,7 +6,8 @@ Steps (FastSLAM, 100 particles, scans' ids ignored):
 - ``shared-exact-no-tentative``: one optimal one-to-one assignment per scan on the filter's marginal map for
   every particle, new landmarks weigh at once (``confirm_hits=1``);
 - ``shared-exact``: ... and new landmarks stay tentative (no weight, not mapped) until seen 3 times;
-- ``shared-jcbb``: ... with joint compatibility (JCBB) instead: ``--association unknown``, the default;
+- ``shared-jcbb-fastslam1``: ... with joint compatibility (JCBB) instead, poses drawn from the motion model alone;
+- ``shared-jcbb``: ... and each scan folded into the proposal (FastSLAM 2.0): ``--association unknown``, the default;
 - ``shared-jcbb-ess-0.05``: ... resampling only when the effective sample size falls below 5 % (not 50 %).
 
 Steps (D-SLAM, ``--association unknown``: the association service's ``auto``; deterministic, so one run):
@@ -38,8 +39,10 @@ from support.fastslam_experiments import aligned_map_error, run_and_score
 
 STEPS: dict[str, tuple[str, str, dict]] = {
     "nn": ("fastslam", "nn", {}),
-    "shared-exact-no-tentative": ("fastslam", "shared", {"shared_solver": "exact", "confirm_hits": 1}),
-    "shared-exact": ("fastslam", "shared", {"shared_solver": "exact"}),
+    "shared-exact-no-tentative": ("fastslam", "shared", {"shared_solver": "exact", "confirm_hits": 1,
+                                                         "proposal": "fastslam1"}),
+    "shared-exact": ("fastslam", "shared", {"shared_solver": "exact", "proposal": "fastslam1"}),
+    "shared-jcbb-fastslam1": ("fastslam", "unknown", {"proposal": "fastslam1"}),
     "shared-jcbb": ("fastslam", "unknown", {}),
     "shared-jcbb-ess-0.05": ("fastslam", "unknown", {"resample_ess": 0.05}),
     "dslam-per-scan": ("dslam", "unknown", {"local_map_max_std": 0.0, "gate_pose_floor": (0.0, 0.0, 0.0)}),

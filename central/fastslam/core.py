@@ -8,7 +8,8 @@ functions that take it explicitly, one module per concern:
 
 - :mod:`~central.fastslam.lifecycle`: robots waiting, placed, sent back to wait, removed;
 - :mod:`~central.fastslam.motion`: buffering controls and applying them;
-- :mod:`~central.fastslam.proposal`: the FastSLAM 2.0 proposal (``proposal="fastslam2"``);
+- :mod:`~central.fastslam.proposal`: the FastSLAM 2.0 proposal (``proposal="fastslam2"``, and ``auto`` with shared
+  association);
 - :mod:`~central.fastslam.association`: known / nn / mht association and the landmark updates;
 - :mod:`~central.fastslam.evidence`: negative evidence, landmark existence, merging duplicates;
 - :mod:`~central.fastslam.robot_detections`: robot-to-robot detections (``robot_detections``);
@@ -151,7 +152,7 @@ class FastSlam:
         self.counts["detections"] += z.shape[0]
         weigh_updates = True
         associate = self.config.association == "shared" and z.shape[0]
-        if self.config.proposal == "fastslam2" and z.shape[0]:
+        if self.config.fastslam2 and z.shape[0]:
             if associate:  # before the proposal moves the particles, from the predicted pose
                 ids = shared.associate(self, robot, z, r)
             weigh_updates = not proposal.propose(self, robot, z, r, ids)

@@ -15,7 +15,10 @@ arrays of a few hundred 2 × 2 blocks, more than the arithmetic. Each kernel doe
 - :func:`private_blocks`: copy on write of the blocks of :class:`central.fastslam.aligned_map.AlignedMap`;
 - :func:`marginal_map`: the landmarks' particle mixtures near the robot (:func:`central.fastslam.shared.marginal_map`);
 - :func:`shared_gating_kernel`: the predicted detections, Jacobians and gating distances of a scan against those
-  mixtures (:func:`central.fastslam.shared.associate`).
+  mixtures (:func:`central.fastslam.shared.associate`);
+- :func:`propose`: every particle's FastSLAM 2.0 step, its motion prior updated by the scan's matched detections
+  and a draw from the result (:func:`central.fastslam.proposal.propose`; :func:`proposal_moments` gives the
+  moments alone, against :func:`central.fastslam.proposal.proposal_moments_reference`).
 
 Each has a thin wrapper that takes the Python objects; ``FastSlamConfig.compiled`` chooses kernels or references.
 """
@@ -396,6 +399,149 @@ def shared_gating_kernel(pose, a, b, mean, cov, tentative, spread, drift, r, z):
     return zhat, h_x, own, nu, d2
 
 
+@njit
+def _particle_proposal(pool_mean, pool_cov, table, block, p, pose, cov, a, b, slots, z, r, weighed, shift, scratch):
+    """Particle ``p``'s FastSLAM 2.0 proposal: the Kalman update of its pose prior N(``pose``, ``cov``) by the
+    detections ``z[j]`` of landmarks ``slots[j]``, all linearised at ``pose``, one detection after the other (with
+    Q_j = H_m Σ_j H_mᵀ + R block diagonal this is the batch update exactly). ``cov`` becomes the posterior,
+    ``shift`` the mean's offset; returns log N(ν; 0, H_x P H_xᵀ + Q) of the first ``weighed`` detections, the
+    particle's weight. ``scratch`` ``(2, 3, 2)``: work space for K and P H_xᵀ, allocated once per scan."""
+    theta = pose[2]
+    c, s = math.cos(theta), math.sin(theta)
+    px, py = pose[0] + a * c - b * s, pose[1] + a * s + b * c
+    d_theta0, d_theta1 = -a * s - b * c, a * c - b * s
+    gain, ph = scratch[0], scratch[1]
+    x0, x1, x2 = 0.0, 0.0, 0.0
+    log_weight = 0.0
+    for j in range(slots.shape[0]):
+        mean = pool_mean[table[p, slots[j] // block]]
+        sigma = pool_cov[table[p, slots[j] // block]]
+        k = slots[j] % block
+        dx, dy = mean[k, 0] - px, mean[k, 1] - py
+        q = max(dx * dx + dy * dy, 1e-18)
+        distance = math.sqrt(q)
+        h00, h01, h10, h11 = dx / distance, dy / distance, -dy / q, dx / q
+        g0, g1, g2 = -h00, -h01, -(h00 * d_theta0 + h01 * d_theta1)  # H_x: rows (g0, g1, g2) and (k0, k1, k2)
+        k0, k1, k2 = -h10, -h11, -(h10 * d_theta0 + h11 * d_theta1) - 1.0
+        m00, m01, m11 = sigma[k, 0, 0], sigma[k, 0, 1], sigma[k, 1, 1]
+        t00, t01 = h00 * m00 + h01 * m01, h00 * m01 + h01 * m11
+        t10, t11 = h10 * m00 + h11 * m01, h10 * m01 + h11 * m11
+        for i in range(3):
+            ph[i, 0] = cov[i, 0] * g0 + cov[i, 1] * g1 + cov[i, 2] * g2
+            ph[i, 1] = cov[i, 0] * k0 + cov[i, 1] * k1 + cov[i, 2] * k2
+        s00 = g0 * ph[0, 0] + g1 * ph[1, 0] + g2 * ph[2, 0] + t00 * h00 + t01 * h01 + r[0, 0]
+        s01 = g0 * ph[0, 1] + g1 * ph[1, 1] + g2 * ph[2, 1] + t00 * h10 + t01 * h11 + r[0, 1]
+        s11 = k0 * ph[0, 1] + k1 * ph[1, 1] + k2 * ph[2, 1] + t10 * h10 + t11 * h11 + r[1, 1]
+        det = s00 * s11 - s01 * s01
+        safe = det if abs(det) > 1e-300 else 1e-300
+        i00, i01, i11 = s11 / safe, -s01 / safe, s00 / safe
+        e0 = z[j, 0] - distance - (g0 * x0 + g1 * x1 + g2 * x2)
+        e1 = wrap_angle(z[j, 1] - wrap_angle(math.atan2(dy, dx) - theta)) - (k0 * x0 + k1 * x1 + k2 * x2)
+        for i in range(3):
+            gain[i, 0] = ph[i, 0] * i00 + ph[i, 1] * i01
+            gain[i, 1] = ph[i, 0] * i01 + ph[i, 1] * i11
+        x0 += gain[0, 0] * e0 + gain[0, 1] * e1
+        x1 += gain[1, 0] * e0 + gain[1, 1] * e1
+        x2 += gain[2, 0] * e0 + gain[2, 1] * e1
+        for i in range(3):
+            for l in range(3):
+                cov[i, l] -= gain[i, 0] * ph[l, 0] + gain[i, 1] * ph[l, 1]  # K H P = K (P Hᵀ)ᵀ
+        if j < weighed:
+            log_weight += -0.5 * (i00 * e0 * e0 + 2.0 * i01 * e0 * e1 + i11 * e1 * e1) \
+                - 0.5 * math.log(max(det, 1e-300)) - LOG_2PI
+    shift[0], shift[1], shift[2] = x0, x1, x2
+    for i in range(3):
+        for l in range(i + 1, 3):
+            cov[i, l] = cov[l, i] = 0.5 * (cov[i, l] + cov[l, i])
+    return log_weight
+
+
+@njit
+def proposal_moments_kernel(pool_mean, pool_cov, table, block, pose, prior, a, b, slots, z, r):
+    """(shift ``(P, 3)``, posterior ``(P, 3, 3)``, log weight ``(P,)``) of every particle's proposal from its moved
+    ``pose`` and motion ``prior`` (:func:`_particle_proposal`)."""
+    count = pose.shape[0]
+    shift = np.zeros((count, 3))
+    post = np.empty((count, 3, 3))
+    log_weight = np.zeros(count)
+    scratch = np.empty((2, 3, 2))
+    for p in range(count):
+        post[p] = prior[p]
+        log_weight[p] = _particle_proposal(pool_mean, pool_cov, table, block, p, pose[p], post[p], a, b, slots, z, r,
+                                           slots.shape[0], shift[p], scratch)
+    return shift, post, log_weight
+
+
+@njit
+def propose_kernel(pool_mean, pool_cov, table, block, pose, delta, motion_cov, a, b, slots, z, r, weighed, normals,
+                   jitter, log_weight):
+    """Every particle's FastSLAM 2.0 step, in place on ``pose`` ``(P, 3)``: the buffered motion (``delta``,
+    ``motion_cov`` in the robot's frame) composed onto the pose, its prior J Σ Jᵀ updated by the scan
+    (:func:`_particle_proposal`), and a draw ``shift + L · normals[p]`` from the posterior (L its Cholesky factor,
+    ``jitter`` added to the diagonal); ``log_weight`` gets the particles' weights."""
+    cov = np.empty((3, 3))
+    shift = np.empty(3)
+    scratch = np.empty((2, 3, 2))
+    lower = np.zeros((3, 3))
+    m00, m11, m22 = motion_cov[0, 0], motion_cov[1, 1], motion_cov[2, 2]
+    m01 = 0.5 * (motion_cov[0, 1] + motion_cov[1, 0])
+    m02 = 0.5 * (motion_cov[0, 2] + motion_cov[2, 0])
+    m12 = 0.5 * (motion_cov[1, 2] + motion_cov[2, 1])
+    for p in range(pose.shape[0]):
+        c, s = math.cos(pose[p, 2]), math.sin(pose[p, 2])
+        pose[p, 0] += c * delta[0] - s * delta[1]
+        pose[p, 1] += s * delta[0] + c * delta[1]
+        pose[p, 2] = wrap_angle(pose[p, 2] + delta[2])
+        # the prior J Σ Jᵀ, J the rotation R of the position block: R Σ_xy Rᵀ, R Σ_xθ, Σ_θθ
+        a00 = c * m00 - s * m01
+        a01 = c * m01 - s * m11
+        a10 = s * m00 + c * m01
+        a11 = s * m01 + c * m11
+        cov[0, 0] = a00 * c - a01 * s
+        cov[0, 1] = cov[1, 0] = a00 * s + a01 * c
+        cov[1, 1] = a10 * s + a11 * c
+        cov[0, 2] = cov[2, 0] = c * m02 - s * m12
+        cov[1, 2] = cov[2, 1] = s * m02 + c * m12
+        cov[2, 2] = m22
+        log_weight[p] = _particle_proposal(pool_mean, pool_cov, table, block, p, pose[p], cov, a, b, slots, z, r, weighed,
+                                           shift, scratch)
+        for i in range(3):
+            cov[i, i] += jitter
+        for j in range(3):  # Cholesky, lower
+            total = cov[j, j]
+            for k in range(j):
+                total -= lower[j, k] * lower[j, k]
+            lower[j, j] = math.sqrt(max(total, 0.0))
+            for i in range(j + 1, 3):
+                total = cov[i, j]
+                for k in range(j):
+                    total -= lower[i, k] * lower[j, k]
+                lower[i, j] = total / lower[j, j] if lower[j, j] > 0.0 else 0.0
+        for i in range(3):
+            pose[p, i] += shift[i] + lower[i, 0] * normals[p, 0] + lower[i, 1] * normals[p, 1] + lower[i, 2] * normals[p, 2]
+        pose[p, 2] = wrap_angle(pose[p, 2])
+
+
+def proposal_moments(landmarks, sensor, pose: np.ndarray, prior: np.ndarray, slots: np.ndarray, z: np.ndarray,
+                     r: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """FastSLAM 2.0 proposal of every particle of an :class:`AlignedMap` from its moved ``pose`` ``(P, 3)`` and motion
+    ``prior`` ``(P, 3, 3)``, given detections ``z`` ``(m, 2)`` of landmarks ``slots`` ``(m,)`` held by every particle:
+    (shift, posterior covariance, log weight)."""
+    return proposal_moments_kernel(landmarks.pool_mean, landmarks.pool_cov, landmarks.table, landmarks.block, pose,
+                                   prior, sensor.offset[0], sensor.offset[1], slots, z, r)
+
+
+def propose(landmarks, sensor, pose: np.ndarray, delta: np.ndarray, motion_cov: np.ndarray, slots: np.ndarray,
+            z: np.ndarray, r: np.ndarray, weighed: int, normals: np.ndarray, jitter: float) -> np.ndarray:
+    """Move every particle's ``pose`` ``(P, 3)`` (in place) by a draw from its FastSLAM 2.0 proposal given the motion
+    (``delta``, ``motion_cov``) and detections ``z`` of landmarks ``slots`` held by every particle; returns the
+    log weights ``(P,)`` (:func:`propose_kernel`)."""
+    out = np.empty(pose.shape[0])
+    propose_kernel(landmarks.pool_mean, landmarks.pool_cov, landmarks.table, landmarks.block, pose, delta, motion_cov,
+                   sensor.offset[0], sensor.offset[1], slots, z, r, weighed, normals, jitter, out)
+    return out
+
+
 def warm_up() -> None:
     """Compile (or load from the cache) every FastSLAM kernel on tiny inputs."""
     from central.fastslam.aligned_map import AlignedMap
@@ -414,7 +560,12 @@ def warm_up() -> None:
     keep, mean, cov = marginal_map(landmarks, weights, slots, np.zeros(2), 10.0)
     shared_gating_kernel(np.zeros(3), 0.0, 0.0, mean, cov, np.zeros(keep.size, np.bool_), np.eye(3), np.eye(3),
                          np.eye(2), np.array([[3.0, 0.0]]))
+    detections = np.array([[3.0, 0.0], [3.1, 0.3]])
+    proposal_moments(landmarks, RangeBearingSensor(), pose, np.broadcast_to(np.eye(3) * 0.01, (2, 3, 3)), slots,
+                     detections, np.eye(2) * 0.01)
+    propose(landmarks, RangeBearingSensor(), pose, np.zeros(3), np.eye(3) * 0.01, slots, detections, np.eye(2) * 0.01, 1,
+            np.zeros((2, 3)), 1e-12)
 
 
-__all__ = ["AVAILABLE", "integrate_controls", "known_update", "marginal_map", "private_blocks", "shared_gating_kernel",
-           "warm_up", "weighted_pose"]
+__all__ = ["AVAILABLE", "integrate_controls", "known_update", "marginal_map", "private_blocks", "propose",
+           "proposal_moments", "shared_gating_kernel", "warm_up", "weighted_pose"]

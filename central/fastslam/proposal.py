@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from central.fastslam import association, motion
+from central.fastslam import association, kernels, motion, shared
 from central.fastslam.lifecycle import RobotState
 from robots.gaussian import LOG_2PI, sandwich, sandwich2, sqrt_psd
 from robots.models import compose_jacobian, se2_compose, wrap_angle
@@ -20,18 +20,34 @@ from robots.models import compose_jacobian, se2_compose, wrap_angle
 if TYPE_CHECKING:
     from central.fastslam.core import FastSlam
 
+# a unicycle's motion prior may have rank 2, and so the posterior: 1e-12 (1 µm, 1 µrad) on the diagonal keeps the
+# draw's square root a Cholesky factor, which rounding cannot switch to eigenvectors (another valid draw)
+POSTERIOR_JITTER = 1e-12
+
+
 def propose(slam: FastSlam, robot: RobotState, z, r, ids) -> bool:
     """Apply the robot's buffered motion by sampling each particle's pose from the proposal.
 
     Matches are taken at the predicted mean pose (known ids, or the gated maximum-likelihood landmark). The
     proposal is the Kalman update of N(x̂, P) by every matched detection at once; the particle is weighted by
     the joint marginal N(ν; 0, H_x P H_xᵀ + Q), Q = H_m Σ H_mᵀ + R. Returns True when the weights of matched
-    detections were set here (the landmark updates must not add them again).
+    detections were set here (the landmark updates must not add them again). With ids given or chosen per scan the
+    whole step is one kernel (:func:`central.fastslam.kernels.propose`); the numpy code below is its reference.
     """
     pending = motion.pending_motion(robot, slam.config)
     motion.clear(robot)
     col = robot.index
     n = slam.pose.shape[0]
+    if slam.config.compiled and slam.config.association in ("known", "shared"):
+        det, slots = identified_matches(slam, ids)
+        if det.size:
+            delta, cov = (np.zeros(3), np.zeros((3, 3))) if pending is None else pending
+            weighs = weighing(slam, ids, det)
+            order = np.argsort(~weighs, kind="stable")  # the kernel weighs by the leading detections
+            normals = slam.rng.standard_normal((n, 3))
+            slam.logw += kernels.propose(slam.map, robot.sensor, slam.pose[:, col], delta, cov, slots[order],
+                                         z[det[order]], r, int(weighs.sum()), normals, POSTERIOR_JITTER)
+            return True
     if pending is None:
         prior = np.zeros((n, 3, 3))
     else:
@@ -41,10 +57,28 @@ def propose(slam: FastSlam, robot: RobotState, z, r, ids) -> bool:
         prior = sandwich(jac, cov)
     p, i, slot = matches(slam, robot, z, r, ids)
     if p.size == 0:
-        slam.pose[:, col] += (sqrt_psd(prior) @ slam.rng.standard_normal((n, 3, 1)))[..., 0]
-        slam.pose[:, col, 2] = wrap_angle(slam.pose[:, col, 2])
-        return False
-    m = z.shape[0]
+        shift, post, log_weight = np.zeros((n, 3)), prior, np.zeros(n)
+    else:
+        counted = np.ones(z.shape[0], bool)
+        if slam.config.association in ("known", "shared"):
+            det = i[:p.size // n]
+            counted[det[~weighing(slam, ids, det)]] = False
+        shift, post, log_weight = proposal_moments_reference(slam, robot, z, r, prior, p, i, slot, counted)
+    post = post + POSTERIOR_JITTER * np.eye(3)
+    slam.pose[:, col] += shift + (sqrt_psd(post) @ slam.rng.standard_normal((n, 3, 1)))[..., 0]
+    slam.pose[:, col, 2] = wrap_angle(slam.pose[:, col, 2])
+    slam.logw += log_weight
+    return p.size > 0
+
+
+def proposal_moments_reference(slam: FastSlam, robot: RobotState, z, r, prior, p, i, slot, counted=None
+                               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(shift ``(P, 3)``, posterior ``(P, 3, 3)``, log weight ``(P,)``) of the proposal: the Kalman update of the
+    prior N(x̂, P) by every matched detection (``p``, ``i``, ``slot``: particle, detection, landmark) at once,
+    and the joint marginal N(ν; 0, H_x P H_xᵀ + Q), Q = H_m Σ H_mᵀ + R, of the detections ``counted`` ``(m,)``
+    (default all); the numpy reference of :func:`central.fastslam.kernels.proposal_moments`, and the path of
+    per-particle association."""
+    n, m, col = slam.pose.shape[0], z.shape[0], robot.index
     pose = slam.pose[p, col]
     mu, sig = slam.map.gather(p, slot)
     zhat = robot.sensor.observe(pose, mu)
@@ -63,12 +97,13 @@ def propose(slam: FastSlam, robot: RobotState, z, r, ids) -> bool:
     nu = nu.reshape(n, 2 * m)
     shift = (gain @ nu[..., None])[..., 0]
     post = prior - gain @ h @ prior
-    slam.pose[:, col] += shift + (sqrt_psd(post) @ slam.rng.standard_normal((n, 3, 1)))[..., 0]
-    slam.pose[:, col, 2] = wrap_angle(slam.pose[:, col, 2])
+    rows = np.repeat(np.ones(m, bool) if counted is None else counted, 2)
+    if not rows.all():  # the marginal of the counted detections: their rows and columns of S
+        s, nu = s[:, rows][:, :, rows], nu[:, rows]
+        s_inv = np.linalg.inv(s)
     _, logdet = np.linalg.slogdet(s)
-    matched = np.bincount(p, minlength=n)
-    slam.logw += -0.5 * np.einsum("pi,pij,pj->p", nu, s_inv, nu) - 0.5 * logdet - LOG_2PI * matched
-    return True
+    matched = np.bincount(p, rows[2 * i], minlength=n)
+    return shift, post, -0.5 * np.einsum("pi,pij,pj->p", nu, s_inv, nu) - 0.5 * logdet - LOG_2PI * matched
 
 
 def matches(slam: FastSlam, robot: RobotState, z, r, ids) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -76,11 +111,7 @@ def matches(slam: FastSlam, robot: RobotState, z, r, ids) -> tuple[np.ndarray, n
     (at most one detection per landmark and particle)."""
     n = slam.pose.shape[0]
     if slam.config.association in ("known", "shared"):
-        if ids is None:
-            return _no_matches()
-        _, first = np.unique(ids, return_index=True)
-        det = np.array([j for j in np.sort(first) if ids[j] >= 0 and int(ids[j]) in slam.known_slots], np.int64)
-        slots = np.array([slam.known_slots[int(ids[j])] for j in det], np.int64)
+        det, slots = identified_matches(slam, ids)
         return np.repeat(np.arange(n), det.size), np.tile(det, n), np.tile(slots, n)
     slam.map.reserve(z.shape[0])
     scan = association.candidates(slam, robot, 0, r)
@@ -98,6 +129,26 @@ def matches(slam: FastSlam, robot: RobotState, z, r, ids) -> tuple[np.ndarray, n
     unique = np.zeros(p.size, bool)
     unique[first] = True
     return p[unique], i[unique], slot[unique]
+
+
+def identified_matches(slam: FastSlam, ids) -> tuple[np.ndarray, np.ndarray]:
+    """(detection, slot) of the scan's first detection of each landmark already in the map, with ids given or chosen
+    by the shared association (the same in every particle)."""
+    if ids is None:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    _, first = np.unique(ids, return_index=True)
+    det = np.array([j for j in np.sort(first) if ids[j] >= 0 and int(ids[j]) in slam.known_slots], np.int64)
+    return det, np.array([slam.known_slots[int(ids[j])] for j in det], np.int64)
+
+
+def weighing(slam: FastSlam, ids, det: np.ndarray) -> np.ndarray:
+    """Which matched detections ``det`` weigh the particles: all with known ids; with shared association only those
+    of confirmed landmarks. A tentative landmark (Wang, Huang and Dissanayake, "Implementation issues and
+    experimental evaluation of D-SLAM", §3.1) still conditions the proposal, so the draw follows it, but weighs
+    nothing until confirmed: clutter it was born of cannot select particles."""
+    if slam.config.association != "shared" or not det.size:
+        return np.ones(det.size, bool)
+    return shared.confirmed(slam, ids[det])
 
 
 def _no_matches() -> tuple[np.ndarray, np.ndarray, np.ndarray]:

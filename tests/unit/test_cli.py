@@ -25,7 +25,7 @@ def one_error_line(capsys) -> str:
     (["--set", "max_obs_range=abc"], ["max_obs_range='abc'", "valid number"]),
     (["--set", "particles=abc"], ["particles='abc'", "valid integer"]),
     (["--set", "foo=1"], ["unknown fastslam setting foo", "(known: ", "max_obs_range"]),
-    (["--set", "proposal=fastslam3"], ["proposal='fastslam3'", "'fastslam1' or 'fastslam2'"]),
+    (["--set", "proposal=fastslam3"], ["proposal='fastslam3'", "'auto', 'fastslam1' or 'fastslam2'"]),
 ])
 def test_bad_estimator_settings_give_one_line(words, expected, capsys):
     code = cli_main(["run", "--dataset", "sim:arena", "--estimator", "fastslam", "--duration", "1", "--no-progress",

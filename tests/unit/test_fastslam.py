@@ -407,6 +407,18 @@ def test_registered_as_an_estimator():
         registry_make(RunOptions("fastslam", "nn", settings={"no_such_setting": 1}), infos)
 
 
+@pytest.mark.parametrize("association, proposal, folds", [
+    ("shared", "auto", True), ("known", "auto", False), ("nn", "auto", False), ("mht", "auto", False),
+    ("known", "fastslam2", True), ("shared", "fastslam1", False),
+])
+def test_auto_proposal_is_fastslam2_with_shared_association_only(association, proposal, folds):
+    """``auto`` folds the scan into the proposal where the association is one per scan (shared): there one kernel
+    does it; known ids keep FastSLAM 1.0 and its paper figures unless asked."""
+    config = FastSlamConfig(association=association, proposal=proposal)
+    assert config.fastslam2 is folds
+    assert FastSlamConfig().proposal == "auto" and FastSlamConfig().fastslam2
+
+
 @pytest.mark.parametrize("association, settings, named", [
     ("jcbb", {}, "association"),
     ("nn", {"no_such_setting": 1}, "no_such_setting"),

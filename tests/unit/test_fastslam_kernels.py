@@ -7,7 +7,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from central.fastslam import association, kernels, resampling, shared
+from central.fastslam import association, kernels, proposal, resampling, shared
 from central.fastslam.aligned_map import AlignedMap
 from central.fastslam.config import FastSlamConfig
 from central.fastslam.core import FastSlam
@@ -149,8 +149,37 @@ def test_marginal_map_and_gating_kernels_give_the_reference_on_a_run():
         np.testing.assert_allclose(got, expected, rtol=1e-10, atol=1e-12)
 
 
-@pytest.mark.parametrize("association", ["known", "shared"])
-def test_whole_run_with_kernels_matches_the_reference(association):
+@pytest.mark.parametrize("seed, offset", [(0, (0.0, 0.0)), (3, (0.4, -0.2))])
+def test_proposal_kernel_gives_the_reference_moments(seed, offset):
+    """The FastSLAM 2.0 proposal's shift, posterior and weight: detection after detection in the kernel, all at once
+    in the reference (the same update when the detections' noises are independent)."""
+    rng = np.random.default_rng(seed)
+    sensor = RangeBearingSensor(offset)
+    lmap = random_map(seed)
+    poses = np.zeros((40, 2, 3))
+    poses[:, 0] = rng.normal([0.5, -0.5, 2.0], [0.3, 0.3, 0.2], (40, 3))
+    root = rng.normal(0.0, 0.2, (40, 3, 3))
+    prior = root @ np.swapaxes(root, -1, -2) + np.diag([0.01, 0.01, 0.001])
+    prior[5] = 0.0  # a robot that has not moved: the proposal is the pose itself
+    slots = np.array([3, 7, 0, 11, 5])
+    truth = gaussians(lmap)[0][0, slots]
+    z = sensor.observe(poses[0, 0], truth) + rng.normal(0.0, [0.1, 0.05], (5, 2))
+    r = np.array([[0.04, 0.001], [0.001, 0.003]])
+    slam = SimpleNamespace(map=lmap, pose=poses)
+    robot = SimpleNamespace(index=0, sensor=sensor)
+    n, m = 40, slots.size
+    expected = proposal.proposal_moments_reference(slam, robot, z, r, prior, np.repeat(np.arange(n), m),
+                                                   np.tile(np.arange(m), n), np.tile(slots, n))
+    got = kernels.proposal_moments(lmap, sensor, poses[:, 0], prior, slots, z, r)
+    assert np.ptp(expected[2]) > 1.0 and np.abs(expected[0]).max() > 0.05  # the scan moves and weighs particles apart
+    for a, b in zip(got, expected):
+        np.testing.assert_allclose(a, b, rtol=1e-8, atol=1e-10)
+    assert np.all(got[0][5] == 0.0) and np.all(got[1][5] == 0.0)
+
+
+@pytest.mark.parametrize("association, proposal_name", [("known", "fastslam1"), ("shared", "fastslam1"),
+                                                         ("known", "fastslam2"), ("shared", "fastslam2")])
+def test_whole_run_with_kernels_matches_the_reference(association, proposal_name):
     """Every kernel in the loop: a seeded noisy run gives the reference's poses and map (the random draws are the
     same, so only rounding may differ). Unicycle robots: with a rank-deficient motion covariance (a car standing
     still) a rounding difference can switch the square root of the draw from Cholesky to eigenvectors, another
@@ -159,7 +188,8 @@ def test_whole_run_with_kernels_matches_the_reference(association):
     infos = [log.info for log in data.robots.values()]
     runs = {}
     for compiled in (True, False):
-        slam = FastSlam(FastSlamConfig(particles=30, association=association, seed=4, compiled=compiled), infos)
+        slam = FastSlam(FastSlamConfig(particles=30, association=association, seed=4, compiled=compiled,
+                                       proposal=proposal_name), infos)
         feed(slam, data)
         runs[compiled] = slam
     assert runs[False].counts["resamples"] > 0 and runs[False].counts["detections"] > 100
