@@ -30,7 +30,8 @@ def propose(slam: FastSlam, robot: RobotState, z, r, ids) -> bool:
 
     Matches are taken at the predicted mean pose (known ids, or the gated maximum-likelihood landmark). The
     proposal is the Kalman update of N(x̂, P) by every matched detection at once; the particle is weighted by
-    the joint marginal N(ν; 0, H_x P H_xᵀ + Q), Q = H_m Σ H_mᵀ + R. Returns True when the weights of matched
+    the joint marginal N(ν; 0, H_x P H_xᵀ + Q), Q = H_m Σ H_mᵀ + R, of the detections that weigh (:func:`weighing`:
+    with shared association, those of confirmed landmarks). Returns True when the weights of matched
     detections were set here (the landmark updates must not add them again). With ids given or chosen per scan the
     whole step is one kernel (:func:`central.fastslam.kernels.propose`); the numpy code below is its reference.
     """
