@@ -15,7 +15,10 @@ filter (:class:`central.fastslam.FastSlam`):
 - Any other robot whose start pose is unknown waits (its events held by the roster,
   at most ``waiting_mb`` of them) until ``{prefix}/mcl/{rid}/pose`` (MclPose)
   says ``localized``; it enters at MCL's best pose and covariance, and its
-  held events older than that pose are dropped (counted).
+  held events older than that pose are dropped (counted). MCL's first ``localized`` can be a wrong hypothesis
+  of a symmetric map: when a robot MCL placed has a localized MCL pose farther than ``replace_distance_m``
+  from the filter's for ``replace_after`` poses in a row (MCL relocalized it), it leaves the filter (its
+  landmarks stay) and is placed again (:class:`services.placement.PlacementCheck`, counted ``replaced``).
 - A robot whose first odometry message arrives with seq > 0 (the service
   started after it) has lost its start pose: counted, and with ``late_join``
   = ``wait`` it waits for MCL like a robot without a start pose.
@@ -52,6 +55,7 @@ from schemas.config import CentralSettings, add_settings_arguments, settings_fro
 from schemas.contract import OdomEvent
 from schemas.messages import Estimate, MclPose, RobotEstimate, RobotInfo
 from services.maps import MapSaver, seed_from_file, serve_mapping_service
+from services.placement import PlacementCheck
 from services.roster import StreamEvent
 from services.runtime import ServiceShell
 
@@ -74,6 +78,8 @@ class CentralService(ServiceShell):
         self.estimate_seq = 0
         self.last_stamp = 0.0
         self.announced_waiting: dict[str, float] = {}  # robots announced without a pose: when (wall clock)
+        self.placed_by_mcl: set[str] = set()
+        self.placement_check = PlacementCheck(settings.replace_distance_m, settings.replace_after)
         self.joining: dict[str, RobotInfo] = {}  # robots announced with a start pose, before their first event
         self._state_lock = threading.Lock()
         self._state_queries: list[zenoh.Query] = []  # waiting for the next estimate (Zenoh's threads append)
@@ -152,6 +158,8 @@ class CentralService(ServiceShell):
         self.slam.remove_robot(robot_id)
         self.announced_waiting.pop(robot_id, None)
         self.joining.pop(robot_id, None)
+        self.placed_by_mcl.discard(robot_id)
+        self.placement_check.forget(robot_id)
 
     def robot_joined_late(self, robot_id: str) -> None:
         """With ``late_join`` = ``wait`` it is taken out (or kept out) of the filter until MCL places it; with
@@ -177,7 +185,8 @@ class CentralService(ServiceShell):
     def checkpoint_state(self) -> dict:
         return {"slam": self.slam, "processed": self.processed,
                 "estimate_seq": self.estimate_seq, "last_stamp": self.last_stamp,
-                "waiting_robots": sorted(self.announced_waiting), "joining": self.joining}
+                "waiting_robots": sorted(self.announced_waiting), "joining": self.joining,
+                "placed_by_mcl": sorted(self.placed_by_mcl)}
 
     def restore_state(self, state: dict) -> None:
         """The filter (particles, maps, random generator); robots waiting for a pose wait afresh."""
@@ -186,6 +195,7 @@ class CentralService(ServiceShell):
         self.estimate_seq = state["estimate_seq"]
         self.last_stamp = state["last_stamp"]
         self.joining = state["joining"]
+        self.placed_by_mcl = set(state.get("placed_by_mcl", ()))
         now = time.monotonic()
         self.announced_waiting = {rid: now for rid in state["waiting_robots"]}
 
@@ -206,13 +216,34 @@ class CentralService(ServiceShell):
         if key != self.keys.mcl_pose(rid):
             self.reject("robot_id_mismatch", f"{rid} on {key}")
             return
-        if not self.slam.is_waiting(rid) or not message.localized:
+        if not message.localized:
+            return
+        if not self.slam.is_waiting(rid):
+            self._check_placement(rid, message)
             return
         if self.slam.place_robot(rid, message.best_pose, message.best_cov, stamp=message.stamp):
             log.info("robot %s placed by MCL at %s", rid, np.round(message.best_pose, 3).tolist())
+            self.placed_by_mcl.add(rid)
+            self.placement_check.forget(rid)
             await self.admit(rid, after=message.stamp)
         else:
             self.reject("bad_placement", f"MCL pose of {rid}")
+
+    def _check_placement(self, rid: str, message: MclPose) -> None:
+        """A robot MCL placed, whose localized MCL pose has stayed far from the filter's (``replace_after``,
+        ``replace_distance_m``): it leaves the filter (its landmarks stay) and the next localized pose places it
+        again, counted as ``replaced``."""
+        poses = self.slam.poses() if rid in self.placed_by_mcl else {}
+        if rid not in poses or not self.placement_check.observe(rid, poses[rid][0], message.best_pose):
+            return
+        log.warning("robot %s: MCL has put it %.1f m from the filter's pose for %d localized poses in a row: it is "
+                    "placed again", rid, float(np.hypot(*(poses[rid][0][:2] - np.asarray(message.best_pose)[:2]))),
+                    self.settings.replace_after)
+        self.extra["replaced"] = self.extra.get("replaced", 0.0) + 1.0
+        info = self.slam.remove_robot(rid)
+        self.slam.add_robot(info.model_copy(update={"start_pose": None, "start_pose_cov": None}))
+        self.roster.hold(rid)
+        self.announced_waiting.setdefault(rid, time.monotonic())
 
     # ------------------------------------------------------------ output
     def estimate(self, publish: bool = True) -> Estimate | None:

@@ -500,6 +500,10 @@ class CentralSettings(FleetSettings, FastSlamConfig, SavedMapSettings, Checkpoin
     late_join: Literal["start_pose", "wait"] = Field(
         "start_pose", description="a robot whose first odometry was missed: keep its announced start pose, "
         "or wait for MCL to place it")
+    replace_after: int = Field(
+        20, ge=0, description="a robot MCL placed is placed again when this many localized MCL poses in a row lie "
+        "farther than replace_distance_m from the filter's (MCL relocalized it: its first hypothesis was wrong); 0: never")
+    replace_distance_m: float = Field(2.0, gt=0, description="... how far MCL's pose must be from the filter's")
     duration: float | None = Field(None, gt=0, description="stop after this many seconds (default: until SIGINT/SIGTERM)")
 
     @field_validator("association", mode="before")

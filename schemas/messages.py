@@ -272,7 +272,8 @@ class MclPose(StreamMessage):
     """MCL's belief about one robot: every significant hypothesis and the best pose.
 
     ``localized`` is true once one hypothesis dominates (the central service
-    takes a robot with an unknown start pose in on the first such message).
+    takes a robot with an unknown start pose in on the first such message, and
+    places it again when later ones stay far from its own pose: ``replace_after``).
     """
 
     best_pose: Pose

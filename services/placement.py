@@ -66,6 +66,33 @@ class Placement:
         return out
 
 
+class PlacementCheck:
+    """Whether a robot MCL placed must be placed again: MCL, localized, has put it farther than ``distance_m`` from
+    the filter's pose for ``messages`` poses in a row. MCL's first ``localized`` can be a wrong hypothesis of a
+    symmetric map that it later leaves by relocalizing; the filter never sees that on its own, since the robot's
+    scans then build its own part of the map where it was put."""
+
+    def __init__(self, distance_m: float, messages: int):
+        self.distance_m = distance_m
+        self.messages = messages
+        self.runs: dict[str, int] = {}
+
+    def observe(self, robot_id: str, filter_pose, mcl_pose) -> bool:
+        """Count one localized MCL pose; True (and the count starts again) when the robot must be placed again."""
+        if self.messages <= 0:
+            return False
+        apart = float(np.hypot(*(np.asarray(filter_pose, float)[:2] - np.asarray(mcl_pose, float)[:2])))
+        run = self.runs.get(robot_id, 0) + 1 if apart > self.distance_m else 0
+        self.runs[robot_id] = run
+        if run < self.messages:
+            return False
+        self.runs.pop(robot_id)
+        return True
+
+    def forget(self, robot_id: str) -> None:
+        self.runs.pop(robot_id, None)
+
+
 class FleetPlacer:
     """Hold back the events of robots the estimator has not placed, anchor the first, localize the others."""
 

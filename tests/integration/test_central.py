@@ -128,6 +128,48 @@ def test_robot_with_unknown_start_waits_for_mcl(router, processes, zsession, pre
     publisher.undeclare()
 
 
+def test_a_robot_mcl_placed_wrongly_is_placed_again_when_mcl_relocalizes(router, processes, zsession, prefix):
+    """MCL's first localized pose puts r2 5 m off; ``replace_after`` localized poses far from the filter's later,
+    central takes r2 out (counted ``replaced``) and places it again at the next localized pose."""
+    keys = Keys(prefix)
+    stats = Collector(zsession, keys.stats("central"))
+    processes.start("central", "central", "--association", "known", "--particles", "30", "--estimate-rate-hz", "4",
+                    "--replace-after", "5")
+    wait_until(lambda: stats.count() > 0, 60, what="the central service's first stats")
+    processes.start("r1", *robot_args("r1"))
+    lost = processes.start("r2", *robot_args("r2", "--unknown-start"))
+    wait_until(lambda: (s := latest_stats(stats)) is not None and s.extra.get("robots_waiting", 0) == 1, 30,
+               what="r2 to wait for a pose")
+    truth = simulate("arena", seed=0, duration=DURATION, robot_ids=["r2"]).robots["r2"]
+    publisher = zsession.declare_publisher(keys.mcl_pose("r2"), congestion_control=zenoh.CongestionControl.BLOCK)
+    seq = iter(range(100))
+
+    def mcl_says(stamp: float, offset: tuple[float, float] = (0.0, 0.0)) -> np.ndarray:
+        pose = truth.truth_at(np.array([stamp]))[0] + np.array([*offset, 0.0])
+        publisher.put(encode(MclPose(robot_id="r2", seq=next(seq), stamp=stamp, best_pose=pose,
+                                     best_cov=np.diag([1e-4, 1e-4, 1e-5]), localized=True)))
+        return pose
+
+    mcl_says(1.0, (5.0, 0.0))  # a wrong hypothesis of the symmetric arena
+    wait_until(lambda: (s := latest_stats(stats)) is not None and s.extra.get("robots", 0) == 2, 20,
+               what="r2 to be placed, wrongly")
+    assert lost.wait(timeout=60) == 0
+    wait_until(lambda: latest_stats(stats).extra.get("buffered", 1) == 0, 30, what="central to drain its buffer")
+    for k in range(4):
+        mcl_says(8.0 + 0.1 * k)
+    assert latest_stats(stats).extra.get("replaced", 0) == 0
+    mcl_says(8.4)
+    wait_until(lambda: latest_stats(stats).extra.get("replaced", 0) == 1 and latest_stats(stats).extra.get(
+        "robots_waiting", 0) == 1, 20, what="central to take r2 out after 5 far localized poses")
+    right = mcl_says(8.5)
+    wait_until(lambda: latest_stats(stats).extra.get("robots", 0) == 2, 20, what="r2 to be placed again")
+    reply = next(iter(zsession.get(keys.central_state, timeout=10.0)))
+    r2 = next(r for r in decode(reply.ok.payload.to_bytes(), Estimate).robots if r.robot_id == "r2")
+    assert np.hypot(*(r2.pose[:2] - right[:2])) < 0.3
+    assert latest_stats(stats).extra["replaced"] == 1
+    publisher.undeclare()
+
+
 def test_a_robot_that_leaves_and_runs_again_rejoins_from_its_start(router, processes, zsession, prefix):
     """The same robot id twice in a row: the second run's seq 0 after the token went away is a new run, not
     duplicates; the robot rejoins at its start pose and every message of both runs is used."""

@@ -11,7 +11,7 @@ from robots.simulator import simulate
 from schemas.contract import RunOptions
 from services.evaluation.metrics import Trajectory, fleet_alignment
 from services.offline import run_estimator
-from services.placement import withhold_start_poses
+from services.placement import PlacementCheck, withhold_start_poses
 
 
 def test_withholding_start_poses_keeps_only_what_the_mode_says():
@@ -53,3 +53,19 @@ def test_a_robot_that_is_never_placed_is_reported_with_the_reason():
     assert record["how"] is None and record["reason"] == "not localized against the map yet"
     assert record["scans_before"] == len(blind.scan_stamp) and record["odometry_before"] == len(blind.odom_stamp)
     assert "r2" not in run.trajectories or len(run.trajectories["r2"]) == 0
+
+
+def test_placement_check_asks_again_only_after_a_run_of_far_localized_poses():
+    """A robot MCL placed is placed again when MCL keeps it far from the filter's pose for ``messages`` poses in a
+    row; one close pose starts the count again, and 0 messages never asks."""
+    check = PlacementCheck(distance_m=2.0, messages=3)
+    here, far, near = np.array([1.0, 1.0, 0.0]), np.array([4.0, 1.0, 2.0]), np.array([2.5, 1.0, 0.0])
+    assert [check.observe("r4", here, far) for _ in range(2)] == [False, False]
+    assert not check.observe("r4", here, near)  # 1.5 m: close enough, the run starts again
+    assert [check.observe("r4", here, far) for _ in range(3)] == [False, False, True]
+    assert not check.observe("r4", here, far)  # after asking, it counts afresh
+    assert not check.observe("r1", here, far)  # per robot
+    check.forget("r4")
+    assert check.runs.get("r4") is None
+    never = PlacementCheck(distance_m=2.0, messages=0)
+    assert not any(never.observe("r4", here, far) for _ in range(50))
