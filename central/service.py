@@ -177,9 +177,13 @@ class CentralService(ServiceShell):
         """Its pose no longer follows it: it leaves the filter (the landmarks it mapped stay) and waits for MCL to
         place it again (MCL localizes a robot whose odometry was lost, whatever its start pose)."""
         if self.slam.unplace(robot_id) is not None:
-            self.roster.hold(robot_id)
-            self.announced_waiting.setdefault(robot_id, time.monotonic())
-            log.info("robot %s waits for a pose from MCL", robot_id)
+            self._wait_for_mcl(robot_id)
+
+    def _wait_for_mcl(self, robot_id: str) -> None:
+        """A robot just sent back to wait in the filter: its events are held until MCL places it."""
+        self.roster.hold(robot_id)
+        self.announced_waiting.setdefault(robot_id, time.monotonic())
+        log.info("robot %s waits for a pose from MCL", robot_id)
 
     # ------------------------------------------------------------ checkpoints
     def checkpoint_state(self) -> dict:
@@ -242,8 +246,7 @@ class CentralService(ServiceShell):
         self.extra["replaced"] = self.extra.get("replaced", 0.0) + 1.0
         info = self.slam.remove_robot(rid)
         self.slam.add_robot(info.model_copy(update={"start_pose": None, "start_pose_cov": None}))
-        self.roster.hold(rid)
-        self.announced_waiting.setdefault(rid, time.monotonic())
+        self._wait_for_mcl(rid)
 
     # ------------------------------------------------------------ output
     def estimate(self, publish: bool = True) -> Estimate | None:

@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from robots.dataset import Dataset, RobotLog
-from robots.loaders.common import find_file, gps_spikes, median_rate, odometry_intervals, read_table
+from robots.loaders.common import find_file, median_rate, odometry_intervals, read_table, without_gps_spikes
 from robots.loaders.victoria_park import ackermann_info
 from robots.models import AckermannModel, fit_se2, se2_accumulate, transform_points, unicycle_step, wrap_angle
 from schemas.messages import SensorSpec
@@ -119,9 +119,7 @@ def load_car_park(
         raise FileNotFoundError(f"car park folder {folder} does not exist")
     readings = read_table(find_file(text, "dead_reckoning.txt"), 3)
     gps = read_table(find_file(text, "gps.txt"), 3)
-    gps_rows = int(gps.shape[0])
-    spikes = gps_spikes(gps[:, 0], gps[:, 1:3], gps_max_speed, gps_slack)
-    gps = gps[~spikes]
+    gps, gps_counts = without_gps_spikes(gps, gps_max_speed, gps_slack)
     beacons = read_table(find_file(text, "beacons_truth.txt"), 3)
     laser_stamp, laser_range = _read_scans(find_file(text, "laser_range.txt"))
     intensity_stamp, laser_intensity = _read_scans(find_file(text, "laser_intensity.txt"))
@@ -147,7 +145,7 @@ def load_car_park(
     per_scan = np.diff(log.scan_offsets)
     meta = {
         "folder": str(folder), "odometry_rows": int(readings.shape[0]), "odometry_duplicates": duplicates,
-        "gps_fixes": gps_rows, "gps_spikes_dropped": int(spikes.sum()), "scans": int(laser_stamp.size),
+        **gps_counts, "scans": int(laser_stamp.size),
         "truth_offset": [float(v) for v in gps_offset], "start_fit_rmse_m": start_fit_rmse,
         "detector": {"detections": int(found.range.size), "rejected_clusters": found.rejected,
                      "scans_with_detections": int((per_scan > 0).sum()), "mean_per_scan": float(per_scan.mean()),

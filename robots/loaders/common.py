@@ -87,3 +87,10 @@ def gps_spikes(stamps: np.ndarray, xy: np.ndarray, max_speed: float, slack: floa
     too_far = step > max_speed * np.diff(stamps) + slack
     spikes[1:-1] = too_far[:-1] & too_far[1:]
     return spikes
+
+
+def without_gps_spikes(gps: np.ndarray, max_speed: float, slack: float) -> tuple[np.ndarray, dict]:
+    """The rows (t, x, y) of a GPS table that are not spikes (:func:`gps_spikes`), and the counts a loader's meta
+    reports: ``gps_fixes`` (every row read) and ``gps_spikes_dropped``."""
+    spikes = gps_spikes(gps[:, 0], gps[:, 1:3], max_speed, slack)
+    return gps[~spikes], {"gps_fixes": int(gps.shape[0]), "gps_spikes_dropped": int(spikes.sum())}

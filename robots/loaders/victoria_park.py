@@ -28,7 +28,8 @@ from pathlib import Path
 import numpy as np
 
 from robots.dataset import Dataset, RobotLog
-from robots.loaders.common import find_file, gps_spikes, group_by_stamp, median_rate, odometry_intervals, read_table
+from robots.loaders.common import (find_file, group_by_stamp, median_rate, odometry_intervals, read_table,
+                                   without_gps_spikes)
 from robots.models import wrap_angle
 from schemas.messages import RobotInfo, SensorSpec
 
@@ -63,9 +64,7 @@ def load_victoria_park(
     inputs = read_table(find_file(folder, "inputs.dat"), 3)
     detections = read_table(find_file(folder, "measurements.dat"), 4)
     gps = read_table(find_file(folder, "gps.dat"), 3)
-    gps_rows = int(gps.shape[0])
-    spikes = gps_spikes(gps[:, 0], gps[:, 1:3], gps_max_speed, gps_slack)
-    gps = gps[~spikes]
+    gps, gps_counts = without_gps_spikes(gps, gps_max_speed, gps_slack)
     stamps, dt, controls, duplicates = odometry_intervals(inputs[:, 0], inputs[:, 1:3])
     detections = detections[np.argsort(detections[:, 0], kind="stable")]
     scan_stamp, offsets = group_by_stamp(detections[:, 0])
@@ -81,6 +80,6 @@ def load_victoria_park(
         truth_stamp=gps[:, 0].copy(), truth_pose=np.column_stack([gps[:, 1:3], np.full(gps.shape[0], np.nan)]),
     )
     meta = {"folder": str(folder), "diameter": detections[:, 3].copy(), "odometry_rows": int(inputs.shape[0]),
-            "odometry_duplicates": duplicates, "detections": int(detections.shape[0]), "gps_fixes": gps_rows,
-            "gps_spikes_dropped": int(spikes.sum()), "truth_offset": [float(v) for v in gps_offset]}
+            "odometry_duplicates": duplicates, "detections": int(detections.shape[0]), **gps_counts,
+            "truth_offset": [float(v) for v in gps_offset]}
     return Dataset(name="victoria-park", robots={"r1": log}, meta=meta)
