@@ -18,9 +18,13 @@ arrays of a few hundred 2 × 2 blocks, more than the arithmetic. Each kernel doe
   mixtures (:func:`central.fastslam.shared.associate`);
 - :func:`propose`: every particle's FastSLAM 2.0 step, its motion prior updated by the scan's matched detections
   and a draw from the result (:func:`central.fastslam.proposal.propose`; :func:`proposal_moments` gives the
-  moments alone, against :func:`central.fastslam.proposal.proposal_moments_reference`).
+  moments alone, against :func:`central.fastslam.proposal.proposal_moments_reference`, for the tests: the
+  warm-up leaves it out).
 
 Each has a thin wrapper that takes the Python objects; ``FastSlamConfig.compiled`` chooses kernels or references.
+A robot's poses are a strided view of the (P, R, 3) particle poses when the filter holds several robots: the
+wrappers hand the kernels a contiguous copy (P × 3 numbers), so each kernel is compiled for one array layout,
+the one the warm-up compiles, and a fleet's first scan does not wait for the compiler.
 """
 
 from __future__ import annotations
@@ -95,7 +99,7 @@ def known_update(landmarks, sensor, pose: np.ndarray, slots: np.ndarray, z: np.n
     landmarks.private(slots)
     out = np.empty((pose.shape[0], slots.shape[0]))
     known_update_kernel(landmarks.pool_mean, landmarks.pool_cov, landmarks.table, landmarks.block, landmarks.exist,
-                        landmarks.hits, pose, sensor.offset[0], sensor.offset[1], slots, z, r, exist_hit, exist_max, out)
+                        landmarks.hits, np.ascontiguousarray(pose), sensor.offset[0], sensor.offset[1], slots, z, r, exist_hit, exist_max, out)
     return out
 
 
@@ -256,7 +260,7 @@ def weighted_pose(pose: np.ndarray, w: np.ndarray, pending: tuple[np.ndarray, np
     """(mean, covariance) of one robot's particles ``(P, 3)``, its ``pending`` motion (Δ̄, Σ_Δ) applied if any."""
     moved = pending is not None
     delta, delta_cov = pending if moved else (np.zeros(3), np.zeros((3, 3)))
-    return weighted_pose_kernel(pose, w, delta, delta_cov, moved)
+    return weighted_pose_kernel(np.ascontiguousarray(pose), w, delta, delta_cov, moved)
 
 
 @njit
@@ -537,8 +541,11 @@ def propose(landmarks, sensor, pose: np.ndarray, delta: np.ndarray, motion_cov: 
     (``delta``, ``motion_cov``) and detections ``z`` of landmarks ``slots`` held by every particle; returns the
     log weights ``(P,)`` (:func:`propose_kernel`)."""
     out = np.empty(pose.shape[0])
-    propose_kernel(landmarks.pool_mean, landmarks.pool_cov, landmarks.table, landmarks.block, pose, delta, motion_cov,
+    moved = np.ascontiguousarray(pose)
+    propose_kernel(landmarks.pool_mean, landmarks.pool_cov, landmarks.table, landmarks.block, moved, delta, motion_cov,
                    sensor.offset[0], sensor.offset[1], slots, z, r, weighed, normals, jitter, out)
+    if moved is not pose:
+        pose[...] = moved
     return out
 
 
@@ -550,7 +557,7 @@ def warm_up() -> None:
     landmarks = AlignedMap(2)
     slots = landmarks.allocate(2)
     landmarks.write(slots, np.array([[3.0, 0.0], [3.0, 1.0]]), np.broadcast_to(np.eye(2), (2, 2, 2)))
-    pose = np.zeros((2, 1, 3))[:, 0]  # a robot's poses are a strided view of the (P, R, 3) particle poses
+    pose = np.zeros((2, 3))  # the wrappers make a robot's poses contiguous
     known_update(landmarks, RangeBearingSensor(), pose, slots[:1], np.array([[3.0, 0.0]]), np.eye(2) * 0.01, 1.0, 6.0)
     for model in (UnicycleModel(), AckermannModel()):
         integrate_controls(model, np.array([[1.0, 0.1]]), np.array([0.1]), np.eye(2)[None] * 0.01)
@@ -560,11 +567,8 @@ def warm_up() -> None:
     keep, mean, cov = marginal_map(landmarks, weights, slots, np.zeros(2), 10.0)
     shared_gating_kernel(np.zeros(3), 0.0, 0.0, mean, cov, np.zeros(keep.size, np.bool_), np.eye(3), np.eye(3),
                          np.eye(2), np.array([[3.0, 0.0]]))
-    detections = np.array([[3.0, 0.0], [3.1, 0.3]])
-    proposal_moments(landmarks, RangeBearingSensor(), pose, np.broadcast_to(np.eye(3) * 0.01, (2, 3, 3)), slots,
-                     detections, np.eye(2) * 0.01)
-    propose(landmarks, RangeBearingSensor(), pose, np.zeros(3), np.eye(3) * 0.01, slots, detections, np.eye(2) * 0.01, 1,
-            np.zeros((2, 3)), 1e-12)
+    propose(landmarks, RangeBearingSensor(), pose, np.zeros(3), np.eye(3) * 0.01, slots,
+            np.array([[3.0, 0.0], [3.1, 0.3]]), np.eye(2) * 0.01, 1, np.zeros((2, 3)), 1e-12)
 
 
 __all__ = ["AVAILABLE", "integrate_controls", "known_update", "marginal_map", "private_blocks", "propose",
