@@ -45,7 +45,8 @@ def test_evaluator_scores_live_estimates_and_writes_a_report(router, processes, 
 
     def live_ate():
         last = stats.decoded(ServiceStats)[-1]
-        return last if "central.r1.ate_m" in last.extra and sum(last.rejected.values()) >= 2 else None
+        scored = "central.r1.ate_m" in last.extra and "dslam.r1.ate_m" in last.extra
+        return last if scored and sum(last.rejected.values()) >= 2 else None
 
     last = wait_until(live_ate, 15, what="live ATE in the evaluator's stats")
     assert last.extra["central.r1.ate_m"] == pytest.approx(0.5, abs=1e-6)
