@@ -83,14 +83,17 @@ def create(slam: FastSlam, robot: RobotState, p: np.ndarray, z: np.ndarray, r: n
 
 
 # ------------------------------------------------------------------ known association
-def update_known(slam: FastSlam, robot: RobotState, z, r, ids, weigh: bool) -> None:
+def update_known(slam: FastSlam, robot: RobotState, z, r, ids, weigh: bool, updated: np.ndarray | None = None) -> None:
     """Update (or create) the landmarks the scan's ids name, in every particle; weigh the particles unless the
-    proposal already did (with shared association, only by confirmed landmarks)."""
+    proposal already did (with shared association, only by confirmed landmarks). Detections ``updated`` (indices)
+    were already applied to their landmarks by the FastSLAM 2.0 kernel."""
     if ids is None:
         slam.counts["scans_without_ids"] += 1
         return
     identified = ids >= 0
     slam.counts["detections_unidentified"] += int((~identified).sum())
+    if updated is not None and updated.size:
+        identified[updated] = False
     z, ids = z[identified], ids[identified]
     if not ids.size:
         return

@@ -150,18 +150,19 @@ class FastSlam:
         r = noise * self.config.sensor_noise_scale
         self.counts["scans"] += 1
         self.counts["detections"] += z.shape[0]
-        weigh_updates = True
+        weigh_updates, updated = True, None
         associate = self.config.association == "shared" and z.shape[0]
         if self.config.fastslam2 and z.shape[0]:
             if associate:  # before the proposal moves the particles, from the predicted pose
                 ids = shared.associate(self, robot, z, r)
-            weigh_updates = not proposal.propose(self, robot, z, r, ids)
+            weighed, updated = proposal.propose(self, robot, z, r, ids)
+            weigh_updates = not weighed
         else:
             motion.flush(self, robot)
             if associate:
                 ids = shared.associate(self, robot, z, r)
         if self.config.association in ("known", "shared"):
-            association.update_known(self, robot, z, r, ids, weigh_updates)
+            association.update_known(self, robot, z, r, ids, weigh_updates, updated)
         elif z.shape[0]:
             association.update_unknown(self, robot, z, r, ids, weigh_updates)
         if self.config.robot_detections and len(event.robot_ids):

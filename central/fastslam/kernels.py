@@ -16,10 +16,11 @@ arrays of a few hundred 2 × 2 blocks, more than the arithmetic. Each kernel doe
 - :func:`marginal_map`: the landmarks' particle mixtures near the robot (:func:`central.fastslam.shared.marginal_map`);
 - :func:`shared_gating_kernel`: the predicted detections, Jacobians and gating distances of a scan against those
   mixtures (:func:`central.fastslam.shared.associate`);
-- :func:`propose`: every particle's FastSLAM 2.0 step, its motion prior updated by the scan's matched detections
-  and a draw from the result (:func:`central.fastslam.proposal.propose`; :func:`proposal_moments` gives the
-  moments alone, against :func:`central.fastslam.proposal.proposal_moments_reference`, for the tests: the
-  warm-up leaves it out).
+- :func:`propose`: every particle's FastSLAM 2.0 step, its motion prior updated by the scan's matched detections,
+  a draw from the result, then the matched landmarks' EKF updates from the drawn pose, one particle at a time
+  (:func:`central.fastslam.proposal.propose` then :func:`central.fastslam.association.update_known`;
+  :func:`proposal_moments` gives the moments alone, against
+  :func:`central.fastslam.proposal.proposal_moments_reference`, for the tests: the warm-up leaves it out).
 
 Each has a thin wrapper that takes the Python objects; ``FastSlamConfig.compiled`` chooses kernels or references.
 A robot's poses are a strided view of the (P, R, 3) particle poses when the filter holds several robots: the
@@ -38,6 +39,62 @@ from robots.gaussian import LOG_2PI
 from services.compiled import AVAILABLE, njit, wrap_angle
 
 @njit
+def _particle_update(pool_mean, pool_cov, table, block, p, pose, a, b, slots, z, r, log_likelihood):
+    """EKF update of particle ``p``'s landmarks ``slots[j]`` by detections ``z[j]`` seen from its ``pose`` (3,),
+    in place in its (private) blocks; ``log_likelihood[j]`` gets log N(ν; 0, S), S = H Σ Hᵀ + R."""
+    theta = pose[2]
+    c, s = math.cos(theta), math.sin(theta)
+    px = pose[0] + a * c - b * s
+    py = pose[1] + a * s + b * c
+    for j in range(slots.shape[0]):
+        mean = pool_mean[table[p, slots[j] // block]]
+        cov = pool_cov[table[p, slots[j] // block]]
+        k = slots[j] % block
+        dx, dy = mean[k, 0] - px, mean[k, 1] - py
+        q = dx * dx + dy * dy
+        distance = math.sqrt(q)
+        q = max(q, 1e-18)
+        rs = max(distance, 1e-9)
+        h00, h01, h10, h11 = dx / rs, dy / rs, -dy / q, dx / q
+        m00, m01, m10, m11 = cov[k, 0, 0], cov[k, 0, 1], cov[k, 1, 0], cov[k, 1, 1]
+        t00, t01 = h00 * m00 + h01 * m01, h00 * m01 + h01 * m11
+        t10, t11 = h10 * m00 + h11 * m01, h10 * m01 + h11 * m11
+        cross = t00 * h10 + t01 * h11
+        s00 = t00 * h00 + t01 * h01 + r[0, 0]
+        s01 = cross + r[0, 1]
+        s10 = cross + r[1, 0]
+        s11 = t10 * h10 + t11 * h11 + r[1, 1]
+        det = s00 * s11 - s01 * s10
+        safe = det if abs(det) > 1e-300 else 1e-300
+        i00, i01, i10, i11 = s11 / safe, -s01 / safe, -s10 / safe, s00 / safe
+        n0 = z[j, 0] - distance
+        n1 = wrap_angle(z[j, 1] - wrap_angle(math.atan2(dy, dx) - theta))
+        u00, u01 = m00 * h00 + m01 * h01, m00 * h10 + m01 * h11  # Σ Hᵀ
+        u10, u11 = m10 * h00 + m11 * h01, m10 * h10 + m11 * h11
+        g00, g01 = u00 * i00 + u01 * i10, u00 * i01 + u01 * i11  # K = Σ Hᵀ S⁻¹
+        g10, g11 = u10 * i00 + u11 * i10, u10 * i01 + u11 * i11
+        mean[k, 0] += g00 * n0 + g01 * n1
+        mean[k, 1] += g10 * n0 + g11 * n1
+        v00, v01 = g00 * s00 + g01 * s01, g00 * s01 + g01 * s11  # K S Kᵀ (S symmetric)
+        v10, v11 = g10 * s00 + g11 * s01, g10 * s01 + g11 * s11
+        shared = v00 * g10 + v01 * g11
+        cov[k, 0, 0] = m00 - (v00 * g00 + v01 * g01)
+        cov[k, 0, 1] = m01 - shared
+        cov[k, 1, 0] = m10 - shared
+        cov[k, 1, 1] = m11 - (v10 * g10 + v11 * g11)
+        d2 = i00 * n0 * n0 + (i01 + i10) * n0 * n1 + i11 * n1 * n1
+        log_likelihood[j] = -0.5 * d2 - 0.5 * math.log(max(det, 1e-300)) - LOG_2PI
+
+
+@njit
+def _count_hits(exist, hits, slots, exist_hit, exist_max):
+    """Hit counts and existence scores of the updated ``slots`` (per slot, the same in every particle)."""
+    for j in range(slots.shape[0]):
+        exist[slots[j]] = min(exist[slots[j]] + exist_hit, exist_max)
+        hits[slots[j]] += 1
+
+
+@njit
 def known_update_kernel(pool_mean, pool_cov, table, block, exist, hits, pose, a, b, slots, z, r, exist_hit,
                         exist_max, log_likelihood):
     """EKF update of landmark ``slots[j]`` by detection ``z[j]`` in every particle (in place, in the blocks the
@@ -45,51 +102,8 @@ def known_update_kernel(pool_mean, pool_cov, table, block, exist, hits, pose, a,
     gets log N(ν; 0, S), S = H Σ Hᵀ + R, with H the Jacobian at the prior landmark estimate; (a, b) is the
     sensor's offset on the robot. Hit counts and existence scores are per slot, counted once."""
     for p in range(pose.shape[0]):
-        theta = pose[p, 2]
-        c, s = math.cos(theta), math.sin(theta)
-        px = pose[p, 0] + a * c - b * s
-        py = pose[p, 1] + a * s + b * c
-        for j in range(slots.shape[0]):
-            mean = pool_mean[table[p, slots[j] // block]]
-            cov = pool_cov[table[p, slots[j] // block]]
-            k = slots[j] % block
-            dx, dy = mean[k, 0] - px, mean[k, 1] - py
-            q = dx * dx + dy * dy
-            distance = math.sqrt(q)
-            q = max(q, 1e-18)
-            rs = max(distance, 1e-9)
-            h00, h01, h10, h11 = dx / rs, dy / rs, -dy / q, dx / q
-            m00, m01, m10, m11 = cov[k, 0, 0], cov[k, 0, 1], cov[k, 1, 0], cov[k, 1, 1]
-            t00, t01 = h00 * m00 + h01 * m01, h00 * m01 + h01 * m11
-            t10, t11 = h10 * m00 + h11 * m01, h10 * m01 + h11 * m11
-            cross = t00 * h10 + t01 * h11
-            s00 = t00 * h00 + t01 * h01 + r[0, 0]
-            s01 = cross + r[0, 1]
-            s10 = cross + r[1, 0]
-            s11 = t10 * h10 + t11 * h11 + r[1, 1]
-            det = s00 * s11 - s01 * s10
-            safe = det if abs(det) > 1e-300 else 1e-300
-            i00, i01, i10, i11 = s11 / safe, -s01 / safe, -s10 / safe, s00 / safe
-            n0 = z[j, 0] - distance
-            n1 = wrap_angle(z[j, 1] - wrap_angle(math.atan2(dy, dx) - theta))
-            u00, u01 = m00 * h00 + m01 * h01, m00 * h10 + m01 * h11  # Σ Hᵀ
-            u10, u11 = m10 * h00 + m11 * h01, m10 * h10 + m11 * h11
-            g00, g01 = u00 * i00 + u01 * i10, u00 * i01 + u01 * i11  # K = Σ Hᵀ S⁻¹
-            g10, g11 = u10 * i00 + u11 * i10, u10 * i01 + u11 * i11
-            mean[k, 0] += g00 * n0 + g01 * n1
-            mean[k, 1] += g10 * n0 + g11 * n1
-            v00, v01 = g00 * s00 + g01 * s01, g00 * s01 + g01 * s11  # K S Kᵀ (S symmetric)
-            v10, v11 = g10 * s00 + g11 * s01, g10 * s01 + g11 * s11
-            shared = v00 * g10 + v01 * g11
-            cov[k, 0, 0] = m00 - (v00 * g00 + v01 * g01)
-            cov[k, 0, 1] = m01 - shared
-            cov[k, 1, 0] = m10 - shared
-            cov[k, 1, 1] = m11 - (v10 * g10 + v11 * g11)
-            d2 = i00 * n0 * n0 + (i01 + i10) * n0 * n1 + i11 * n1 * n1
-            log_likelihood[p, j] = -0.5 * d2 - 0.5 * math.log(max(det, 1e-300)) - LOG_2PI
-    for j in range(slots.shape[0]):
-        exist[slots[j]] = min(exist[slots[j]] + exist_hit, exist_max)
-        hits[slots[j]] += 1
+        _particle_update(pool_mean, pool_cov, table, block, p, pose[p], a, b, slots, z, r, log_likelihood[p])
+    _count_hits(exist, hits, slots, exist_hit, exist_max)
 
 
 def known_update(landmarks, sensor, pose: np.ndarray, slots: np.ndarray, z: np.ndarray, r: np.ndarray,
@@ -104,26 +118,32 @@ def known_update(landmarks, sensor, pose: np.ndarray, slots: np.ndarray, z: np.n
 
 
 @njit
+def _private_particle(table, p, blocks, refs, pool_mean, pool_cov, free_blocks, free_count):
+    """Copy on write for particle ``p``: each of its blocks in ``blocks`` that other particles share (or that is not
+    written yet) becomes a block of its own, taken from ``free_blocks``. The last holder of a shared block keeps it."""
+    for b in blocks:
+        phys = table[p, b]
+        if phys >= 0 and refs[phys] == 1:
+            continue
+        free_count[0] -= 1
+        fresh = free_blocks[free_count[0]]
+        if phys < 0:
+            pool_mean[fresh] = 0.0
+            pool_cov[fresh] = 0.0
+        else:
+            pool_mean[fresh] = pool_mean[phys]
+            pool_cov[fresh] = pool_cov[phys]
+            refs[phys] -= 1
+        refs[fresh] = 1
+        table[p, b] = fresh
+
+
+@njit
 def private_blocks(table, blocks, refs, pool_mean, pool_cov, free_blocks, free_count):
     """Copy on write: each particle's block ``b`` in ``blocks`` that other particles share (or that is not written
-    yet) becomes a block of its own, taken from ``free_blocks`` (enough must be free). The last particle holding
-    a shared block keeps it."""
+    yet) becomes a block of its own, taken from ``free_blocks`` (enough must be free)."""
     for p in range(table.shape[0]):
-        for b in blocks:
-            phys = table[p, b]
-            if phys >= 0 and refs[phys] == 1:
-                continue
-            free_count[0] -= 1
-            fresh = free_blocks[free_count[0]]
-            if phys < 0:
-                pool_mean[fresh] = 0.0
-                pool_cov[fresh] = 0.0
-            else:
-                pool_mean[fresh] = pool_mean[phys]
-                pool_cov[fresh] = pool_cov[phys]
-                refs[phys] -= 1
-            refs[fresh] = 1
-            table[p, b] = fresh
+        _private_particle(table, p, blocks, refs, pool_mean, pool_cov, free_blocks, free_count)
 
 
 @njit
@@ -294,18 +314,27 @@ def marginal_map_kernel(w, pool_mean, pool_cov, table, block, slots, point, radi
     """(kept rows of ``slots``, means ``(k, 2)``, covariances ``(k, 2, 2)``): the particle mixture of each
     landmark slot whose weighted mean lies within ``radius`` of ``point`` (the weighted covariances plus the
     spread of the means). Particles sharing a block share its Gaussians: each distinct block is read once, with
-    the summed weight of its holders, so the cost follows the blocks, not particles × landmarks."""
+    the summed weight of its holders, so the cost follows the blocks, not particles × landmarks. A block is read
+    whole, holder after holder (its slots lie next to each other in memory), and each slot still sums its
+    holders in the same order as a loop over slots would."""
     count = slots.shape[0]
     needed = np.zeros(table.shape[1], np.bool_)
+    row_of = np.full(table.shape[1] * block, -1, np.int64)
     for i in range(count):
         needed[slots[i] // block] = True
+        row_of[slots[i]] = i
     phys, weight, holders = _block_weights(w, table, needed, pool_mean.shape[0])
     means = np.zeros((count, 2))
-    for i in range(count):
-        b, k = slots[i] // block, slots[i] % block
+    for b in range(table.shape[1]):
+        if not needed[b]:
+            continue
         for j in range(holders[b]):
-            means[i, 0] += weight[b, j] * pool_mean[phys[b, j], k, 0]
-            means[i, 1] += weight[b, j] * pool_mean[phys[b, j], k, 1]
+            wj, held = weight[b, j], phys[b, j]
+            for k in range(block):
+                i = row_of[b * block + k]
+                if i >= 0:
+                    means[i, 0] += wj * pool_mean[held, k, 0]
+                    means[i, 1] += wj * pool_mean[held, k, 1]
     keep = np.zeros(count, np.int64)
     kept = 0
     for i in range(count):
@@ -315,17 +344,26 @@ def marginal_map_kernel(w, pool_mean, pool_cov, table, block, slots, point, radi
     keep = keep[:kept]
     out_mean = np.empty((kept, 2))
     out_cov = np.zeros((kept, 2, 2))
+    row_of[:] = -1
+    needed[:] = False
     for n in range(kept):
         out_mean[n] = means[keep[n]]
-        slot = slots[keep[n]]
-        b, k = slot // block, slot % block
+        row_of[slots[keep[n]]] = n
+        needed[slots[keep[n]] // block] = True
+    for b in range(table.shape[1]):
+        if not needed[b]:
+            continue
         for j in range(holders[b]):
             wj, held = weight[b, j], phys[b, j]
-            r0, r1 = pool_mean[held, k, 0] - out_mean[n, 0], pool_mean[held, k, 1] - out_mean[n, 1]
-            out_cov[n, 0, 0] += wj * (pool_cov[held, k, 0, 0] + r0 * r0)
-            out_cov[n, 0, 1] += wj * (pool_cov[held, k, 0, 1] + r0 * r1)
-            out_cov[n, 1, 0] += wj * (pool_cov[held, k, 1, 0] + r0 * r1)
-            out_cov[n, 1, 1] += wj * (pool_cov[held, k, 1, 1] + r1 * r1)
+            for k in range(block):
+                n = row_of[b * block + k]
+                if n < 0:
+                    continue
+                r0, r1 = pool_mean[held, k, 0] - out_mean[n, 0], pool_mean[held, k, 1] - out_mean[n, 1]
+                out_cov[n, 0, 0] += wj * (pool_cov[held, k, 0, 0] + r0 * r0)
+                out_cov[n, 0, 1] += wj * (pool_cov[held, k, 0, 1] + r0 * r1)
+                out_cov[n, 1, 0] += wj * (pool_cov[held, k, 1, 0] + r0 * r1)
+                out_cov[n, 1, 1] += wj * (pool_cov[held, k, 1, 1] + r1 * r1)
     return keep, out_mean, out_cov
 
 
@@ -477,16 +515,21 @@ def proposal_moments_kernel(pool_mean, pool_cov, table, block, pose, prior, a, b
 
 
 @njit
-def propose_kernel(pool_mean, pool_cov, table, block, pose, delta, motion_cov, a, b, slots, z, r, weighed, normals,
-                   jitter, log_weight):
-    """Every particle's FastSLAM 2.0 step, in place on ``pose`` ``(P, 3)``: the buffered motion (``delta``,
-    ``motion_cov`` in the robot's frame) composed onto the pose, its prior J Σ Jᵀ updated by the scan
-    (:func:`_particle_proposal`), and a draw ``shift + L · normals[p]`` from the posterior (L its Cholesky factor,
-    ``jitter`` added to the diagonal); ``log_weight`` gets the particles' weights."""
+def propose_kernel(pool_mean, pool_cov, table, block, refs, free_blocks, free_count, blocks, exist, hits, pose, delta,
+                   motion_cov, a, b, slots, z, r, weighed, normals, jitter, exist_hit, exist_max, log_weight):
+    """Every particle's FastSLAM 2.0 step, in place on ``pose`` ``(P, 3)`` and on its landmarks: the buffered motion
+    (``delta``, ``motion_cov`` in the robot's frame) composed onto the pose, its prior J Σ Jᵀ updated by the scan
+    (:func:`_particle_proposal`), a draw ``shift + L · normals[p]`` from the posterior (L its Cholesky factor,
+    ``jitter`` added to the diagonal), then the EKF updates of the landmarks ``slots`` (distinct) from the drawn
+    pose (:func:`_particle_update`), in the particle's own copy of ``blocks`` (:func:`_private_particle`);
+    ``log_weight`` gets the particles' weights. One particle at a time, so its landmarks are read from memory once
+    for the proposal and the update: with 1000 particles the blocks outgrow the cache, and the two passes over them
+    of separate kernels each paid the misses."""
     cov = np.empty((3, 3))
     shift = np.empty(3)
     scratch = np.empty((2, 3, 2))
     lower = np.zeros((3, 3))
+    unused = np.empty(slots.shape[0])  # the updates' own likelihoods: the proposal weighs instead
     m00, m11, m22 = motion_cov[0, 0], motion_cov[1, 1], motion_cov[2, 2]
     m01 = 0.5 * (motion_cov[0, 1] + motion_cov[1, 0])
     m02 = 0.5 * (motion_cov[0, 2] + motion_cov[2, 0])
@@ -507,6 +550,7 @@ def propose_kernel(pool_mean, pool_cov, table, block, pose, delta, motion_cov, a
         cov[0, 2] = cov[2, 0] = c * m02 - s * m12
         cov[1, 2] = cov[2, 1] = s * m02 + c * m12
         cov[2, 2] = m22
+        _private_particle(table, p, blocks, refs, pool_mean, pool_cov, free_blocks, free_count)
         log_weight[p] = _particle_proposal(pool_mean, pool_cov, table, block, p, pose[p], cov, a, b, slots, z, r, weighed,
                                            shift, scratch)
         for i in range(3):
@@ -524,6 +568,8 @@ def propose_kernel(pool_mean, pool_cov, table, block, pose, delta, motion_cov, a
         for i in range(3):
             pose[p, i] += shift[i] + lower[i, 0] * normals[p, 0] + lower[i, 1] * normals[p, 1] + lower[i, 2] * normals[p, 2]
         pose[p, 2] = wrap_angle(pose[p, 2])
+        _particle_update(pool_mean, pool_cov, table, block, p, pose[p], a, b, slots, z, r, unused)
+    _count_hits(exist, hits, slots, exist_hit, exist_max)
 
 
 def proposal_moments(landmarks, sensor, pose: np.ndarray, prior: np.ndarray, slots: np.ndarray, z: np.ndarray,
@@ -536,14 +582,20 @@ def proposal_moments(landmarks, sensor, pose: np.ndarray, prior: np.ndarray, slo
 
 
 def propose(landmarks, sensor, pose: np.ndarray, delta: np.ndarray, motion_cov: np.ndarray, slots: np.ndarray,
-            z: np.ndarray, r: np.ndarray, weighed: int, normals: np.ndarray, jitter: float) -> np.ndarray:
+            z: np.ndarray, r: np.ndarray, weighed: int, normals: np.ndarray, jitter: float, exist_hit: float,
+            exist_max: float) -> np.ndarray:
     """Move every particle's ``pose`` ``(P, 3)`` (in place) by a draw from its FastSLAM 2.0 proposal given the motion
-    (``delta``, ``motion_cov``) and detections ``z`` of landmarks ``slots`` held by every particle; returns the
-    log weights ``(P,)`` (:func:`propose_kernel`)."""
+    (``delta``, ``motion_cov``) and detections ``z`` of landmarks ``slots`` (distinct) held by every particle, then
+    update those landmarks from the drawn poses, as :func:`known_update` would; returns the log weights ``(P,)``
+    (:func:`propose_kernel`)."""
+    blocks = np.unique(np.asarray(slots, np.int64) // landmarks.block)
+    landmarks.reserve_private(blocks.size)
     out = np.empty(pose.shape[0])
     moved = np.ascontiguousarray(pose)
-    propose_kernel(landmarks.pool_mean, landmarks.pool_cov, landmarks.table, landmarks.block, moved, delta, motion_cov,
-                   sensor.offset[0], sensor.offset[1], slots, z, r, weighed, normals, jitter, out)
+    propose_kernel(landmarks.pool_mean, landmarks.pool_cov, landmarks.table, landmarks.block, landmarks.refs,
+                   landmarks.free_blocks, landmarks.free_count, blocks, landmarks.exist, landmarks.hits, moved, delta,
+                   motion_cov, sensor.offset[0], sensor.offset[1], slots, z, r, weighed, normals, jitter, exist_hit,
+                   exist_max, out)
     if moved is not pose:
         pose[...] = moved
     return out
@@ -568,7 +620,7 @@ def warm_up() -> None:
     shared_gating_kernel(np.zeros(3), 0.0, 0.0, mean, cov, np.zeros(keep.size, np.bool_), np.eye(3), np.eye(3),
                          np.eye(2), np.array([[3.0, 0.0]]))
     propose(landmarks, RangeBearingSensor(), pose, np.zeros(3), np.eye(3) * 0.01, slots,
-            np.array([[3.0, 0.0], [3.1, 0.3]]), np.eye(2) * 0.01, 1, np.zeros((2, 3)), 1e-12)
+            np.array([[3.0, 0.0], [3.1, 0.3]]), np.eye(2) * 0.01, 1, np.zeros((2, 3)), 1e-12, 1.0, 6.0)
 
 
 __all__ = ["AVAILABLE", "integrate_controls", "known_update", "marginal_map", "private_blocks", "propose",

@@ -25,15 +25,17 @@ if TYPE_CHECKING:
 POSTERIOR_JITTER = 1e-12
 
 
-def propose(slam: FastSlam, robot: RobotState, z, r, ids) -> bool:
+def propose(slam: FastSlam, robot: RobotState, z, r, ids) -> tuple[bool, np.ndarray]:
     """Apply the robot's buffered motion by sampling each particle's pose from the proposal.
 
     Matches are taken at the predicted mean pose (known ids, or the gated maximum-likelihood landmark). The
     proposal is the Kalman update of N(x̂, P) by every matched detection at once; the particle is weighted by
     the joint marginal N(ν; 0, H_x P H_xᵀ + Q), Q = H_m Σ H_mᵀ + R, of the detections that weigh (:func:`weighing`:
-    with shared association, those of confirmed landmarks). Returns True when the weights of matched
-    detections were set here (the landmark updates must not add them again). With ids given or chosen per scan the
-    whole step is one kernel (:func:`central.fastslam.kernels.propose`); the numpy code below is its reference.
+    with shared association, those of confirmed landmarks). Returns (whether the weights of matched detections
+    were set here: the landmark updates must not add them again; the detections whose landmarks were updated
+    here too). With ids given or chosen per scan the whole step, the matched landmarks' updates included, is one
+    kernel (:func:`central.fastslam.kernels.propose`); the numpy code below, with
+    :func:`central.fastslam.association.update_known` after it, is its reference.
     """
     pending = motion.pending_motion(robot, slam.config)
     motion.clear(robot)
@@ -47,8 +49,9 @@ def propose(slam: FastSlam, robot: RobotState, z, r, ids) -> bool:
             order = np.argsort(~weighs, kind="stable")  # the kernel weighs by the leading detections
             normals = slam.rng.standard_normal((n, 3))
             slam.logw += kernels.propose(slam.map, robot.sensor, slam.pose[:, col], delta, cov, slots[order],
-                                         z[det[order]], r, int(weighs.sum()), normals, POSTERIOR_JITTER)
-            return True
+                                         z[det[order]], r, int(weighs.sum()), normals, POSTERIOR_JITTER,
+                                         slam.config.exist_hit, slam.config.exist_max)
+            return True, det
     if pending is None:
         prior = np.zeros((n, 3, 3))
     else:
@@ -69,7 +72,7 @@ def propose(slam: FastSlam, robot: RobotState, z, r, ids) -> bool:
     slam.pose[:, col] += shift + (sqrt_psd(post) @ slam.rng.standard_normal((n, 3, 1)))[..., 0]
     slam.pose[:, col, 2] = wrap_angle(slam.pose[:, col, 2])
     slam.logw += log_weight
-    return p.size > 0
+    return p.size > 0, np.zeros(0, np.int64)
 
 
 def proposal_moments_reference(slam: FastSlam, robot: RobotState, z, r, prior, p, i, slot, counted=None
