@@ -20,8 +20,11 @@ the estimator run (fleetslam, :func:`support.fastslam_experiments.run_and_score`
 are timed separately and left out. Wall time: the same span for iSAM2, the event loop for fleetslam.
 ``ratio_cpu`` is fleetslam's CPU over iSAM2's, per particle count.
 ``--duration`` cuts the fleetslam run only: the graph has no timestamps, iSAM2 always runs all of it.
+``--repeats N`` runs N rounds (iSAM2, then fleetslam at each particle count): each figure is then the median
+round's, and ``ratio_cpu`` the median of the rounds' ratios (``ratio_cpu_rounds``), since the load of a shared
+machine swings within minutes.
 
-    .venv/bin/python benchmarks/isam2_anchor.py [--particles 100,1000] [--seed 0] [--duration S]
+    .venv/bin/python benchmarks/isam2_anchor.py [--particles 100,1000] [--seed 0] [--duration S] [--repeats N]
         [--skip-fleetslam] [--skip-isam2] [--graph FILE] [--out FILE]
 """
 
@@ -38,6 +41,8 @@ import math
 import sys
 import time
 from pathlib import Path
+
+import numpy as np
 
 from report import emit
 from robots.loaders import data_root, load_dataset
@@ -115,10 +120,10 @@ def run_isam2(steps: list[dict]) -> dict:
             "relinearize_threshold": RELINEARIZE_THRESHOLD, "relinearize_skip": RELINEARIZE_SKIP}
 
 
-def run_fleetslam(particles: list[int], seed: int, duration: float | None) -> dict:
+def run_fleetslam(particles: list[int], seed: int, duration: float | None, dataset=None) -> dict:
     """FastSLAM, unknown association, on raw Victoria Park, one run per particle count (data loaded once)."""
     cpu0, wall0 = time.process_time(), time.perf_counter()
-    dataset = load_dataset("victoria-park:")
+    dataset = dataset or load_dataset("victoria-park:")
     load_cpu, load_wall = time.process_time() - cpu0, time.perf_counter() - wall0
     out: dict = {}
     for count in particles:
@@ -131,19 +136,31 @@ def run_fleetslam(particles: list[int], seed: int, duration: float | None) -> di
     return out
 
 
+def median_round(rounds: list[dict]) -> dict:
+    """The round whose CPU time is the median of ``rounds`` (each a run's figures), with every round's CPU time."""
+    ordered = sorted(rounds, key=lambda run: run["cpu_s"])
+    return ordered[(len(ordered) - 1) // 2] | {"cpu_s_rounds": [run["cpu_s"] for run in rounds]}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--particles", default="100", help="comma-separated particle counts, one run each")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--duration", type=float, default=None,
                         help="seconds of Victoria Park data for fleetslam (default: all)")
+    parser.add_argument("--repeats", type=int, default=1,
+                        help="rounds of iSAM2 then fleetslam, one after the other, so that a change in the machine's "
+                             "load falls on both; the ratio reported is the median of the rounds' ratios")
     parser.add_argument("--graph", default=None, help=f"iSAM graph file (default: <data>/{GRAPH})")
     parser.add_argument("--skip-fleetslam", action="store_true")
     parser.add_argument("--skip-isam2", action="store_true")
     parser.add_argument("--out")
     args = parser.parse_args()
+    if args.repeats < 1:
+        parser.error("--repeats must be at least 1")
     particles = [int(p) for p in args.particles.split(",") if p]
     result: dict = {"benchmark": "isam2_anchor", "settings": vars(args)}
+    steps = path = None
     if not args.skip_isam2:
         if importlib.util.find_spec("gtsam") is None:
             print("isam2_anchor: gtsam is not installed; install it with: pip install -e '.[bench]'", file=sys.stderr)
@@ -152,13 +169,24 @@ def main() -> None:
         tick = time.perf_counter()
         steps = parse_graph(path)
         parse_s = time.perf_counter() - tick
+    dataset = None if args.skip_fleetslam else load_dataset("victoria-park:")
+    isam2_rounds, fleetslam_rounds = [], []
+    for _ in range(args.repeats):
+        if steps is not None:
+            isam2_rounds.append(run_isam2(steps))
+        if dataset is not None:
+            fleetslam_rounds.append(run_fleetslam(particles, args.seed, args.duration, dataset))
+    if isam2_rounds:
         result["isam2"] = {"graph": str(path), "gtsam": importlib.metadata.version("gtsam"),
-                           "parse_s": round(parse_s, 2)} | run_isam2(steps)
-    if not args.skip_fleetslam:
-        result["fleetslam"] = run_fleetslam(particles, args.seed, args.duration)
-    if "isam2" in result and "fleetslam" in result:
-        result["ratio_cpu"] = {count: round(run["cpu_s"] / result["isam2"]["cpu_s"], 2)
-                               for count, run in result["fleetslam"].items()}
+                           "parse_s": round(parse_s, 2)} | median_round(isam2_rounds)
+    if fleetslam_rounds:
+        result["fleetslam"] = {count: median_round([run[count] for run in fleetslam_rounds])
+                               for count in fleetslam_rounds[0]}
+    if isam2_rounds and fleetslam_rounds:
+        ratios = {count: [round(run[count]["cpu_s"] / max(isam["cpu_s"], 1e-9), 3)
+                          for isam, run in zip(isam2_rounds, fleetslam_rounds)] for count in fleetslam_rounds[0]}
+        result["ratio_cpu"] = {count: round(float(np.median(values)), 2) for count, values in ratios.items()}
+        result["ratio_cpu_rounds"] = ratios
     emit(result, args.out)
 
 
