@@ -92,16 +92,18 @@ def sqrt_psd(cov: np.ndarray) -> np.ndarray:
     return vectors * np.sqrt(np.clip(values, 0.0, None))[..., None, :]
 
 
-def systematic_resample(weights: np.ndarray, count: int, rng: np.random.Generator) -> np.ndarray:
+def systematic_resample(weights: np.ndarray, count: int, rng: np.random.Generator | None,
+                        offset: float | None = None) -> np.ndarray:
     """``count`` indices drawn by systematic (low-variance) resampling of ``weights`` (one uniform offset, equal
-    steps); the weights need not be normalised (all-zero weights draw uniformly)."""
+    steps); the weights need not be normalised (all-zero weights draw uniformly). A fixed ``offset`` in [0, 1)
+    replaces the random one (no draw from ``rng``)."""
     weights = np.asarray(weights, float)
     total = weights.sum()
     if count <= 0 or weights.size == 0:
         return np.zeros(0, np.int64)
     cdf = np.cumsum(weights / total) if total > 0 else np.arange(1, weights.size + 1) / weights.size
     cdf[-1] = 1.0
-    points = (rng.random() + np.arange(count)) / count
+    points = ((rng.random() if offset is None else offset) + np.arange(count)) / count
     return np.minimum(np.searchsorted(cdf, points, side="right"), weights.size - 1)
 
 

@@ -34,6 +34,10 @@ class FastSlamConfig(CoreConfig):
         (0.3, 0.3, 0.1), description="shared: σ (m, m, rad) added to the robot's pose spread when gating")
     gate_pose_growth: tuple[float, float, float] = Field(
         (0.0, 0.0, 0.0), description="shared: σ (m, m, rad) per √s since the robot last matched a landmark")
+    association_particles: int = Field(
+        200, ge=0, description="shared: the landmark mixtures a scan is gated against are estimated from this many "
+        "particles, drawn by weight (systematic, fixed offset), when the filter holds more (0: all of them); their cost "
+        "follows the particles, and the association needs the mixture, not every particle. The published map uses all")
     ambiguity_margin: float = Field(
         0.0, ge=0.0, description="shared: leave out a detection whose two best distinct landmarks differ by less than "
         "this in d² (0: off)")

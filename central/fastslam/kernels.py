@@ -367,10 +367,13 @@ def marginal_map_kernel(w, pool_mean, pool_cov, table, block, slots, point, radi
     return keep, out_mean, out_cov
 
 
-def marginal_map(landmarks, w: np.ndarray, slots: np.ndarray, point: np.ndarray, radius: float) -> tuple:
-    """:func:`marginal_map_kernel` on an :class:`AlignedMap`."""
-    return marginal_map_kernel(w, landmarks.pool_mean, landmarks.pool_cov, landmarks.table, landmarks.block, slots,
-                               point, radius)
+def marginal_map(landmarks, w: np.ndarray, slots: np.ndarray, point: np.ndarray, radius: float,
+                 rows: np.ndarray | None = None) -> tuple:
+    """:func:`marginal_map_kernel` on an :class:`AlignedMap`: over every particle, or over particles ``rows`` with
+    weights ``w`` (one per row)."""
+    table = landmarks.table if rows is None else landmarks.table[rows]
+    return marginal_map_kernel(w, landmarks.pool_mean, landmarks.pool_cov, table, landmarks.block, slots, point,
+                               radius)
 
 
 @njit

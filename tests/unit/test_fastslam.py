@@ -15,6 +15,7 @@ from central.fastslam import resampling, shared
 from central.fastslam.core import FastSlam, make_estimator
 from central.fastslam.aligned_map import AlignedMap
 from central.fastslam.landmarks import LandmarkMap
+from robots.gaussian import systematic_resample
 from robots.models import AckermannModel, UnicycleModel, integrate_controls, se2_accumulate, se2_compose, wrap_angle
 from robots.simulator import simulate
 from robots.worlds import _sensor, make_world
@@ -265,6 +266,40 @@ def test_marginal_map_near_a_point_is_the_full_marginal_cut_to_a_disc():
     spread = np.einsum("p,pki,pkj->kij", w, *[particle_means - near_means] * 2)
     own = np.einsum("p,pkij->kij", w, particle_covs)
     np.testing.assert_allclose(near_covs, own + spread, atol=1e-12)  # mixture: mean covariance + spread of means
+
+
+def test_association_mixtures_come_from_a_weighted_draw_of_particles_when_the_filter_holds_more():
+    """With more particles than ``association_particles``, the mixtures the association gates against are those of
+    that many particles drawn systematically by weight (kernel and reference alike), close to the whole mixture;
+    the published map still mixes every particle."""
+    data = simulate("arena", robots=2, seed=1, duration=10.0)
+    config = FastSlamConfig(particles=400, association="shared", seed=0, association_particles=50)
+    slam = FastSlam(config, [log.info for log in data.robots.values()])
+    feed(slam, data)
+    w = resampling.weights(slam.logw)
+    assert np.ptp(w) > 0  # unequal weights: the draw is not trivially uniform
+    _, _, all_means, all_covs = shared.marginal_map(slam)
+    point = all_means[0] + 0.3
+    results = {}
+    for compiled in (True, False):
+        slam.config = config.model_copy(update={"compiled": compiled})
+        results[compiled] = shared.marginal_map(slam, (point, 4.0))
+    ids, slots, means, covs = results[True]
+    assert ids.size > 0
+    for got, expected in zip(results[True], results[False]):
+        np.testing.assert_allclose(got, expected, rtol=1e-10, atol=1e-12)
+    drawn = systematic_resample(w, 50, None, offset=0.5)
+    particle_means, particle_covs = slam.map.gather(drawn[:, None], slots[None])
+    np.testing.assert_allclose(means, particle_means.mean(0), atol=1e-12)
+    spread = np.einsum("pki,pkj->kij", *[particle_means - means] * 2) / drawn.size
+    np.testing.assert_allclose(covs, particle_covs.mean(0) + spread, atol=1e-12)
+    full = {int(i): k for k, i in enumerate(shared.marginal_map(slam)[0])}
+    rows = [full[int(i)] for i in ids]
+    scale = np.sqrt(all_covs[rows][:, [0, 1], [0, 1]])
+    assert np.all(np.abs(means - all_means[rows]) < 0.5 * scale + 1e-9)  # a Monte Carlo estimate of the same mixture
+    slam.config = config.model_copy(update={"association_particles": 0})
+    every_ids, _, every_means, _ = shared.marginal_map(slam, (point, 4.0))
+    np.testing.assert_allclose(every_means, all_means[[full[int(i)] for i in every_ids]], atol=1e-12)
 
 
 def test_shared_association_tentative_landmarks_do_not_weigh_particles():
