@@ -123,14 +123,16 @@ class AlignedMap:
         self.free_blocks[: free.size] = free
         self.free_count[0] = free.size
 
-    def reserve_private(self, blocks: int) -> None:
-        """Free physical blocks enough for every particle to take a copy of ``blocks`` blocks."""
-        self._reserve_blocks(self.particles * blocks)
+    def reserve_private(self, slots: np.ndarray) -> np.ndarray:
+        """The blocks holding ``slots`` (sorted, distinct), with free physical blocks enough for every particle to
+        take a copy of each (:meth:`private`, or a kernel that copies one particle at a time)."""
+        blocks = np.unique(np.asarray(slots, np.int64) // self.block)
+        self._reserve_blocks(self.particles * blocks.size)
+        return blocks
 
     def private(self, slots: np.ndarray) -> None:
         """Give every particle a block of its own for each block holding one of ``slots`` (copy on write)."""
-        blocks = np.unique(np.asarray(slots, np.int64) // self.block)
-        self.reserve_private(blocks.size)
+        blocks = self.reserve_private(slots)
         kernels.private_blocks(self.table, blocks, self.refs, self.pool_mean, self.pool_cov, self.free_blocks,
                                self.free_count)
 

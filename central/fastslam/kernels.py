@@ -591,8 +591,7 @@ def propose(landmarks, sensor, pose: np.ndarray, delta: np.ndarray, motion_cov: 
     (``delta``, ``motion_cov``) and detections ``z`` of landmarks ``slots`` (distinct) held by every particle, then
     update those landmarks from the drawn poses, as :func:`known_update` would; returns the log weights ``(P,)``
     (:func:`propose_kernel`)."""
-    blocks = np.unique(np.asarray(slots, np.int64) // landmarks.block)
-    landmarks.reserve_private(blocks.size)
+    blocks = landmarks.reserve_private(slots)
     out = np.empty(pose.shape[0])
     moved = np.ascontiguousarray(pose)
     propose_kernel(landmarks.pool_mean, landmarks.pool_cov, landmarks.table, landmarks.block, landmarks.refs,
