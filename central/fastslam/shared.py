@@ -46,17 +46,16 @@ def marginal_map(slam: FastSlam, near: tuple[np.ndarray, float] | None = None
     ids = np.fromiter(slam.known_slots.keys(), np.int64, len(slam.known_slots))
     slots = np.fromiter(slam.known_slots.values(), np.int64, len(slam.known_slots))
     w = resampling.weights(slam.logw)
-    rows = np.arange(w.size)
+    rows = None  # every particle
     cap = slam.config.association_particles
     if near is not None and 0 < cap < w.size:  # the association's mixtures: from ``cap`` particles drawn by weight
         rows, counts = np.unique(systematic_resample(w, cap, None, offset=0.5), return_counts=True)
         w = counts / cap
     if slam.config.compiled:
         point, radius = (np.zeros(2), np.inf) if near is None else (np.asarray(near[0], float), float(near[1]))
-        subset = None if rows.size == slam.map.particles else rows
-        keep, mean, cov = kernels.marginal_map(slam.map, w, slots, point, radius, subset)
+        keep, mean, cov = kernels.marginal_map(slam.map, w, slots, point, radius, rows)
         return ids[keep], slots[keep], mean, cov
-    means, covs = slam.map.gather(rows[:, None], slots[None])
+    means, covs = slam.map.gather((np.arange(w.size) if rows is None else rows)[:, None], slots[None])
     mean = np.einsum("p,pkj->kj", w, means)
     if near is not None:
         keep = np.hypot(*(mean - near[0]).T) < near[1]
