@@ -14,11 +14,9 @@
   as signatures when the map and the scans have them; once localized it joins the estimator at the
   localized pose and covariance. Its odometry and scans until then feed the localizer only; they are
   counted, never silently dropped;
-- with signatures, a localized pose must also explain the landmarks the robot sees by id: every detection of
-  a mapped landmark within the gate (``verify_gate``), over scans that cover two landmarks at least
-  ``verify_baseline_m`` apart. MCL may call a pose localized when resampling has collapsed its particles on
-  one arc of the circle a single landmark allows (MR.CLAM: a robot that sees one landmark for 30 s); a
-  detection the pose contradicts starts the robot's localization again, from that scan.
+- with signatures, MCL calls a robot localized only once its hypothesis has explained detections of two
+  landmarks apart by id, and starts again when one contradicts it (``MclConfig.localized_baseline_m``):
+  resampling can collapse the particles on one arc of the circle a single landmark allows (MR.CLAM).
 
 Each robot's :class:`Placement` says when and how it was placed, or why not.
 """
@@ -29,8 +27,6 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from robots.gaussian import chi2_quantile, inv2, quad2
-from robots.models import robot_models
 from schemas.contract import Event, OdomEvent, ScanEvent
 from schemas.messages import RobotInfo
 from services.mcl.config import MclConfig
@@ -60,7 +56,7 @@ class Placement:
     scans_before: int = 0  # scans that went to the localizer before the robot was placed
     odometry_before: int = 0
     mcl_updates: int = 0
-    mcl_restarts: int = 0  # localizations started again because the localized pose contradicted a detection
+    mcl_restarts: int = 0  # global localizations MCL started again (a contradicted hypothesis, a lost robot)
     reason: str | None = None  # why the robot is not placed (at the end)
 
     def report(self, start: float) -> dict:
@@ -105,17 +101,11 @@ class FleetPlacer:
     """Hold back the events of robots the estimator has not placed, anchor the first, localize the others."""
 
     def __init__(self, estimator, infos: list[RobotInfo], config: MclConfig, use_signatures: bool,
-                 map_refresh_s: float = 5.0, min_landmarks: int = 3, verify_probability: float = 0.999,
-                 verify_baseline_m: float = 0.3):
+                 map_refresh_s: float = 5.0, min_landmarks: int = 3):
         self.estimator = estimator
         self.use_signatures = use_signatures
         self.map_refresh_s = map_refresh_s
         self.min_landmarks = min_landmarks
-        self.verify_gate = chi2_quantile(verify_probability, 2)
-        self.verify_baseline_m = verify_baseline_m
-        self.noise_scale = config.noise_scale
-        self.verified: dict[str, set[int]] = {}  # per robot: landmark ids its localized pose has explained
-        self.slot_of: dict[int, int] = {}  # landmark id -> row of the localizers' map
         self.infos = {info.robot_id: info for info in infos}
         self.localizers = MclFleet(config, use_start_pose=False)  # a robot joins it at its first scan with a map
         self.map_stamp = -np.inf
@@ -149,47 +139,11 @@ class FleetPlacer:
             self.localizers.add_robot(self.infos[rid])
         report = self.localizers.on_scan(event)
         record.mcl_updates += 1
+        record.mcl_restarts = max(self.localizers.robots[rid].mcl.restarts - 1, 0)
         if not report.localized:
-            self.verified.pop(rid, None)
             return self._hold(record, "not localized against the map yet")
         pose, cov = self.localizers.robots[rid].mcl.best()
-        if self.use_signatures and self.localizers.landmark_ids is not None and event.landmark_ids is not None:
-            explained = self._explained(rid, pose, event)
-            if explained is None:
-                record.mcl_restarts += 1
-                self.verified.pop(rid, None)
-                self.localizers.remove_robot(rid)
-                self.localizers.add_robot(self.infos[rid])
-                self.localizers.on_scan(event)  # the new filter starts from the scan that contradicted the old one
-                return self._hold(record, "the localized pose contradicted a detection: localizing again")
-            seen = self.verified.setdefault(rid, set()) | explained
-            self.verified[rid] = seen
-            if not self._spread(seen):
-                return self._hold(record, f"localized; waiting to see landmarks {self.verify_baseline_m:g} m apart by id")
         return self._place(record, pose, cov, event.stamp, "mcl")
-
-    def _explained(self, rid: str, pose: np.ndarray, event: ScanEvent) -> set[int] | None:
-        """The mapped landmark ids of the scan that ``pose`` explains (each detection within ``verify_gate`` of its
-        landmark, with the sensor noise scaled as MCL scales it); None if it contradicts one of them."""
-        ids = np.asarray(event.landmark_ids).ravel()
-        ranges, bearings = np.asarray(event.ranges, float).ravel(), np.asarray(event.bearings, float).ravel()
-        if not (ids.size == ranges.size == bearings.size) or ids.dtype.kind not in "iu":
-            return set()  # a malformed scan checks nothing (the estimator counts its rejection)
-        rows = [j for j, i in enumerate(ids.tolist()) if i in self.slot_of]
-        if not rows:
-            return set()
-        _, sensor = robot_models(self.infos[rid])
-        targets = self.localizers.landmarks[[self.slot_of[int(ids[j])] for j in rows]]
-        z = np.stack([ranges[rows], bearings[rows]], -1)
-        nu = sensor.innovation(z, sensor.observe(np.asarray(pose, float), targets))
-        noise = np.asarray(event.noise_cov, float) * self.noise_scale**2
-        d2 = quad2(nu, inv2(noise[None])[0])
-        return None if np.any(d2 > self.verify_gate) else {int(ids[j]) for j in rows}
-
-    def _spread(self, ids: set[int]) -> bool:
-        """Whether the landmarks ``ids`` include two at least ``verify_baseline_m`` apart."""
-        points = self.localizers.landmarks[[self.slot_of[i] for i in ids if i in self.slot_of]]
-        return len(points) > 1 and float(np.max(np.linalg.norm(points[:, None] - points[None], axis=-1))) >= self.verify_baseline_m
 
     @staticmethod
     def _hold(record: Placement, reason: str) -> bool:
@@ -203,7 +157,6 @@ class FleetPlacer:
         if not self.estimator.place_robot(record.robot_id, pose, cov, stamp=stamp):
             return self._hold(record, f"the estimator refused the {how} pose")
         record.how, record.placed_stamp, record.reason = how, stamp, None
-        self.verified.pop(record.robot_id, None)
         self.localizers.remove_robot(record.robot_id)
         return False
 
@@ -217,8 +170,6 @@ class FleetPlacer:
         self.map_ready = len(means) >= self.min_landmarks
         if self.map_ready:
             self.localizers.set_map(means, None if view.ids is None or not self.use_signatures else view.ids)
-            ids = self.localizers.landmark_ids
-            self.slot_of = {} if ids is None else {int(i): k for k, i in enumerate(ids.tolist())}
 
     def report(self, start: float) -> dict:
         """Per robot: how and when it was placed, or why not."""

@@ -65,6 +65,12 @@ class MclConfig(CoreConfig):
     localized_std_xy: float = Field(0.5, gt=0, description="... its position std is below this (m)")
     localized_std_theta: float = Field(0.2, gt=0, description="... its heading std is below this (rad)")
     localized_scans: int = Field(3, ge=1, description="... for this many scans in a row")
+    localized_baseline_m: float = Field(
+        0.3, ge=0, description="with signatures, after global localization: localized only once the hypothesis has "
+        "explained (within the χ²(2) 0.999 gate) detections of two landmarks this far apart by id, and a signed detection "
+        "it contradicts starts global localization again. Resampling can collapse the particles on one arc of the "
+        "circle a single landmark allows, which passes the tests above (MR.CLAM: a robot that sees one landmark for "
+        "30 s); 0: off")
     kidnap_quality: float = Field(0.05, gt=0, lt=1, description="the expected match quality below which the robot may be lost")
     kidnap_scans: int = Field(3, ge=1, description="lost after this many scans in a row below kidnap_quality")
     kidnap_recovery: bool = Field(True, description="when lost, start global localization again from the scan")

@@ -30,6 +30,8 @@ Signatures: when the map has landmark ids and a scan's detections carry ids (``u
 detection is weighed against its own landmark only and poses are drawn around it
 (:func:`~services.mcl.likelihood.signed_log_likelihood`); detections of landmarks not in the map are left
 out. A robot among distinguishable landmarks is then localized from a couple of detections, symmetry or not.
+After global localization a hypothesis that looks localized must also explain, by id, detections of two
+landmarks ``localized_baseline_m`` apart; a signed detection it contradicts starts global localization again.
 """
 
 from __future__ import annotations
@@ -40,7 +42,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from robots.gaussian import sqrt_psd, systematic_resample
+from robots.gaussian import chi2_quantile, quad2, sqrt_psd, systematic_resample
 from robots.models import robot_models, wrap_angle
 from schemas.messages import RobotInfo
 from services.mcl.clustering import Clusters, cluster_particles
@@ -56,6 +58,7 @@ VARIANTS: tuple[str, ...] = typing.get_args(MclConfig.model_fields["variant"].an
 ADAPTIVE = frozenset({"kld_srl", "cluster_kld_srl"})
 CLUSTERED = frozenset({"csrl", "cluster_kld_srl"})
 RESETTING = frozenset({"srl", "csrl"})
+CONTRADICTION_GATE = chi2_quantile(0.999, 2)  # a signed detection farther than this (d²) contradicts a hypothesis
 
 
 @dataclass
@@ -110,6 +113,10 @@ class MonteCarloLocalizer:
         self.kidnaps = 0
         self._localized_run = 0
         self._lost_run = 0
+        self.contradictions = 0  # global localizations started again because a signed detection contradicted
+        self._confirmed: list[np.ndarray] = []  # landmarks the dominant hypothesis has explained by id
+        self._must_confirm = False  # a global localization with signed detections waits for _confirmed's baseline
+        self._global = False  # the particles come from a global localization (not from a known start pose)
         self.last_report: UpdateReport | None = None
         if info.start_pose is not None:
             self.initialize_at(info.start_pose, info.start_pose_cov)
@@ -126,7 +133,34 @@ class MonteCarloLocalizer:
 
     @property
     def localized(self) -> bool:
-        return self._localized_run >= self.config.localized_scans
+        return self._localized_run >= self.config.localized_scans and not self._unconfirmed()
+
+    def _unconfirmed(self) -> bool:
+        """Whether the hypothesis still has to explain two landmarks ``localized_baseline_m`` apart by id."""
+        if not self._must_confirm or self.config.localized_baseline_m <= 0:
+            return False
+        if len(self._confirmed) < 2:
+            return True
+        points = np.array(self._confirmed)
+        return float(np.max(np.linalg.norm(points[:, None] - points[None], axis=-1))) < self.config.localized_baseline_m
+
+    def _contradicted(self, z: np.ndarray) -> bool:
+        """Check the heaviest hypothesis of a global localization, dominant at the last scan and not confirmed
+        yet, against the scan's signed detections: True if one lies outside the χ²(2) 0.999 gate of its landmark (the
+        localization must start again), else their landmarks count towards the confirmation."""
+        if self._targets is None or self.config.localized_baseline_m <= 0:
+            return False
+        self._must_confirm = self._must_confirm or self._global
+        if not self._must_confirm or self.localized or not self._localized_run:
+            return False  # check a hypothesis that was dominant at the last scan and is not localized yet
+        best = self.best()
+        if best is None:
+            return False
+        nu = self.model.sensor.innovation(z, self.model.sensor.observe(best[0], self._targets))
+        if np.any(quad2(nu, np.linalg.inv(self.model.noise_cov)) > CONTRADICTION_GATE):
+            return True
+        self._confirmed.extend(self._targets)
+        return False
 
     def set_map(self, landmarks: np.ndarray, landmark_ids: np.ndarray | None = None) -> None:
         """Replace the map (a newer estimate of it, with its landmark ids if it has them); the particles stay."""
@@ -162,6 +196,7 @@ class MonteCarloLocalizer:
         count = count or self.config.particles
         self.size = count
         cov = np.diag([1e-4, 1e-4, 1e-6]) if cov is None else np.asarray(cov, float)
+        self._global, self._must_confirm, self._confirmed = False, False, []
         self.particles = np.asarray(pose, float) + self.rng.standard_normal((count, 3)) @ sqrt_psd(cov).T
         self.particles[:, 2] = wrap_angle(self.particles[:, 2])
         self.weights = np.full(count, 1.0 / count)
@@ -176,6 +211,7 @@ class MonteCarloLocalizer:
         self.restarts += 1
         self._localized_run = 0
         self._lost_run = 0
+        self._global, self._must_confirm, self._confirmed = True, False, []
         if cfg.init == "uniform" or observations is None:
             self.particles = uniform_poses(self.map, count, cfg.map_margin, self.rng)
             self.weights = np.full(count, 1.0 / count)
@@ -253,7 +289,9 @@ class MonteCarloLocalizer:
         self.reweigh(loglik, quality)
         best_quality = self._best_quality()
         kidnapped = self._check_lost(best_quality, float(quality.max()), z)
-        if kidnapped:
+        contradicted = not kidnapped and self._contradicted(z)
+        self.contradictions += int(contradicted)
+        if kidnapped or contradicted:
             self.initialize_global(z)
             loglik, quality = self._likelihood(self.particles, z)
             self.reweigh(loglik, quality)
@@ -323,6 +361,8 @@ class MonteCarloLocalizer:
 
     def _update_localized(self) -> None:
         self._localized_run = self._localized_run + 1 if self.dominant() else 0
+        if not self._localized_run:
+            self._confirmed = []  # what an earlier hypothesis explained does not confirm the next one
 
     def _resample(self, mean_quality: float, z: np.ndarray, fresh: bool) -> int:
         """The variant's resampling step to ``self.size`` samples; returns how many poses it drew from the scan."""

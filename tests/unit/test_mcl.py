@@ -294,3 +294,38 @@ def test_signatures_localize_in_a_symmetric_world_within_a_few_scans():
     localized, error, scans = results[True]
     assert localized and error < 0.3 and scans <= 6, results
     assert not (results[False][0] and results[False][1] < 0.3 and results[False][2] <= scans), results
+
+
+def test_a_hypothesis_collapsed_on_one_landmark_circle_is_not_localized_and_a_contradicting_detection_restarts():
+    """With signatures, a global localization's dominant hypothesis must explain two landmarks apart by id before
+    it is localized; a tight cloud on the wrong arc of one landmark's circle (what resampling leaves after a robot
+    saw one landmark for long) is localized without the check, and with it is dropped at the first detection of
+    another landmark, the localization starting again from that scan."""
+    landmarks = np.array([[0.0, 0.0], [4.0, 0.0], [0.0, 5.0]])
+    ids = np.array([10, 11, 12])
+    truth = np.array([2.0, -2.0, math.pi / 2])
+    wrong = np.array([-2.0, -2.0, 0.0])  # also 2.83 m from landmark 10, facing it from the other side
+    spec = sensor()
+    see = RangeBearingSensor()
+    z_truth = see.observe(truth, landmarks)
+    z_wrong_one = see.observe(wrong, landmarks[:1])
+    localized = {}
+    for baseline in (0.0, 0.3):
+        mcl = MonteCarloLocalizer(landmarks, info(spec), MclConfig(particles=300, seed=0, localized_baseline_m=baseline),
+                                  np.random.default_rng(0), ids)
+        mcl.update(z_wrong_one, ids[:1])  # global localization from a scan of one landmark: its circle
+        mcl.particles = wrong + np.random.default_rng(1).normal(0.0, [0.02, 0.02, 0.005], (300, 3))
+        mcl.weights = np.full(300, 1.0 / 300)
+        for _ in range(4):  # landmark 10 alone, seen as from the wrong pose: the wrong cloud explains it
+            mcl.update(z_wrong_one, ids[:1])
+        localized[baseline] = mcl.localized
+        if baseline:
+            assert mcl.contradictions == 0
+            restarts = mcl.restarts
+            mcl.update(np.vstack([z_wrong_one, see.observe(truth, landmarks[1:2])]), ids[:2])  # 11 contradicts
+            assert mcl.contradictions == 1 and mcl.restarts == restarts + 1 and not mcl.localized
+            for _ in range(5):
+                mcl.update(z_truth, ids)
+            assert mcl.localized
+            assert np.hypot(*(mcl.best()[0][:2] - truth[:2])) < 0.2
+    assert localized == {0.0: True, 0.3: False}
