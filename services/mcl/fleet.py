@@ -188,6 +188,7 @@ class MclFleet:
                         "particles_max": state.particles_max if state.scans else None,
                         "restarts": state.mcl.restarts,
                         "kidnaps_detected": state.mcl.kidnaps,
+                        "contradictions": state.mcl.contradictions,
                     }
                     for rid, state in built.items()
                 },
