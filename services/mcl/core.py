@@ -114,7 +114,7 @@ class MonteCarloLocalizer:
         self._localized_run = 0
         self._lost_run = 0
         self.contradictions = 0  # global localizations started again because a signed detection contradicted
-        self._confirmed: list[np.ndarray] = []  # landmarks the dominant hypothesis has explained by id
+        self._confirmed: set[tuple[float, float]] = set()  # landmarks the dominant hypothesis has explained by id
         self._must_confirm = False  # a global localization with signed detections waits for _confirmed's baseline
         self._global = False  # the particles come from a global localization (not from a known start pose)
         self.last_report: UpdateReport | None = None
@@ -141,7 +141,7 @@ class MonteCarloLocalizer:
             return False
         if len(self._confirmed) < 2:
             return True
-        points = np.array(self._confirmed)
+        points = np.array(sorted(self._confirmed))
         return float(np.max(np.linalg.norm(points[:, None] - points[None], axis=-1))) < self.config.localized_baseline_m
 
     def _contradicted(self, z: np.ndarray) -> bool:
@@ -159,7 +159,7 @@ class MonteCarloLocalizer:
         nu = self.model.sensor.innovation(z, self.model.sensor.observe(best[0], self._targets))
         if np.any(quad2(nu, np.linalg.inv(self.model.noise_cov)) > CONTRADICTION_GATE):
             return True
-        self._confirmed.extend(self._targets)
+        self._confirmed.update(map(tuple, self._targets.tolist()))
         return False
 
     def set_map(self, landmarks: np.ndarray, landmark_ids: np.ndarray | None = None) -> None:
@@ -196,7 +196,7 @@ class MonteCarloLocalizer:
         count = count or self.config.particles
         self.size = count
         cov = np.diag([1e-4, 1e-4, 1e-6]) if cov is None else np.asarray(cov, float)
-        self._global, self._must_confirm, self._confirmed = False, False, []
+        self._global, self._must_confirm, self._confirmed = False, False, set()
         self.particles = np.asarray(pose, float) + self.rng.standard_normal((count, 3)) @ sqrt_psd(cov).T
         self.particles[:, 2] = wrap_angle(self.particles[:, 2])
         self.weights = np.full(count, 1.0 / count)
@@ -211,7 +211,7 @@ class MonteCarloLocalizer:
         self.restarts += 1
         self._localized_run = 0
         self._lost_run = 0
-        self._global, self._must_confirm, self._confirmed = True, False, []
+        self._global, self._must_confirm, self._confirmed = True, False, set()
         if cfg.init == "uniform" or observations is None:
             self.particles = uniform_poses(self.map, count, cfg.map_margin, self.rng)
             self.weights = np.full(count, 1.0 / count)
@@ -362,7 +362,7 @@ class MonteCarloLocalizer:
     def _update_localized(self) -> None:
         self._localized_run = self._localized_run + 1 if self.dominant() else 0
         if not self._localized_run:
-            self._confirmed = []  # what an earlier hypothesis explained does not confirm the next one
+            self._confirmed = set()  # what an earlier hypothesis explained does not confirm the next one
 
     def _resample(self, mean_quality: float, z: np.ndarray, fresh: bool) -> int:
         """The variant's resampling step to ``self.size`` samples; returns how many poses it drew from the scan."""
