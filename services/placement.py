@@ -14,9 +14,10 @@
   as signatures when the map and the scans have them; once localized it joins the estimator at the
   localized pose and covariance. Its odometry and scans until then feed the localizer only; they are
   counted, never silently dropped;
-- with signatures, MCL calls a robot localized only once its hypothesis has explained detections of two
-  landmarks apart by id, and starts again when one contradicts it (``MclConfig.localized_baseline_m``):
-  resampling can collapse the particles on one arc of the circle a single landmark allows (MR.CLAM).
+- with signatures, MCL calls a robot localized only once its hypothesis has explained, by id, detections of
+  two landmarks at least ``MclConfig.localized_baseline_m`` apart, and starts again when a detection
+  contradicts it: resampling can collapse the particles on one arc of the circle a single landmark allows
+  (MR.CLAM).
 
 Each robot's :class:`Placement` says when and how it was placed, or why not.
 """

@@ -71,4 +71,3 @@ def test_placement_check_asks_again_only_after_a_run_of_far_localized_poses():
     assert check.runs.get("r4") is None
     never = PlacementCheck(distance_m=2.0, messages=0)
     assert not any(never.observe("r4", here, far) for _ in range(50))
-
