@@ -180,12 +180,25 @@ class FastSlam:
     def particle_count(self) -> int:
         return self.pose.shape[0]
 
+    @property
+    def logw(self) -> np.ndarray:
+        """Log-weights ``(P,)``. Assigning them (``+=`` included) forgets the normalised weights computed from them."""
+        return self._logw
+
+    @logw.setter
+    def logw(self, value: np.ndarray) -> None:
+        self._logw, self._weights = value, None
+
     def weights(self) -> np.ndarray:
-        """Normalised particle weights."""
-        return resampling.weights(self.logw)
+        """Normalised particle weights, computed once per change of the log-weights (a scan's association, its
+        resampling test and the pose reports between two scans read the same ones). Callers must not change the
+        array returned."""
+        if self._weights is None:
+            self._weights = resampling.weights(self._logw)
+        return self._weights
 
     def effective_particles(self) -> float:
-        return resampling.effective_particles(self.logw)
+        return resampling.effective_particles(self)
 
     def best_particle(self) -> int:
         """The highest-weight particle (after a resampling: a child of the heaviest particle before it)."""

@@ -21,6 +21,7 @@ appear in the map until associated ``confirm_hits`` times, and a tentative landm
 
 from __future__ import annotations
 
+from functools import lru_cache
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -45,7 +46,7 @@ def marginal_map(slam: FastSlam, near: tuple[np.ndarray, float] | None = None
         return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros((0, 2, 2))
     ids = np.fromiter(slam.known_slots.keys(), np.int64, len(slam.known_slots))
     slots = np.fromiter(slam.known_slots.values(), np.int64, len(slam.known_slots))
-    w = resampling.weights(slam.logw)
+    w = slam.weights()
     rows = None  # every particle
     cap = slam.config.association_particles
     if near is not None and 0 < cap < w.size:  # the association's mixtures: from ``cap`` particles drawn by weight
@@ -69,7 +70,7 @@ def pose_belief(slam: FastSlam, robot: RobotState) -> tuple[np.ndarray, np.ndarr
     """The robot's weighted mean pose, its spread over the particles, and the extra variance the association
     assumes against drift: ``gate_pose_floor``² plus ``gate_pose_growth``² per second since its last match (at
     most 120 s)."""
-    pose, w = slam.pose[:, robot.index], resampling.weights(slam.logw)
+    pose, w = slam.pose[:, robot.index], slam.weights()
     mean, cov = kernels.weighted_pose(pose, w, None) if slam.config.compiled else resampling.weighted_pose(pose, w)
     pending = motion.pending_motion(robot, slam.config)  # FastSLAM 2.0 associates before it moves the particles
     if pending is not None:
@@ -77,8 +78,14 @@ def pose_belief(slam: FastSlam, robot: RobotState) -> tuple[np.ndarray, np.ndarr
         mean = se2_compose(mean, pending[0])
         cov = cov + jac @ pending[1] @ jac.T
     blind = 0.0 if robot.last_match_stamp is None else min(max(robot.last_scan_stamp - robot.last_match_stamp, 0.0), 120.0)
-    extra = np.square(slam.config.gate_pose_floor) + np.square(slam.config.gate_pose_growth) * blind
+    extra = _variances(slam.config.gate_pose_floor) + _variances(slam.config.gate_pose_growth) * blind
     return mean, cov, np.diag(extra)
+
+
+@lru_cache(maxsize=16)
+def _variances(sigmas: tuple[float, float, float]) -> np.ndarray:
+    """The squares of a configuration's standard deviations, once per configuration (read, never changed)."""
+    return np.square(sigmas)
 
 
 def associate(slam: FastSlam, robot: RobotState, z: np.ndarray, r: np.ndarray) -> np.ndarray:
