@@ -22,6 +22,7 @@ functions that take it explicitly, one module per concern:
 
 from __future__ import annotations
 
+import math
 from collections import Counter
 
 import numpy as np
@@ -272,9 +273,9 @@ def _scan_problem(ranges, bearings, ids, noise, stamp) -> str | None:
     """Why a scan is refused (the ``rejected`` counter's name), or None if it is well formed."""
     if ranges.shape != bearings.shape or (ids is not None and ids.shape != ranges.shape):
         return "bad_scan_shape"
-    if not (np.all(np.isfinite(ranges)) and np.all(np.isfinite(bearings)) and np.isfinite(stamp)):
+    if not (np.isfinite(ranges).all() and np.isfinite(bearings).all() and math.isfinite(stamp)):
         return "bad_scan_values"
-    if np.any(ranges < 0):
+    if (ranges < 0).any():
         return "negative_range"
     if ids is not None and ids.dtype.kind not in "iu":
         return "bad_scan_ids"

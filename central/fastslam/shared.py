@@ -21,14 +21,13 @@ appear in the map until associated ``confirm_hits`` times, and a tentative landm
 
 from __future__ import annotations
 
-from functools import lru_cache
 from typing import TYPE_CHECKING
 
 import numpy as np
 
 from central.fastslam import kernels, motion, resampling
 from central.fastslam.lifecycle import RobotState
-from robots.gaussian import inv2, quad2, sandwich, sandwich2, systematic_resample
+from robots.gaussian import diagonal_variances, inv2, quad2, sandwich, sandwich2, systematic_resample
 from robots.models import compose_jacobian, se2_compose, wrap_angle
 from services.association.solvers import solve_exact, solve_jcbb
 
@@ -78,14 +77,8 @@ def pose_belief(slam: FastSlam, robot: RobotState) -> tuple[np.ndarray, np.ndarr
         mean = se2_compose(mean, pending[0])
         cov = cov + jac @ pending[1] @ jac.T
     blind = 0.0 if robot.last_match_stamp is None else min(max(robot.last_scan_stamp - robot.last_match_stamp, 0.0), 120.0)
-    extra = _variances(slam.config.gate_pose_floor) + _variances(slam.config.gate_pose_growth) * blind
-    return mean, cov, np.diag(extra)
-
-
-@lru_cache(maxsize=16)
-def _variances(sigmas: tuple[float, float, float]) -> np.ndarray:
-    """The squares of a configuration's standard deviations, once per configuration (read, never changed)."""
-    return np.square(sigmas)
+    floor, growth = diagonal_variances(slam.config.gate_pose_floor), diagonal_variances(slam.config.gate_pose_growth)
+    return mean, cov, floor + growth * blind
 
 
 def associate(slam: FastSlam, robot: RobotState, z: np.ndarray, r: np.ndarray) -> np.ndarray:
@@ -162,8 +155,10 @@ def _solve(slam: FastSlam, nu, gated, d2, h_x, own, pose_cov, r) -> tuple[np.nda
         return solve_exact(np.where(gated, d2 - slam.gate, np.inf))
     reach = np.flatnonzero(gated.any(0))  # JCBB never looks at a landmark no detection gates: leave them out
     nu, gated, d2, h_x, own = nu[:, reach], gated[:, reach], d2[:, reach], h_x[reach], own[reach]
-    joint = np.tensordot(h_x @ pose_cov, h_x, axes=([2], [2])).transpose(0, 2, 1, 3)  # H_a P H_bᵀ (a, b, 2, 2)
-    joint[np.arange(own.shape[0]), np.arange(own.shape[0])] += own
+    count = own.shape[0]  # H_a P H_bᵀ (a, b, 2, 2): np.tensordot's own reshapes and product, without its checks
+    joint = np.dot((h_x @ pose_cov).reshape(2 * count, 3), h_x.transpose(2, 0, 1).reshape(3, 2 * count))
+    joint = joint.reshape(count, 2, count, 2).transpose(0, 2, 1, 3)
+    joint[np.arange(count), np.arange(count)] += own
     result = solve_jcbb(nu, gated, d2, joint, r, slam.config.gate_probability)
     slam.counts["jcbb_truncated"] += int(result.truncated)
     return result.rows, reach[result.cols]
