@@ -145,8 +145,10 @@ class FastSlam:
         keep = ranges > 1e-6
         if self.config.max_obs_range is not None:
             keep &= ranges <= self.config.max_obs_range
-        self.counts["detections_dropped"] += int((~keep).sum())
-        z = np.stack([ranges[keep], wrap_angle(bearings[keep])], -1)
+        kept = int(np.count_nonzero(keep))
+        self.counts["detections_dropped"] += keep.size - kept
+        z = np.empty((kept, 2))
+        z[:, 0], z[:, 1] = ranges[keep], wrap_angle(bearings[keep])
         ids = None if ids is None else ids[keep].astype(np.int64)
         r = noise * self.config.sensor_noise_scale
         self.counts["scans"] += 1

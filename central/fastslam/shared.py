@@ -21,6 +21,7 @@ appear in the map until associated ``confirm_hits`` times, and a tentative landm
 
 from __future__ import annotations
 
+import math
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -88,7 +89,7 @@ def associate(slam: FastSlam, robot: RobotState, z: np.ndarray, r: np.ndarray) -
     fresh = np.ones(m, bool)
     pose, spread, drift = pose_belief(slam, robot)
     position, _ = robot.sensor.sensor_position(pose)
-    reach = robot.info.sensor.max_range + 3.0 * float(np.sqrt(r[0, 0])) + 2.0
+    reach = robot.info.sensor.max_range + 3.0 * math.sqrt(r[0, 0]) + 2.0
     known, slots, mean, cov = marginal_map(slam, (position, reach))
     if known.size:
         # tentative landmarks were seen from about the present drift: they are gated without it, so clutter
@@ -103,7 +104,7 @@ def associate(slam: FastSlam, robot: RobotState, z: np.ndarray, r: np.ndarray) -
         ids[rows] = known[cols]
         fresh = (ids < 0) & (d2.min(1) > slam.new_gate) & ~ambiguous
         slam.counts["detections_ignored"] += int(((ids < 0) & ~fresh).sum())
-        _age_tentative(slam, robot, known, slots, zhat, set(ids[rows].tolist()))
+        _age_tentative(slam, robot, known, slots, tentative, zhat, set(ids[rows].tolist()))
     if rows_matched := int((ids >= 0).sum()):
         robot.last_match_stamp = robot.last_scan_stamp
         slam.counts["detections_matched"] += rows_matched
@@ -164,15 +165,14 @@ def _solve(slam: FastSlam, nu, gated, d2, h_x, own, pose_cov, r) -> tuple[np.nda
     return result.rows, reach[result.cols]
 
 
-def _age_tentative(slam: FastSlam, robot: RobotState, ids: np.ndarray, slots: np.ndarray, zhat: np.ndarray,
-                   seen: set) -> None:
-    """Count a miss for each tentative landmark inside the sensor's view and not seen; drop those missed
+def _age_tentative(slam: FastSlam, robot: RobotState, ids: np.ndarray, slots: np.ndarray, tentative: np.ndarray,
+                   zhat: np.ndarray, seen: set) -> None:
+    """Count a miss for each ``tentative`` landmark inside the sensor's view and not seen; drop those missed
     ``tentative_misses`` times."""
     spec = robot.info.sensor
     inside = (zhat[:, 0] < spec.max_range) & (zhat[:, 0] > spec.min_range) & (np.abs(zhat[:, 1]) < 0.5 * spec.fov)
-    hits = slam.map.hits[slots]
-    for lid, slot in zip(ids[inside & (hits < slam.config.confirm_hits)].tolist(),
-                         slots[inside & (hits < slam.config.confirm_hits)].tolist()):
+    inside &= tentative
+    for lid, slot in zip(ids[inside].tolist(), slots[inside].tolist()):
         if lid in seen:
             continue
         misses = slam.tentative_misses.get(lid, 0) + 1
