@@ -155,11 +155,13 @@ def _solve(slam: FastSlam, nu, gated, d2, h_x, own, pose_cov, r) -> tuple[np.nda
     if slam.config.shared_solver == "exact":
         return solve_exact(np.where(gated, d2 - slam.gate, np.inf))
     reach = np.flatnonzero(gated.any(0))  # JCBB never looks at a landmark no detection gates: leave them out
-    nu, gated, d2, h_x, own = nu[:, reach], gated[:, reach], d2[:, reach], h_x[reach], own[reach]
+    nu, gated, d2 = nu.take(reach, 1), gated.take(reach, 1), d2.take(reach, 1)
+    h_x, own = h_x.take(reach, 0), own.take(reach, 0)
     count = own.shape[0]  # H_a P H_bᵀ (a, b, 2, 2): np.tensordot's own reshapes and product, without its checks
     joint = np.dot((h_x @ pose_cov).reshape(2 * count, 3), h_x.transpose(2, 0, 1).reshape(3, 2 * count))
     joint = joint.reshape(count, 2, count, 2).transpose(0, 2, 1, 3)
-    joint[np.arange(count), np.arange(count)] += own
+    diagonal = np.einsum("aaij->aij", joint)  # a writeable view of the blocks H_a P H_aᵀ
+    diagonal += own
     result = solve_jcbb(nu, gated, d2, joint, r, slam.config.gate_probability)
     slam.counts["jcbb_truncated"] += int(result.truncated)
     return result.rows, reach[result.cols]
