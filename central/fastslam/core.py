@@ -29,7 +29,7 @@ import numpy as np
 
 from central.fastslam import association, kernels, lifecycle, motion, proposal, resampling, robot_detections, shared
 from central.fastslam.config import FastSlamConfig
-from central.fastslam.aligned_map import AlignedMap
+from central.fastslam.aligned_map import AlignedMap, SlotTable
 from central.fastslam.landmarks import LandmarkMap
 from central.fastslam.lifecycle import RobotState
 from robots.gaussian import chi2_quantile, sandwich, valid_cov2
@@ -58,7 +58,7 @@ class FastSlam:
         self.map = AlignedMap(n) if config.association in ("known", "shared") else LandmarkMap(n)
         self.robots: dict[str, RobotState] = {}
         self.waiting: dict[str, RobotInfo] = {}
-        self.known_slots: dict[int, int] = {}
+        self.known_slots = SlotTable()
         self.next_landmark_id = 0  # shared association: the id of the next new landmark
         self.tentative_misses: dict[int, int] = {}  # shared association: misses of tentative landmarks
         self.rejected: Counter = Counter()

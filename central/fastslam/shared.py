@@ -44,8 +44,7 @@ def marginal_map(slam: FastSlam, near: tuple[np.ndarray, float] | None = None
     (the association needs those alone; the covariances are the costly part)."""
     if not slam.known_slots:
         return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros((0, 2, 2))
-    ids = np.fromiter(slam.known_slots.keys(), np.int64, len(slam.known_slots))
-    slots = np.fromiter(slam.known_slots.values(), np.int64, len(slam.known_slots))
+    ids, slots = slam.known_slots.arrays()
     w = slam.weights()
     rows = None  # every particle
     cap = slam.config.association_particles
