@@ -42,7 +42,7 @@ def weighted_pose(poses: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndar
 def effective_particles(slam: FastSlam) -> float:
     """Effective sample size 1 / Σ w²."""
     w = slam.weights()
-    return float(1.0 / np.sum(w * w))
+    return float(1.0 / (w * w).sum())
 
 
 def select(slam: FastSlam, index: np.ndarray, scan: ScanState | None = None) -> None:

@@ -98,17 +98,18 @@ def associate(slam: FastSlam, robot: RobotState, z: np.ndarray, r: np.ndarray) -
         gated = d2 < slam.gate
         ambiguous = _ambiguous(slam, d2, gated, zhat, r)
         gated[ambiguous] = False
-        slam.counts["detections_ambiguous"] += int(ambiguous.sum())
+        slam.counts["detections_ambiguous"] += int(np.count_nonzero(ambiguous))
         rows, cols = _solve(slam, nu, gated, d2, h_x, own, spread + drift, r)
         ids[rows] = known[cols]
         fresh = (ids < 0) & (d2.min(1) > slam.new_gate) & ~ambiguous
-        slam.counts["detections_ignored"] += int(((ids < 0) & ~fresh).sum())
+        slam.counts["detections_ignored"] += int(np.count_nonzero((ids < 0) & ~fresh))
         _age_tentative(slam, robot, known, slots, tentative, zhat, set(ids[rows].tolist()))
-    if rows_matched := int((ids >= 0).sum()):
+    if rows_matched := int(np.count_nonzero(ids >= 0)):
         robot.last_match_stamp = robot.last_scan_stamp
         slam.counts["detections_matched"] += rows_matched
-    ids[fresh] = slam.next_landmark_id + np.arange(int(fresh.sum()))
-    slam.next_landmark_id += int(fresh.sum())
+    created = int(np.count_nonzero(fresh))
+    ids[fresh] = slam.next_landmark_id + np.arange(created)
+    slam.next_landmark_id += created
     return ids
 
 
