@@ -36,7 +36,8 @@ class SlotTable(dict):
     def arrays(self) -> tuple[np.ndarray, np.ndarray]:
         """(ids ``(n,)``, slots ``(n,)``) in the table's order, as copies the caller may change."""
         if self._arrays is None:
-            self._arrays = (np.fromiter(self.keys(), np.int64, len(self)), np.fromiter(self.values(), np.int64, len(self)))
+            count = len(self)
+            self._arrays = (np.fromiter(self.keys(), np.int64, count), np.fromiter(self.values(), np.int64, count))
         return self._arrays[0].copy(), self._arrays[1].copy()
 
     def __setitem__(self, key, value) -> None:

@@ -50,7 +50,8 @@ def _places(slots, block):
 @njit
 def _particle_update(pool_mean, pool_cov, table, p, pose, a, b, places, z, r, log_likelihood):
     """EKF update of particle ``p``'s landmarks at ``places[j]`` (:func:`_places`) by detections ``z[j]`` seen from
-    its ``pose`` (3,), in place in its (private) blocks; ``log_likelihood[j]`` gets log N(ν; 0, S), S = H Σ Hᵀ + R."""
+    its ``pose`` (3,), in place in its (private) blocks; ``log_likelihood[j]`` gets log N(ν; 0, S),
+    S = H Σ Hᵀ + R."""
     theta = pose[2]
     c, s = math.cos(theta), math.sin(theta)
     px = pose[0] + a * c - b * s
@@ -457,10 +458,11 @@ def shared_gating_kernel(pose, a, b, mean, cov, tentative, spread, drift, r, z):
 @njit
 def _particle_proposal(pool_mean, pool_cov, table, p, pose, cov, a, b, places, z, r, weighed, shift, scratch):
     """Particle ``p``'s FastSLAM 2.0 proposal: the Kalman update of its pose prior N(``pose``, ``cov``) by the
-    detections ``z[j]`` of the landmarks at ``places[j]`` (:func:`_places`), all linearised at ``pose``, one detection after the other (with
-    Q_j = H_m Σ_j H_mᵀ + R block diagonal this is the batch update exactly). ``cov`` becomes the posterior,
-    ``shift`` the mean's offset; returns log N(ν; 0, H_x P H_xᵀ + Q) of the first ``weighed`` detections, the
-    particle's weight. ``scratch`` ``(2, 3, 2)``: work space for K and P H_xᵀ, allocated once per scan."""
+    detections ``z[j]`` of the landmarks at ``places[j]`` (:func:`_places`), all linearised at ``pose``, one
+    detection after the other (with Q_j = H_m Σ_j H_mᵀ + R block diagonal this is the batch update exactly).
+    ``cov`` becomes the posterior, ``shift`` the mean's offset; returns log N(ν; 0, H_x P H_xᵀ + Q) of the first
+    ``weighed`` detections, the particle's weight. ``scratch`` ``(2, 3, 2)``: work space for K and P H_xᵀ,
+    allocated once per scan."""
     theta = pose[2]
     c, s = math.cos(theta), math.sin(theta)
     px, py = pose[0] + a * c - b * s, pose[1] + a * s + b * c
