@@ -85,7 +85,6 @@ def associate(slam: FastSlam, robot: RobotState, z: np.ndarray, r: np.ndarray) -
     """Landmark id of each detection ``(m, 2)``: an existing one, a new one (tentative), or −1 (ignored)."""
     m = z.shape[0]
     ids = np.full(m, -1, np.int64)
-    fresh = np.ones(m, bool)
     pose, spread, drift = pose_belief(slam, robot)
     position, _ = robot.sensor.sensor_position(pose)
     reach = robot.info.sensor.max_range + 3.0 * math.sqrt(r[0, 0]) + 2.0
@@ -101,10 +100,14 @@ def associate(slam: FastSlam, robot: RobotState, z: np.ndarray, r: np.ndarray) -
         slam.counts["detections_ambiguous"] += int(np.count_nonzero(ambiguous))
         rows, cols = _solve(slam, nu, gated, d2, h_x, own, spread + drift, r)
         ids[rows] = known[cols]
-        fresh = (ids < 0) & (d2.min(1) > slam.new_gate) & ~ambiguous
-        slam.counts["detections_ignored"] += int(np.count_nonzero((ids < 0) & ~fresh))
+        unmatched = ids < 0
+        fresh = unmatched & (d2.min(1) > slam.new_gate) & ~ambiguous
+        unmatched_count = int(np.count_nonzero(unmatched))
+        slam.counts["detections_ignored"] += unmatched_count - int(np.count_nonzero(fresh))  # fresh ⊆ unmatched
         _age_tentative(slam, robot, known, slots, tentative, zhat, set(ids[rows].tolist()))
-    if rows_matched := int(np.count_nonzero(ids >= 0)):
+    else:
+        fresh, unmatched_count = np.ones(m, bool), m
+    if rows_matched := m - unmatched_count:
         robot.last_match_stamp = robot.last_scan_stamp
         slam.counts["detections_matched"] += rows_matched
     created = int(np.count_nonzero(fresh))
