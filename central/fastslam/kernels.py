@@ -48,10 +48,10 @@ def _places(slots, block):
 
 
 @njit
-def _particle_update(pool_mean, pool_cov, table, p, pose, a, b, places, z, r, log_likelihood):
+def _particle_update(pool_mean, pool_cov, table, p, pose, a, b, places, z, r, log_likelihood, weigh):
     """EKF update of particle ``p``'s landmarks at ``places[j]`` (:func:`_places`) by detections ``z[j]`` seen from
-    its ``pose`` (3,), in place in its (private) blocks; ``log_likelihood[j]`` gets log N(ν; 0, S),
-    S = H Σ Hᵀ + R."""
+    its ``pose`` (3,), in place in its (private) blocks; with ``weigh``, ``log_likelihood[j]`` gets log N(ν; 0, S),
+    S = H Σ Hᵀ + R (the FastSLAM 2.0 step weighs by its proposal instead, and skips the logarithms)."""
     theta = pose[2]
     c, s = math.cos(theta), math.sin(theta)
     px = pose[0] + a * c - b * s
@@ -92,8 +92,9 @@ def _particle_update(pool_mean, pool_cov, table, p, pose, a, b, places, z, r, lo
         cov[k, 0, 1] = m01 - shared
         cov[k, 1, 0] = m10 - shared
         cov[k, 1, 1] = m11 - (v10 * g10 + v11 * g11)
-        d2 = i00 * n0 * n0 + (i01 + i10) * n0 * n1 + i11 * n1 * n1
-        log_likelihood[j] = -0.5 * d2 - 0.5 * math.log(max(det, 1e-300)) - LOG_2PI
+        if weigh:
+            d2 = i00 * n0 * n0 + (i01 + i10) * n0 * n1 + i11 * n1 * n1
+            log_likelihood[j] = -0.5 * d2 - 0.5 * math.log(max(det, 1e-300)) - LOG_2PI
 
 
 @njit
@@ -113,7 +114,7 @@ def known_update_kernel(pool_mean, pool_cov, table, block, exist, hits, pose, a,
     sensor's offset on the robot. Hit counts and existence scores are per slot, counted once."""
     places = _places(slots, block)
     for p in range(pose.shape[0]):
-        _particle_update(pool_mean, pool_cov, table, p, pose[p], a, b, places, z, r, log_likelihood[p])
+        _particle_update(pool_mean, pool_cov, table, p, pose[p], a, b, places, z, r, log_likelihood[p], True)
     _count_hits(exist, hits, slots, exist_hit, exist_max)
 
 
@@ -545,7 +546,7 @@ def propose_kernel(pool_mean, pool_cov, table, block, refs, free_blocks, free_co
     shift = np.empty(3)
     scratch = np.empty((2, 3, 2))
     lower = np.zeros((3, 3))
-    unused = np.empty(slots.shape[0])  # the updates' own likelihoods: the proposal weighs instead
+    unused = np.empty(0)  # the updates' own likelihoods, not computed: the proposal weighs instead
     places = _places(slots, block)
     m00, m11, m22 = motion_cov[0, 0], motion_cov[1, 1], motion_cov[2, 2]
     m01 = 0.5 * (motion_cov[0, 1] + motion_cov[1, 0])
@@ -585,7 +586,7 @@ def propose_kernel(pool_mean, pool_cov, table, block, refs, free_blocks, free_co
         for i in range(3):
             pose[p, i] += shift[i] + lower[i, 0] * normals[p, 0] + lower[i, 1] * normals[p, 1] + lower[i, 2] * normals[p, 2]
         pose[p, 2] = wrap_angle(pose[p, 2])
-        _particle_update(pool_mean, pool_cov, table, p, pose[p], a, b, places, z, r, unused)
+        _particle_update(pool_mean, pool_cov, table, p, pose[p], a, b, places, z, r, unused, False)
     _count_hits(exist, hits, slots, exist_hit, exist_max)
 
 
