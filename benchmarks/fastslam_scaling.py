@@ -28,6 +28,7 @@ import time
 
 import numpy as np
 
+from central.fastslam.aligned_map import SlotTable
 from central.fastslam.config import FastSlamConfig
 from central.fastslam.core import FastSlam
 from report import emit
@@ -47,7 +48,7 @@ def prefilled(world: GridWorld, particles: int, association: str, seed: int) -> 
     ids = np.arange(world.n)
     slots = slam.map.add(means, np.broadcast_to(np.eye(2) * LANDMARK_STD**2, (world.n, 2, 2)), slam.config.exist_max,
                          slam.config.confirm_hits, ids)  # every landmark confirmed
-    slam.known_slots = dict(zip(ids.tolist(), slots.tolist()))
+    slam.known_slots = SlotTable(zip(ids.tolist(), slots.tolist()))
     slam.next_landmark_id = world.n
     return slam
 

@@ -150,6 +150,9 @@ class Dataset:
         """Every selected robot's events merged in time order (``duration`` of data from the start)."""
         chosen = [self.robots[r] for r in (robots or list(self.robots))]
         until = None if duration is None else self.start_stamp + duration
+        if len(chosen) == 1:  # nothing to merge: skip the merge's key per event
+            yield from chosen[0].events(until, with_truth)
+            return
         order = {log.robot_id: i for i, log in enumerate(chosen)}
         merged = heapq.merge(*[log.events(until, with_truth) for log in chosen],
                              key=lambda e: (e.stamp, order[e.robot_id]))

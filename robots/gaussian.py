@@ -22,6 +22,15 @@ def chi2_quantile(probability: float, dof: int) -> float:
     return float(scipy.special.chdtri(dof, 1.0 - probability))
 
 
+@lru_cache(maxsize=64)
+def diagonal_variances(sigmas: tuple[float, ...]) -> np.ndarray:
+    """diag(σ²) of the standard deviations ``sigmas`` (a configuration's tuple), built once per tuple: shared, so
+    read-only."""
+    out = np.diag(np.square(sigmas))
+    out.flags.writeable = False
+    return out
+
+
 def inv2(s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(inverse, determinant) of a stack of 2×2 matrices ``(..., 2, 2)``."""
     a, b, c, d = s[..., 0, 0], s[..., 0, 1], s[..., 1, 0], s[..., 1, 1]
@@ -75,7 +84,7 @@ def valid_cov2(cov: np.ndarray) -> bool:
     if cov.shape != (2, 2):
         return False
     a, b, c, d = float(cov[0, 0]), float(cov[0, 1]), float(cov[1, 0]), float(cov[1, 1])
-    finite = all(np.isfinite(v) for v in (a, b, c, d))
+    finite = math.isfinite(a) and math.isfinite(b) and math.isfinite(c) and math.isfinite(d)
     return finite and abs(b - c) <= 1e-9 + 1e-6 * abs(b) and a >= 0 and d >= 0 and a * d - b * c >= -1e-12 * max(a * d, 1e-300)
 
 

@@ -31,14 +31,12 @@ def se2_compose(a, b) -> np.ndarray:
     """Pose composition a ⊕ b (b expressed in a's frame)."""
     a, b = np.asarray(a, float), np.asarray(b, float)
     c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
-    return np.stack(
-        [
-            a[..., 0] + c * b[..., 0] - s * b[..., 1],
-            a[..., 1] + s * b[..., 0] + c * b[..., 1],
-            wrap_angle(a[..., 2] + b[..., 2]),
-        ],
-        -1,
-    )
+    x = a[..., 0] + c * b[..., 0] - s * b[..., 1]
+    out = np.empty(x.shape + (3,))  # filled in place: np.stack costs more than the arithmetic on a few poses
+    out[..., 0] = x
+    out[..., 1] = a[..., 1] + s * b[..., 0] + c * b[..., 1]
+    out[..., 2] = wrap_angle(a[..., 2] + b[..., 2])
+    return out
 
 
 def se2_inverse(a) -> np.ndarray:
@@ -242,8 +240,9 @@ def integrate_controls(model: MotionModel, controls: np.ndarray, dts: np.ndarray
 
 def compose_jacobian(theta: np.ndarray) -> np.ndarray:
     """d(x ⊕ Δ)/dΔ ``(..., 3, 3)`` for start headings ``theta``: a rotation of the position block."""
+    c, s = np.cos(theta), np.sin(theta)
     jac = np.zeros(np.shape(theta) + (3, 3))
-    jac[..., :2, :2] = rotation(theta)
+    jac[..., 0, 0], jac[..., 0, 1], jac[..., 1, 0], jac[..., 1, 1] = c, -s, s, c  # rotation(theta), without its stacks
     jac[..., 2, 2] = 1.0
     return jac
 
@@ -259,8 +258,9 @@ class RangeBearingSensor:
         pose = np.asarray(pose, float)
         a, b = self.offset
         c, s = np.cos(pose[..., 2]), np.sin(pose[..., 2])
-        position = np.stack([pose[..., 0] + a * c - b * s, pose[..., 1] + a * s + b * c], -1)
-        d_theta = np.stack([-a * s - b * c, a * c - b * s], -1)
+        position, d_theta = np.empty(c.shape + (2,)), np.empty(c.shape + (2,))
+        position[..., 0], position[..., 1] = pose[..., 0] + a * c - b * s, pose[..., 1] + a * s + b * c
+        d_theta[..., 0], d_theta[..., 1] = -a * s - b * c, a * c - b * s
         return position, d_theta
 
     def observe(self, pose, landmarks) -> np.ndarray:

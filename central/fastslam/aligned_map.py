@@ -25,6 +25,54 @@ from central.fastslam import kernels
 BLOCK = 32  # slots per block: a scan's copies stay small, a table stays 1/32 of the map
 
 
+class SlotTable(dict):
+    """Landmark id → slot (known and shared association), a dict that also gives both as arrays: built once per change
+    of the table, not once per scan (the association's mixtures read them every scan, the table changes far less)."""
+
+    def __init__(self, *args, **kwargs):
+        self._arrays: tuple[np.ndarray, np.ndarray] | None = None
+        super().__init__(*args, **kwargs)
+
+    def arrays(self) -> tuple[np.ndarray, np.ndarray]:
+        """(ids ``(n,)``, slots ``(n,)``) in the table's order, as copies the caller may change."""
+        if self._arrays is None:
+            count = len(self)
+            self._arrays = (np.fromiter(self.keys(), np.int64, count), np.fromiter(self.values(), np.int64, count))
+        return self._arrays[0].copy(), self._arrays[1].copy()
+
+    def __setitem__(self, key, value) -> None:
+        self._arrays = None
+        super().__setitem__(key, value)
+
+    def __delitem__(self, key) -> None:
+        self._arrays = None
+        super().__delitem__(key)
+
+    def __ior__(self, other):
+        self._arrays = None
+        return super().__ior__(other)
+
+    def update(self, *args, **kwargs) -> None:
+        self._arrays = None
+        super().update(*args, **kwargs)
+
+    def setdefault(self, key, default=None):
+        self._arrays = None
+        return super().setdefault(key, default)
+
+    def pop(self, *args):
+        self._arrays = None
+        return super().pop(*args)
+
+    def popitem(self):
+        self._arrays = None
+        return super().popitem()
+
+    def clear(self) -> None:
+        self._arrays = None
+        super().clear()
+
+
 class AlignedMap:
     """Pooled blocks ``pool_mean (B, block, 2)``, ``pool_cov (B, block, 2, 2)``, their reference counts ``refs``,
     each particle's ``table (P, blocks)`` (−1: nothing written there yet) and the per-slot ``hits``, ``exist``,

@@ -91,7 +91,7 @@ def update_known(slam: FastSlam, robot: RobotState, z, r, ids, weigh: bool, upda
         slam.counts["scans_without_ids"] += 1
         return
     identified = ids >= 0
-    slam.counts["detections_unidentified"] += int((~identified).sum())
+    slam.counts["detections_unidentified"] += identified.size - int(np.count_nonzero(identified))
     if updated is not None and updated.size:
         identified[updated] = False
     z, ids = z[identified], ids[identified]

@@ -22,13 +22,14 @@ functions that take it explicitly, one module per concern:
 
 from __future__ import annotations
 
+import math
 from collections import Counter
 
 import numpy as np
 
 from central.fastslam import association, kernels, lifecycle, motion, proposal, resampling, robot_detections, shared
 from central.fastslam.config import FastSlamConfig
-from central.fastslam.aligned_map import AlignedMap
+from central.fastslam.aligned_map import AlignedMap, SlotTable
 from central.fastslam.landmarks import LandmarkMap
 from central.fastslam.lifecycle import RobotState
 from robots.gaussian import chi2_quantile, sandwich, valid_cov2
@@ -57,7 +58,7 @@ class FastSlam:
         self.map = AlignedMap(n) if config.association in ("known", "shared") else LandmarkMap(n)
         self.robots: dict[str, RobotState] = {}
         self.waiting: dict[str, RobotInfo] = {}
-        self.known_slots: dict[int, int] = {}
+        self.known_slots = SlotTable()
         self.next_landmark_id = 0  # shared association: the id of the next new landmark
         self.tentative_misses: dict[int, int] = {}  # shared association: misses of tentative landmarks
         self.rejected: Counter = Counter()
@@ -144,8 +145,10 @@ class FastSlam:
         keep = ranges > 1e-6
         if self.config.max_obs_range is not None:
             keep &= ranges <= self.config.max_obs_range
-        self.counts["detections_dropped"] += int((~keep).sum())
-        z = np.stack([ranges[keep], wrap_angle(bearings[keep])], -1)
+        kept = int(np.count_nonzero(keep))
+        self.counts["detections_dropped"] += keep.size - kept
+        z = np.empty((kept, 2))
+        z[:, 0], z[:, 1] = ranges[keep], wrap_angle(bearings[keep])
         ids = None if ids is None else ids[keep].astype(np.int64)
         r = noise * self.config.sensor_noise_scale
         self.counts["scans"] += 1
@@ -180,12 +183,25 @@ class FastSlam:
     def particle_count(self) -> int:
         return self.pose.shape[0]
 
+    @property
+    def logw(self) -> np.ndarray:
+        """Log-weights ``(P,)``. Assigning them (``+=`` included) forgets the normalised weights computed from them."""
+        return self._logw
+
+    @logw.setter
+    def logw(self, value: np.ndarray) -> None:
+        self._logw, self._weights = value, None
+
     def weights(self) -> np.ndarray:
-        """Normalised particle weights."""
-        return resampling.weights(self.logw)
+        """Normalised particle weights, computed once per change of the log-weights (a scan's association, its
+        resampling test and the pose reports between two scans read the same ones). Callers must not change the
+        array returned."""
+        if self._weights is None:
+            self._weights = resampling.weights(self._logw)
+        return self._weights
 
     def effective_particles(self) -> float:
-        return resampling.effective_particles(self.logw)
+        return resampling.effective_particles(self)
 
     def best_particle(self) -> int:
         """The highest-weight particle (after a resampling: a child of the heaviest particle before it)."""
@@ -259,9 +275,9 @@ def _scan_problem(ranges, bearings, ids, noise, stamp) -> str | None:
     """Why a scan is refused (the ``rejected`` counter's name), or None if it is well formed."""
     if ranges.shape != bearings.shape or (ids is not None and ids.shape != ranges.shape):
         return "bad_scan_shape"
-    if not (np.all(np.isfinite(ranges)) and np.all(np.isfinite(bearings)) and np.isfinite(stamp)):
+    if not (np.isfinite(ranges).all() and np.isfinite(bearings).all() and math.isfinite(stamp)):
         return "bad_scan_values"
-    if np.any(ranges < 0):
+    if (ranges < 0).any():
         return "negative_range"
     if ids is not None and ids.dtype.kind not in "iu":
         return "bad_scan_ids"

@@ -39,17 +39,27 @@ from robots.gaussian import LOG_2PI
 from services.compiled import AVAILABLE, njit, wrap_angle
 
 @njit
-def _particle_update(pool_mean, pool_cov, table, block, p, pose, a, b, slots, z, r, log_likelihood):
-    """EKF update of particle ``p``'s landmarks ``slots[j]`` by detections ``z[j]`` seen from its ``pose`` (3,),
-    in place in its (private) blocks; ``log_likelihood[j]`` gets log N(ν; 0, S), S = H Σ Hᵀ + R."""
+def _places(slots, block):
+    """(block, offset in the block) ``(m, 2)`` of each slot: divided once per scan, not once per particle."""
+    places = np.empty((slots.shape[0], 2), np.int64)
+    for j in range(slots.shape[0]):
+        places[j, 0], places[j, 1] = slots[j] // block, slots[j] % block
+    return places
+
+
+@njit
+def _particle_update(pool_mean, pool_cov, table, p, pose, a, b, places, z, r, log_likelihood, weigh):
+    """EKF update of particle ``p``'s landmarks at ``places[j]`` (:func:`_places`) by detections ``z[j]`` seen from
+    its ``pose`` (3,), in place in its (private) blocks; with ``weigh``, ``log_likelihood[j]`` gets log N(ν; 0, S),
+    S = H Σ Hᵀ + R (the FastSLAM 2.0 step weighs by its proposal instead, and skips the logarithms)."""
     theta = pose[2]
     c, s = math.cos(theta), math.sin(theta)
     px = pose[0] + a * c - b * s
     py = pose[1] + a * s + b * c
-    for j in range(slots.shape[0]):
-        mean = pool_mean[table[p, slots[j] // block]]
-        cov = pool_cov[table[p, slots[j] // block]]
-        k = slots[j] % block
+    for j in range(places.shape[0]):
+        mean = pool_mean[table[p, places[j, 0]]]
+        cov = pool_cov[table[p, places[j, 0]]]
+        k = places[j, 1]
         dx, dy = mean[k, 0] - px, mean[k, 1] - py
         q = dx * dx + dy * dy
         distance = math.sqrt(q)
@@ -82,8 +92,9 @@ def _particle_update(pool_mean, pool_cov, table, block, p, pose, a, b, slots, z,
         cov[k, 0, 1] = m01 - shared
         cov[k, 1, 0] = m10 - shared
         cov[k, 1, 1] = m11 - (v10 * g10 + v11 * g11)
-        d2 = i00 * n0 * n0 + (i01 + i10) * n0 * n1 + i11 * n1 * n1
-        log_likelihood[j] = -0.5 * d2 - 0.5 * math.log(max(det, 1e-300)) - LOG_2PI
+        if weigh:
+            d2 = i00 * n0 * n0 + (i01 + i10) * n0 * n1 + i11 * n1 * n1
+            log_likelihood[j] = -0.5 * d2 - 0.5 * math.log(max(det, 1e-300)) - LOG_2PI
 
 
 @njit
@@ -101,8 +112,9 @@ def known_update_kernel(pool_mean, pool_cov, table, block, exist, hits, pose, a,
     particles' ``table`` names: they must be private, :meth:`AlignedMap.private`); ``log_likelihood`` ``(P, m)``
     gets log N(ν; 0, S), S = H Σ Hᵀ + R, with H the Jacobian at the prior landmark estimate; (a, b) is the
     sensor's offset on the robot. Hit counts and existence scores are per slot, counted once."""
+    places = _places(slots, block)
     for p in range(pose.shape[0]):
-        _particle_update(pool_mean, pool_cov, table, block, p, pose[p], a, b, slots, z, r, log_likelihood[p])
+        _particle_update(pool_mean, pool_cov, table, p, pose[p], a, b, places, z, r, log_likelihood[p], True)
     _count_hits(exist, hits, slots, exist_hit, exist_max)
 
 
@@ -445,12 +457,13 @@ def shared_gating_kernel(pose, a, b, mean, cov, tentative, spread, drift, r, z):
 
 
 @njit
-def _particle_proposal(pool_mean, pool_cov, table, block, p, pose, cov, a, b, slots, z, r, weighed, shift, scratch):
+def _particle_proposal(pool_mean, pool_cov, table, p, pose, cov, a, b, places, z, r, weighed, shift, scratch):
     """Particle ``p``'s FastSLAM 2.0 proposal: the Kalman update of its pose prior N(``pose``, ``cov``) by the
-    detections ``z[j]`` of landmarks ``slots[j]``, all linearised at ``pose``, one detection after the other (with
-    Q_j = H_m Σ_j H_mᵀ + R block diagonal this is the batch update exactly). ``cov`` becomes the posterior,
-    ``shift`` the mean's offset; returns log N(ν; 0, H_x P H_xᵀ + Q) of the first ``weighed`` detections, the
-    particle's weight. ``scratch`` ``(2, 3, 2)``: work space for K and P H_xᵀ, allocated once per scan."""
+    detections ``z[j]`` of the landmarks at ``places[j]`` (:func:`_places`), all linearised at ``pose``, one
+    detection after the other (with Q_j = H_m Σ_j H_mᵀ + R block diagonal this is the batch update exactly).
+    ``cov`` becomes the posterior, ``shift`` the mean's offset; returns log N(ν; 0, H_x P H_xᵀ + Q) of the first
+    ``weighed`` detections, the particle's weight. ``scratch`` ``(2, 3, 2)``: work space for K and P H_xᵀ,
+    allocated once per scan."""
     theta = pose[2]
     c, s = math.cos(theta), math.sin(theta)
     px, py = pose[0] + a * c - b * s, pose[1] + a * s + b * c
@@ -458,10 +471,10 @@ def _particle_proposal(pool_mean, pool_cov, table, block, p, pose, cov, a, b, sl
     gain, ph = scratch[0], scratch[1]
     x0, x1, x2 = 0.0, 0.0, 0.0
     log_weight = 0.0
-    for j in range(slots.shape[0]):
-        mean = pool_mean[table[p, slots[j] // block]]
-        sigma = pool_cov[table[p, slots[j] // block]]
-        k = slots[j] % block
+    for j in range(places.shape[0]):
+        mean = pool_mean[table[p, places[j, 0]]]
+        sigma = pool_cov[table[p, places[j, 0]]]
+        k = places[j, 1]
         dx, dy = mean[k, 0] - px, mean[k, 1] - py
         q = max(dx * dx + dy * dy, 1e-18)
         distance = math.sqrt(q)
@@ -510,9 +523,10 @@ def proposal_moments_kernel(pool_mean, pool_cov, table, block, pose, prior, a, b
     post = np.empty((count, 3, 3))
     log_weight = np.zeros(count)
     scratch = np.empty((2, 3, 2))
+    places = _places(slots, block)
     for p in range(count):
         post[p] = prior[p]
-        log_weight[p] = _particle_proposal(pool_mean, pool_cov, table, block, p, pose[p], post[p], a, b, slots, z, r,
+        log_weight[p] = _particle_proposal(pool_mean, pool_cov, table, p, pose[p], post[p], a, b, places, z, r,
                                            slots.shape[0], shift[p], scratch)
     return shift, post, log_weight
 
@@ -532,7 +546,8 @@ def propose_kernel(pool_mean, pool_cov, table, block, refs, free_blocks, free_co
     shift = np.empty(3)
     scratch = np.empty((2, 3, 2))
     lower = np.zeros((3, 3))
-    unused = np.empty(slots.shape[0])  # the updates' own likelihoods: the proposal weighs instead
+    unused = np.empty(0)  # the updates' own likelihoods, not computed: the proposal weighs instead
+    places = _places(slots, block)
     m00, m11, m22 = motion_cov[0, 0], motion_cov[1, 1], motion_cov[2, 2]
     m01 = 0.5 * (motion_cov[0, 1] + motion_cov[1, 0])
     m02 = 0.5 * (motion_cov[0, 2] + motion_cov[2, 0])
@@ -554,7 +569,7 @@ def propose_kernel(pool_mean, pool_cov, table, block, refs, free_blocks, free_co
         cov[1, 2] = cov[2, 1] = s * m02 + c * m12
         cov[2, 2] = m22
         _private_particle(table, p, blocks, refs, pool_mean, pool_cov, free_blocks, free_count)
-        log_weight[p] = _particle_proposal(pool_mean, pool_cov, table, block, p, pose[p], cov, a, b, slots, z, r, weighed,
+        log_weight[p] = _particle_proposal(pool_mean, pool_cov, table, p, pose[p], cov, a, b, places, z, r, weighed,
                                            shift, scratch)
         for i in range(3):
             cov[i, i] += jitter
@@ -571,7 +586,7 @@ def propose_kernel(pool_mean, pool_cov, table, block, refs, free_blocks, free_co
         for i in range(3):
             pose[p, i] += shift[i] + lower[i, 0] * normals[p, 0] + lower[i, 1] * normals[p, 1] + lower[i, 2] * normals[p, 2]
         pose[p, 2] = wrap_angle(pose[p, 2])
-        _particle_update(pool_mean, pool_cov, table, block, p, pose[p], a, b, slots, z, r, unused)
+        _particle_update(pool_mean, pool_cov, table, p, pose[p], a, b, places, z, r, unused, False)
     _count_hits(exist, hits, slots, exist_hit, exist_max)
 
 

@@ -17,7 +17,7 @@ import numpy as np
 from central.fastslam import kernels
 from central.fastslam.config import FastSlamConfig
 from central.fastslam.lifecycle import RobotState
-from robots.gaussian import sqrt_psd, valid_cov2
+from robots.gaussian import diagonal_variances, sqrt_psd, valid_cov2
 from robots.models import integrate_controls, se2_compose
 from schemas.contract import OdomEvent
 
@@ -82,7 +82,7 @@ def pending_motion(robot: RobotState, config: FastSlamConfig) -> tuple[np.ndarra
         return robot.pending_memo[1]
     integrate = kernels.integrate_controls if config.compiled else integrate_controls
     delta, cov = integrate(robot.model, np.array(robot.controls), np.array(robot.dts), np.array(robot.covs))
-    cov = cov + np.diag(np.square(config.pose_noise_per_s)) * robot.pending_s
+    cov = cov + diagonal_variances(config.pose_noise_per_s) * robot.pending_s
     robot.pending_memo = (key, (delta, cov))
     return delta, cov
 

@@ -49,7 +49,7 @@ def propose(slam: FastSlam, robot: RobotState, z, r, ids) -> tuple[bool, np.ndar
             order = np.argsort(~weighs, kind="stable")  # the kernel weighs by the leading detections
             normals = slam.rng.standard_normal((n, 3))
             slam.logw += kernels.propose(slam.map, robot.sensor, slam.pose[:, col], delta, cov, slots[order],
-                                         z[det[order]], r, int(weighs.sum()), normals, POSTERIOR_JITTER,
+                                         z[det[order]], r, int(np.count_nonzero(weighs)), normals, POSTERIOR_JITTER,
                                          slam.config.exist_hit, slam.config.exist_max)
             return True, det
     if pending is None:
@@ -140,9 +140,15 @@ def identified_matches(slam: FastSlam, ids) -> tuple[np.ndarray, np.ndarray]:
     by the shared association (the same in every particle)."""
     if ids is None:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    _, first = np.unique(ids, return_index=True)
-    det = np.array([j for j in np.sort(first) if ids[j] >= 0 and int(ids[j]) in slam.known_slots], np.int64)
-    return det, np.array([slam.known_slots[int(ids[j])] for j in det], np.int64)
+    seen, det, slots = set(), [], []
+    for j, lid in enumerate(ids.tolist()):  # a few detections: plain Python beats np.unique's set-up
+        if lid in seen:
+            continue
+        seen.add(lid)
+        if lid >= 0 and lid in slam.known_slots:
+            det.append(j)
+            slots.append(slam.known_slots[lid])
+    return np.array(det, np.int64), np.array(slots, np.int64)
 
 
 def weighing(slam: FastSlam, ids, det: np.ndarray) -> np.ndarray:

@@ -3,6 +3,7 @@ weighted mean pose."""
 
 from __future__ import annotations
 
+import math
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -38,10 +39,10 @@ def weighted_pose(poses: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndar
     return mean, np.einsum("p,pi,pj->ij", w, resid, resid)
 
 
-def effective_particles(logw: np.ndarray) -> float:
+def effective_particles(slam: FastSlam) -> float:
     """Effective sample size 1 / Σ w²."""
-    w = weights(logw)
-    return float(1.0 / np.sum(w * w))
+    w = slam.weights()
+    return float(1.0 / (w * w).sum())
 
 
 def select(slam: FastSlam, index: np.ndarray, scan: ScanState | None = None) -> None:
@@ -55,7 +56,7 @@ def select(slam: FastSlam, index: np.ndarray, scan: ScanState | None = None) -> 
 
 def resample(slam: FastSlam, count: int, scan: ScanState | None = None) -> None:
     """Systematic resampling to ``count`` equally weighted particles (remembering where the heaviest went)."""
-    w = weights(slam.logw)
+    w = slam.weights()
     index = systematic_resample(w, count, slam.rng)
     best = int(np.argmax(w))
     select(slam, index, scan)
@@ -68,19 +69,23 @@ def resample(slam: FastSlam, count: int, scan: ScanState | None = None) -> None:
 def normalise_and_resample(slam: FastSlam) -> None:
     """Shift the log-weights to a maximum of 0; resample to N when the effective sample size falls below
     ``resample_ess``·N. Weights that are all zero (no finite log-weight) are reset to uniform (counted)."""
-    finite = np.isfinite(slam.logw)
-    if not finite.any():
-        slam.logw = np.zeros(slam.logw.size)
-        slam.counts["degenerate_weights"] += 1
-        return
-    slam.logw = np.where(finite, slam.logw - slam.logw[finite].max(), -np.inf)
-    if effective_particles(slam.logw) < slam.config.resample_ess * slam.logw.size:
+    top = slam.logw.max()
+    if math.isfinite(top):  # the common case: no NaN nor +∞, and −∞ − top stays −∞
+        slam.logw = slam.logw - top
+    else:
+        finite = np.isfinite(slam.logw)
+        if not finite.any():
+            slam.logw = np.zeros(slam.logw.size)
+            slam.counts["degenerate_weights"] += 1
+            return
+        slam.logw = np.where(finite, slam.logw - slam.logw[finite].max(), -np.inf)
+    if effective_particles(slam) < slam.config.resample_ess * slam.logw.size:
         resample(slam, slam.config.particles)
 
 
 def best_particle(slam: FastSlam) -> int:
     """The highest-weight particle (after a resampling: a child of the heaviest particle before it)."""
-    w = weights(slam.logw)
+    w = slam.weights()
     if w.max() - w.min() < 1e-12:
         return min(slam.best_hint, w.size - 1)
     return int(np.argmax(w))

@@ -21,13 +21,14 @@ appear in the map until associated ``confirm_hits`` times, and a tentative landm
 
 from __future__ import annotations
 
+import math
 from typing import TYPE_CHECKING
 
 import numpy as np
 
 from central.fastslam import kernels, motion, resampling
 from central.fastslam.lifecycle import RobotState
-from robots.gaussian import inv2, quad2, sandwich, sandwich2, systematic_resample
+from robots.gaussian import diagonal_variances, inv2, quad2, sandwich, sandwich2, systematic_resample
 from robots.models import compose_jacobian, se2_compose, wrap_angle
 from services.association.solvers import solve_exact, solve_jcbb
 
@@ -43,9 +44,8 @@ def marginal_map(slam: FastSlam, near: tuple[np.ndarray, float] | None = None
     (the association needs those alone; the covariances are the costly part)."""
     if not slam.known_slots:
         return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros((0, 2, 2))
-    ids = np.fromiter(slam.known_slots.keys(), np.int64, len(slam.known_slots))
-    slots = np.fromiter(slam.known_slots.values(), np.int64, len(slam.known_slots))
-    w = resampling.weights(slam.logw)
+    ids, slots = slam.known_slots.arrays()
+    w = slam.weights()
     rows = None  # every particle
     cap = slam.config.association_particles
     if near is not None and 0 < cap < w.size:  # the association's mixtures: from ``cap`` particles drawn by weight
@@ -69,7 +69,7 @@ def pose_belief(slam: FastSlam, robot: RobotState) -> tuple[np.ndarray, np.ndarr
     """The robot's weighted mean pose, its spread over the particles, and the extra variance the association
     assumes against drift: ``gate_pose_floor``² plus ``gate_pose_growth``² per second since its last match (at
     most 120 s)."""
-    pose, w = slam.pose[:, robot.index], resampling.weights(slam.logw)
+    pose, w = slam.pose[:, robot.index], slam.weights()
     mean, cov = kernels.weighted_pose(pose, w, None) if slam.config.compiled else resampling.weighted_pose(pose, w)
     pending = motion.pending_motion(robot, slam.config)  # FastSLAM 2.0 associates before it moves the particles
     if pending is not None:
@@ -77,18 +77,17 @@ def pose_belief(slam: FastSlam, robot: RobotState) -> tuple[np.ndarray, np.ndarr
         mean = se2_compose(mean, pending[0])
         cov = cov + jac @ pending[1] @ jac.T
     blind = 0.0 if robot.last_match_stamp is None else min(max(robot.last_scan_stamp - robot.last_match_stamp, 0.0), 120.0)
-    extra = np.square(slam.config.gate_pose_floor) + np.square(slam.config.gate_pose_growth) * blind
-    return mean, cov, np.diag(extra)
+    floor, growth = diagonal_variances(slam.config.gate_pose_floor), diagonal_variances(slam.config.gate_pose_growth)
+    return mean, cov, floor + growth * blind
 
 
 def associate(slam: FastSlam, robot: RobotState, z: np.ndarray, r: np.ndarray) -> np.ndarray:
     """Landmark id of each detection ``(m, 2)``: an existing one, a new one (tentative), or −1 (ignored)."""
     m = z.shape[0]
     ids = np.full(m, -1, np.int64)
-    fresh = np.ones(m, bool)
     pose, spread, drift = pose_belief(slam, robot)
     position, _ = robot.sensor.sensor_position(pose)
-    reach = robot.info.sensor.max_range + 3.0 * float(np.sqrt(r[0, 0])) + 2.0
+    reach = robot.info.sensor.max_range + 3.0 * math.sqrt(r[0, 0]) + 2.0
     known, slots, mean, cov = marginal_map(slam, (position, reach))
     if known.size:
         # tentative landmarks were seen from about the present drift: they are gated without it, so clutter
@@ -98,17 +97,22 @@ def associate(slam: FastSlam, robot: RobotState, z: np.ndarray, r: np.ndarray) -
         gated = d2 < slam.gate
         ambiguous = _ambiguous(slam, d2, gated, zhat, r)
         gated[ambiguous] = False
-        slam.counts["detections_ambiguous"] += int(ambiguous.sum())
+        slam.counts["detections_ambiguous"] += int(np.count_nonzero(ambiguous))
         rows, cols = _solve(slam, nu, gated, d2, h_x, own, spread + drift, r)
         ids[rows] = known[cols]
-        fresh = (ids < 0) & (d2.min(1) > slam.new_gate) & ~ambiguous
-        slam.counts["detections_ignored"] += int(((ids < 0) & ~fresh).sum())
-        _age_tentative(slam, robot, known, slots, zhat, set(ids[rows].tolist()))
-    if rows_matched := int((ids >= 0).sum()):
+        unmatched = ids < 0
+        fresh = unmatched & (d2.min(1) > slam.new_gate) & ~ambiguous
+        unmatched_count = int(np.count_nonzero(unmatched))
+        slam.counts["detections_ignored"] += unmatched_count - int(np.count_nonzero(fresh))  # fresh ⊆ unmatched
+        _age_tentative(slam, robot, known, slots, tentative, zhat, set(ids[rows].tolist()))
+    else:
+        fresh, unmatched_count = np.ones(m, bool), m
+    if rows_matched := m - unmatched_count:
         robot.last_match_stamp = robot.last_scan_stamp
         slam.counts["detections_matched"] += rows_matched
-    ids[fresh] = slam.next_landmark_id + np.arange(int(fresh.sum()))
-    slam.next_landmark_id += int(fresh.sum())
+    created = int(np.count_nonzero(fresh))
+    ids[fresh] = slam.next_landmark_id + np.arange(created)
+    slam.next_landmark_id += created
     return ids
 
 
@@ -154,23 +158,26 @@ def _solve(slam: FastSlam, nu, gated, d2, h_x, own, pose_cov, r) -> tuple[np.nda
     if slam.config.shared_solver == "exact":
         return solve_exact(np.where(gated, d2 - slam.gate, np.inf))
     reach = np.flatnonzero(gated.any(0))  # JCBB never looks at a landmark no detection gates: leave them out
-    nu, gated, d2, h_x, own = nu[:, reach], gated[:, reach], d2[:, reach], h_x[reach], own[reach]
-    joint = np.tensordot(h_x @ pose_cov, h_x, axes=([2], [2])).transpose(0, 2, 1, 3)  # H_a P H_bᵀ (a, b, 2, 2)
-    joint[np.arange(own.shape[0]), np.arange(own.shape[0])] += own
+    nu, gated, d2 = nu.take(reach, 1), gated.take(reach, 1), d2.take(reach, 1)
+    h_x, own = h_x.take(reach, 0), own.take(reach, 0)
+    count = own.shape[0]  # H_a P H_bᵀ (a, b, 2, 2): np.tensordot's own reshapes and product, without its checks
+    joint = np.dot((h_x @ pose_cov).reshape(2 * count, 3), h_x.transpose(2, 0, 1).reshape(3, 2 * count))
+    joint = joint.reshape(count, 2, count, 2).transpose(0, 2, 1, 3)
+    diagonal = np.einsum("aaij->aij", joint)  # a writeable view of the blocks H_a P H_aᵀ
+    diagonal += own
     result = solve_jcbb(nu, gated, d2, joint, r, slam.config.gate_probability)
     slam.counts["jcbb_truncated"] += int(result.truncated)
     return result.rows, reach[result.cols]
 
 
-def _age_tentative(slam: FastSlam, robot: RobotState, ids: np.ndarray, slots: np.ndarray, zhat: np.ndarray,
-                   seen: set) -> None:
-    """Count a miss for each tentative landmark inside the sensor's view and not seen; drop those missed
+def _age_tentative(slam: FastSlam, robot: RobotState, ids: np.ndarray, slots: np.ndarray, tentative: np.ndarray,
+                   zhat: np.ndarray, seen: set) -> None:
+    """Count a miss for each ``tentative`` landmark inside the sensor's view and not seen; drop those missed
     ``tentative_misses`` times."""
     spec = robot.info.sensor
     inside = (zhat[:, 0] < spec.max_range) & (zhat[:, 0] > spec.min_range) & (np.abs(zhat[:, 1]) < 0.5 * spec.fov)
-    hits = slam.map.hits[slots]
-    for lid, slot in zip(ids[inside & (hits < slam.config.confirm_hits)].tolist(),
-                         slots[inside & (hits < slam.config.confirm_hits)].tolist()):
+    inside &= tentative
+    for lid, slot in zip(ids[inside].tolist(), slots[inside].tolist()):
         if lid in seen:
             continue
         misses = slam.tentative_misses.get(lid, 0) + 1

@@ -13,7 +13,7 @@ from benchmarks.support.paper001 import two_beacons
 from central.fastslam.config import FastSlamConfig
 from central.fastslam import resampling, shared
 from central.fastslam.core import FastSlam, make_estimator
-from central.fastslam.aligned_map import AlignedMap
+from central.fastslam.aligned_map import AlignedMap, SlotTable
 from central.fastslam.landmarks import LandmarkMap
 from robots.gaussian import systematic_resample
 from robots.models import AckermannModel, UnicycleModel, integrate_controls, se2_accumulate, se2_compose, wrap_angle
@@ -140,6 +140,31 @@ def test_shared_association_reuses_the_slots_of_dropped_tentative_landmarks(monk
     assert sprawling.map.capacity > 4 * slam.map.capacity
     np.testing.assert_allclose(slam.landmark_map().means, sprawling.landmark_map().means, atol=1e-9)
     np.testing.assert_allclose(slam.poses()["r1"][0], sprawling.poses()["r1"][0], atol=1e-9)
+
+
+def test_slot_table_arrays_follow_every_change():
+    """The id and slot arrays of the table, kept between scans, are rebuilt after any change of it."""
+    table = SlotTable({4: 0, 7: 1})
+    steps = [lambda t: t.__setitem__(9, 2), lambda t: t.__delitem__(4), lambda t: t.update({11: 3}),
+             lambda t: t.setdefault(12, 5), lambda t: t.pop(7), lambda t: t.__ior__({13: 6}), lambda t: t.popitem(),
+             lambda t: t.clear()]
+    for step in steps:
+        ids, slots = table.arrays()
+        ids[:] = -1  # copies: the table's own arrays are untouched
+        step(table)
+        ids, slots = table.arrays()
+        assert ids.tolist() == list(table.keys()) and slots.tolist() == list(table.values())
+
+
+def test_weights_follow_every_change_of_the_log_weights():
+    """The normalised weights, computed once per change of the log-weights, follow assignments and += alike."""
+    slam = FastSlam(FastSlamConfig(particles=5, association="shared", seed=0))
+    np.testing.assert_array_equal(slam.weights(), np.full(5, 0.2))
+    slam.logw += np.arange(5.0)
+    np.testing.assert_array_equal(slam.weights(), resampling.weights(np.arange(5.0)))
+    slam.logw = np.array([0.0, -np.inf, 0.0, -np.inf, 0.0])
+    np.testing.assert_array_equal(slam.weights(), [1 / 3, 0.0, 1 / 3, 0.0, 1 / 3])
+    assert slam.effective_particles() == pytest.approx(3.0)
 
 
 def quiet_world(name: str = "arena"):
