@@ -28,7 +28,9 @@ candidate only inside the chi-square gate of ``gate_probability``. (The paper's
 
 An :class:`AssociationReply` gives per measurement a landmark index, or
 ``NEW`` (-1: outside every landmark's new-feature gate, start a feature) or
-``CLUTTER`` (-2: unassigned but too close to a landmark to start one), per
+``CLUTTER`` (-2: unassigned but too close to a landmark to start one) or, when the request asks for
+``unique_pairs``, ``AMBIGUOUS`` (-3: JCBB paired it, but another hypothesis pairs as many without that
+pairing: neither a match nor a new feature), per
 landmark whether it was missed, the total cost Σ c_nm of the chosen pairs
 (the all-dummy hypothesis costs 0), the solve time and the method used;
 IHGR adds its first LP objective (a lower bound) and the gap of its rounded
@@ -50,6 +52,7 @@ from schemas.messages import Array, Covariance2, Covariance3, Message, Pose
 
 NEW = -1
 CLUTTER = -2
+AMBIGUOUS = -3
 METHODS = ("nn", "greedy", "ihgr", "exact", "jcbb", "auto")
 
 
@@ -83,6 +86,10 @@ class AssociationRequest(Message):
         0.05, ge=0.0, le=1.0, description="IHGR: fractional values this close to the largest are a tie (enumerated)"
     )
     jcbb_max_nodes: int = Field(20_000, ge=1, description="JCBB search budget (interpretation-tree nodes)")
+    unique_pairs: bool = Field(
+        False, description="JCBB (and auto when it picks JCBB): a pairing that another hypothesis with as many "
+        "jointly compatible pairings does without is answered AMBIGUOUS (-3), not paired; one more JCBB search per pair"
+    )
     auto_jcbb_max_measurements: int = Field(
         12, ge=0, description="auto: JCBB when a joint covariance is given and at most this many measurements are gated"
     )
@@ -127,7 +134,7 @@ class AssociationReply(Message):
 
     request_id: int = Field(0, ge=0)
     method: Literal["nn", "greedy", "ihgr", "exact", "jcbb"]
-    assignment: Array(None, kind="int") = Field(description="(M,) landmark index, -1 new feature, -2 clutter")
+    assignment: Array(None, kind="int") = Field(description="(M,) landmark index, -1 new feature, -2 clutter, -3 ambiguous (unique_pairs)")
     missed: Array(None, kind="bool") = Field(description="(N,) landmark got no measurement")
     cost: float = Field(allow_inf_nan=False, description="Σ c_nm over the chosen pairs (all-dummy = 0)")
     solve_time_ms: float = Field(ge=0.0, allow_inf_nan=False)

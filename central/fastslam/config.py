@@ -41,6 +41,9 @@ class FastSlamConfig(CoreConfig):
     ambiguity_margin: float = Field(
         0.0, ge=0.0, description="shared: leave out a detection whose two best distinct landmarks differ by less than "
         "this in d² (0: off)")
+    unique_pairs: bool = Field(
+        False, description="shared, jcbb: keep a pairing only if no other jointly compatible hypothesis has as many "
+        "pairings without it (the detection is ignored otherwise)")
     tentative_misses: int = Field(
         3, ge=1, description="shared: a tentative landmark in view and not seen this many times is dropped")
     exclusive: bool = Field(True, description="one detection per landmark per scan (paper 001's NN does not assume it)")

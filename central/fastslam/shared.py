@@ -30,7 +30,7 @@ from central.fastslam import kernels, motion, resampling
 from central.fastslam.lifecycle import RobotState
 from robots.gaussian import diagonal_variances, inv2, quad2, sandwich, sandwich2, systematic_resample
 from robots.models import compose_jacobian, se2_compose, wrap_angle
-from services.association.solvers import solve_exact, solve_jcbb
+from services.association.solvers import jcbb_ambiguous, solve_exact, solve_jcbb
 
 if TYPE_CHECKING:
     from central.fastslam.core import FastSlam
@@ -167,7 +167,12 @@ def _solve(slam: FastSlam, nu, gated, d2, h_x, own, pose_cov, r) -> tuple[np.nda
     diagonal += own
     result = solve_jcbb(nu, gated, d2, joint, r, slam.config.gate_probability)
     slam.counts["jcbb_truncated"] += int(result.truncated)
-    return result.rows, reach[result.cols]
+    rows, cols = result.rows, result.cols
+    if slam.config.unique_pairs and rows.size:
+        unique = ~jcbb_ambiguous(nu, gated, d2, joint, r, slam.config.gate_probability, result)
+        slam.counts["detections_not_unique"] += int((~unique).sum())
+        rows, cols = rows[unique], cols[unique]
+    return rows, reach[cols]
 
 
 def _age_tentative(slam: FastSlam, robot: RobotState, ids: np.ndarray, slots: np.ndarray, tentative: np.ndarray,

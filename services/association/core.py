@@ -32,7 +32,7 @@ from typing import Callable
 import numpy as np
 
 from robots.models import RangeBearingSensor, wrap_angle
-from schemas.association import CLUTTER, NEW, AssociationReply, AssociationRequest
+from schemas.association import AMBIGUOUS, CLUTTER, NEW, AssociationReply, AssociationRequest
 from services.association import solvers
 
 
@@ -254,7 +254,14 @@ def solve(problem: Problem, method: str, request: AssociationRequest, budget: so
             problem.innovations, problem.gated, problem.nis, problem.joint_blocks, problem.noise,
             request.gate_probability, request.jcbb_max_nodes, budget=budget,
         )
-        return result.rows, result.cols, {"joint_nis": result.joint_nis, "truncated": result.truncated}
+        extra = {"joint_nis": result.joint_nis, "truncated": result.truncated}
+        if request.unique_pairs and result.rows.size:
+            not_unique = solvers.jcbb_ambiguous(
+                problem.innovations, problem.gated, problem.nis, problem.joint_blocks, problem.noise,
+                request.gate_probability, result, request.jcbb_max_nodes, budget=budget,
+            )
+            extra["not_unique"] = result.rows[not_unique]
+        return result.rows, result.cols, extra
     raise AssociationError("unknown_method", f"{method!r}; choose from nn, greedy, ihgr, exact, jcbb, auto")
 
 
@@ -309,6 +316,11 @@ def associate(request: AssociationRequest, method: str = "auto", time_budget_s: 
         assignment[unassigned & far] = NEW
     missed = np.ones(n, bool)
     missed[cols] = False
+    not_unique = extra.pop("not_unique", None)
+    if not_unique is not None and not_unique.size:
+        assignment[not_unique] = AMBIGUOUS
+        kept = assignment[rows] >= 0
+        rows, cols = rows[kept], cols[kept]
     cost = float(problem.cost[rows, cols].sum())
     if concrete == "ihgr":
         extra["gap"] = max(0.0, cost - extra["lp_objective"])

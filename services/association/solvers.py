@@ -399,3 +399,37 @@ def solve_jcbb(
     rows = np.asarray([p[0] for p in pairs], np.int64)
     cols = np.asarray([p[1] for p in pairs], np.int64)
     return JcbbResult(rows, cols, float(best["d2"]) if pairs else 0.0, truncated, nodes)
+
+
+def jcbb_ambiguous(
+    innovations: np.ndarray,
+    gated: np.ndarray,
+    nis: np.ndarray,
+    joint_blocks: np.ndarray,
+    noise: np.ndarray,
+    probability: float,
+    best: JcbbResult,
+    max_nodes: int = 20_000,
+    compiled: bool = True,
+    budget: Budget | None = None,
+) -> np.ndarray:
+    """Which pairs of the JCBB hypothesis ``best`` are not unique: (len(best.rows),) bool.
+
+    A pair (m, n) is ambiguous when, with that one pairing forbidden, JCBB still finds a hypothesis with as
+    many jointly compatible pairings: another reading of the scan explains it as well, so the pair is a guess
+    (the local-uniqueness test of E. Olson, "Recognizing places using spectrally clustered local matches",
+    RAS 2009, on JCBB's hypotheses). Under a wide pose uncertainty among evenly spaced landmarks a
+    confident wrong pairing passes every gate; this test is what sets it apart. One JCBB search per pair.
+    """
+    flags = np.zeros(best.rows.size, bool)
+    for k, (m, n) in enumerate(zip(best.rows.tolist(), best.cols.tolist())):
+        if budget is not None and budget.spent():
+            break
+        without = gated.copy()
+        without[m, n] = False
+        try:
+            other = solve_jcbb(innovations, without, nis, joint_blocks, noise, probability, max_nodes, compiled, budget)
+        except DeadlineExceeded:
+            break
+        flags[k] = other.rows.size >= best.rows.size
+    return flags

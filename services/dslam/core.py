@@ -42,7 +42,7 @@ import scipy.linalg
 
 from robots.gaussian import chi2_quantile, inv2
 from robots.models import in_field_of_view, robot_models, wrap_angle
-from schemas.association import NEW, AssociationReply, AssociationRequest
+from schemas.association import AMBIGUOUS, NEW, AssociationReply, AssociationRequest
 from schemas.contract import MapView, OdomEvent, RunOptions, ScanEvent, SettingsError, build_config
 from schemas.messages import RobotInfo
 from services.dslam.config import DslamConfig
@@ -303,6 +303,8 @@ class DSlam:
                     kinds[k], refs[k] = TENTATIVE, tentative_keys[a - n_map]
                 elif a == NEW:
                     kinds[k], refs[k] = FRESH, self._new_key()
+                elif a == AMBIGUOUS:
+                    self.counts["assoc_not_unique"] += 1
         claimed = kinds != CLUTTER
         keys, counts = np.unique(np.stack([np.minimum(kinds[claimed], TENTATIVE), refs[claimed]], -1), axis=0,
                                  return_counts=True)
@@ -339,7 +341,7 @@ class DSlam:
             sensor_offset=np.asarray(spec.offset, float),
             gate_probability=s.gate_probability, new_feature_gate_probability=s.new_feature_gate_probability,
             clutter_density=max(spec.clutter_rate / area, 1e-9), new_feature_density=s.new_feature_density,
-            detection_probability=min(max(spec.detection_probability, 1e-3), 1 - 1e-3),
+            detection_probability=min(max(spec.detection_probability, 1e-3), 1 - 1e-3), unique_pairs=s.unique_pairs,
         )
         return near, keys, request
 

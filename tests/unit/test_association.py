@@ -9,7 +9,7 @@ import pytest
 from pydantic import ValidationError
 
 from robots.models import RangeBearingSensor
-from schemas.association import CLUTTER, NEW, AssociationReply, AssociationRequest
+from schemas.association import AMBIGUOUS, CLUTTER, NEW, AssociationReply, AssociationRequest
 from schemas.codec import decode, encode
 from services.association import solvers
 from services.association.core import AssociationError, associate, build_problem, split_components
@@ -434,3 +434,74 @@ def test_reply_round_trips_through_the_codec():
     assert np.array_equal(back.assignment, reply.assignment) and back.gap == reply.gap and back.method == "ihgr"
     request = random_request(np.random.default_rng(3), 5, 5)
     assert np.array_equal(decode(encode(request), AssociationRequest).innovation_covs, request.innovation_covs)
+
+
+def test_unique_pairs_sets_aside_a_pairing_another_hypothesis_does_as_well_without():
+    """Two landmarks 2 m apart and a pose known to ±3 m: one sighting fits either landmark, so with
+    ``unique_pairs`` it is AMBIGUOUS (plain JCBB guesses one); sightings of both pin the pairing down (the swap
+    would need a half turn the heading std of 0.05 rad rules out), so both stay paired."""
+    sensor = RangeBearingSensor()
+    landmarks = np.array([[5.0, 1.0], [5.0, -1.0]])
+    pose, pose_cov = np.zeros(3), np.diag([3.0**2, 3.0**2, 0.05**2])
+    lm_covs = np.tile(np.diag([0.01, 0.01]), (2, 1, 1))
+    zhat = sensor.observe(pose, landmarks)
+
+    def reply(measurements: np.ndarray, unique: bool) -> np.ndarray:
+        request = AssociationRequest(measurements=measurements, noise=R, landmarks=landmarks, landmark_covs=lm_covs,
+                                     pose=pose, pose_cov=pose_cov, unique_pairs=unique)
+        return associate(request, "jcbb").assignment
+
+    one = zhat[[0]] + [0.02, 0.0]
+    assert reply(one, unique=False).tolist() == [0]
+    assert reply(one, unique=True).tolist() == [AMBIGUOUS]
+    both = zhat[[1, 0]] + [0.02, 0.0]
+    assert reply(both, unique=False).tolist() == [1, 0]
+    assert reply(both, unique=True).tolist() == [1, 0]
+
+
+def joint_compatible_hypotheses(problem, probability) -> list[set]:
+    """Every matching of gated pairs whose joint NIS passes the gate of its size (as sets of pairs)."""
+    m, n = problem.nis.shape
+    found = []
+
+    def visit(row, pairs, used):
+        if row == m:
+            if not pairs or joint_nis(pairs, problem.innovations, problem.joint_blocks, problem.noise) <= \
+                    solvers.gate_value(probability, 2 * len(pairs)):
+                found.append(set(pairs))
+            return
+        visit(row + 1, pairs, used)
+        for col in range(n):
+            if col not in used and problem.gated[row, col]:
+                visit(row + 1, pairs + [(row, col)], used | {col})
+
+    visit(0, [], frozenset())
+    return found
+
+
+@pytest.mark.parametrize("compiled", [True, False], ids=["kernel", "reference"])
+@pytest.mark.parametrize("seed", range(3))
+def test_jcbb_ambiguous_against_brute_force(seed, compiled):
+    """A pair of JCBB's hypothesis is flagged exactly when a jointly compatible hypothesis without it pairs as
+    many measurements (every hypothesis enumerated); scans with a wide pose uncertainty, so that both cases occur."""
+    rng = np.random.default_rng(500 + seed)
+    flagged = kept = 0
+    for _ in range(15):
+        m, n = int(rng.integers(1, 5)), int(rng.integers(2, 5))
+        landmarks = rng.uniform([1.0, -1.5], [4.0, 1.5], size=(n, 2))
+        request = AssociationRequest(
+            measurements=np.stack([rng.uniform(1.0, 4.2, m), rng.uniform(-0.6, 0.6, m)], -1), noise=R * 4,
+            landmarks=landmarks, landmark_covs=np.tile(np.eye(2) * 0.01, (n, 1, 1)), pose=np.zeros(3),
+            pose_cov=np.diag([0.1, 0.1, 0.01]) * rng.uniform(0.1, 3.0),
+        )
+        problem = build_problem(request)
+        args = (problem.innovations, problem.gated, problem.nis, problem.joint_blocks, problem.noise,
+                request.gate_probability)
+        best = solvers.solve_jcbb(*args, compiled=compiled)
+        flags = solvers.jcbb_ambiguous(*args, best, compiled=compiled)
+        hypotheses = joint_compatible_hypotheses(problem, request.gate_probability)
+        for k, pair in enumerate(zip(best.rows.tolist(), best.cols.tolist())):
+            assert flags[k] == any(len(h) >= best.rows.size and pair not in h for h in hypotheses)
+        flagged += int(flags.sum())
+        kept += int((~flags).sum())
+    assert flagged > 0 and kept > 0
