@@ -37,7 +37,7 @@ class RobotLog:
     odom_stamp: np.ndarray  # (K,) time at the END of each control interval
     odom_dt: np.ndarray  # (K,)
     odom_control: np.ndarray  # (K, 2)
-    odom_cov: np.ndarray  # (2, 2)
+    odom_cov: np.ndarray  # (2, 2), or (K, 2, 2): one covariance per control
     scan_stamp: np.ndarray  # (S,)
     scan_offsets: np.ndarray  # (S+1,) detections of scan s are [offsets[s], offsets[s+1])
     det_range: np.ndarray  # (D,)
@@ -97,7 +97,7 @@ class RobotLog:
 
     def odom(self, k: int) -> OdomEvent:
         return OdomEvent(self.robot_id, k, float(self.odom_stamp[k]), float(self.odom_dt[k]), self.odom_control[k],
-                         self.odom_cov)
+                         self.odom_cov if self.odom_cov.ndim == 2 else self.odom_cov[k])
 
     def truth(self, k: int) -> TruthEvent:
         return TruthEvent(self.robot_id, k, float(self.truth_stamp[k]), self.truth_pose[k])

@@ -30,6 +30,14 @@ from schemas.streams import StreamTracker, Verdict
 log = logging.getLogger(__name__)
 
 
+def _control_covs(odom: list[Odometry]) -> np.ndarray:
+    """The controls' covariances: one (2, 2) when every message has the same, else one per message (K, 2, 2)."""
+    covs = np.array([m.control_cov for m in odom], float).reshape(-1, 2, 2)
+    if not covs.shape[0]:
+        return np.zeros((2, 2))
+    return covs[0] if np.all(covs == covs[0]) else covs
+
+
 def _robot_log(info: RobotInfo, odom: list[Odometry], scans: list[Scan], truth: list[GroundTruth]) -> RobotLog:
     """One robot's log from its decoded, in-order messages."""
     counts = np.array([len(s) for s in scans], np.int64)
@@ -40,7 +48,7 @@ def _robot_log(info: RobotInfo, odom: list[Odometry], scans: list[Scan], truth: 
         odom_stamp=np.array([m.stamp for m in odom], float),
         odom_dt=np.array([m.dt for m in odom], float),
         odom_control=np.array([m.control for m in odom], float).reshape(-1, 2),
-        odom_cov=odom[0].control_cov if odom else np.zeros((2, 2)),
+        odom_cov=_control_covs(odom),
         scan_stamp=np.array([s.stamp for s in scans], float),
         scan_offsets=np.concatenate([[0], np.cumsum(counts)]).astype(np.int64),
         det_range=np.concatenate([s.ranges for s in scans]) if scans else np.zeros(0),

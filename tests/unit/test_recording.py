@@ -183,6 +183,21 @@ def test_a_recording_is_the_data_set_it_recorded_and_gives_the_same_estimates(tm
         np.testing.assert_array_equal(trajectory.poses, again.trajectories[rid].poses)
 
 
+def test_a_covariance_per_control_is_recorded_and_loaded_per_control(tmp_path):
+    """A robot whose odometry covariance follows its controls (MR.CLAM's ``turn_var``) keeps one per message;
+    a robot with one covariance for every control keeps that one."""
+    original = fleet(duration=2.0)
+    log = original.robots["r1"]
+    log.odom_cov = log.odom_cov[None] * (1.0 + np.arange(log.odom_stamp.size))[:, None, None]
+    path = tmp_path / "fleet.mcap"
+    write(path, published(original))
+    loaded = load_dataset(f"mcap:{path}")
+    assert loaded.robots["r1"].odom_cov.shape == (log.odom_stamp.size, 2, 2)
+    assert loaded.robots["r2"].odom_cov.shape == (2, 2)
+    for rid in original.robots:
+        same_log(loaded.robots[rid], original.robots[rid])
+
+
 def test_messages_the_services_would_refuse_are_left_out_and_counted(tmp_path):
     samples = published(fleet(robots=("r1",), duration=1.0))
     odom = [k for k, (key, _) in enumerate(samples) if key.endswith("/odom")]
