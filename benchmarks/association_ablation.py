@@ -8,13 +8,18 @@ Steps (FastSLAM, 100 particles, scans' ids ignored):
 - ``shared-exact``: ... and new landmarks stay tentative (no weight, not mapped) until seen 3 times;
 - ``shared-jcbb-fastslam1``: ... with joint compatibility (JCBB) instead, poses drawn from the motion model alone;
 - ``shared-jcbb``: ... and each scan folded into the proposal (FastSLAM 2.0): ``--association unknown``, the default;
-- ``shared-jcbb-ess-0.05``: ... resampling only when the effective sample size falls below 5 % (not 50 %).
+- ``shared-jcbb-ess-0.05``: ... resampling only when the effective sample size falls below 5 % (not 50 %);
+- ``shared-jcbb-unique``: ``shared-jcbb`` keeping only the pairings no other jointly compatible hypothesis with as
+  many pairings does without (``unique_pairs``);
+- ``shared-jcbb-turn-var``: ``shared-jcbb`` on MR.CLAM odometry whose heading variance grows with the angle turned
+  (the loader's ``turn_var`` 0.015; the other data sets as they are).
 
 Steps (D-SLAM, ``--association unknown``: the association service's ``auto``; deterministic, so one run):
 
 - ``dslam-per-scan``: z_map one scan at a time (the paper), gating on the CI-localised pose alone;
 - ``dslam-floor``: ... gating with ``gate_pose_floor`` added to the pose covariance;
-- ``dslam-local-map``: ... and scans with fewer than two mapped features collected into local maps: the default.
+- ``dslam-local-map``: ... and scans with fewer than two mapped features collected into local maps: the default;
+- ``dslam-unique``, ``dslam-turn-var``: the default with ``unique_pairs``, or on MR.CLAM's ``turn_var`` odometry.
 
 Data: MR.CLAM 6 (five robots in one filter), Victoria Park (GPS), ACFR car park (GPS and surveyed beacons).
 Per run: every robot's ATE (raw: the start poses are given), GPS RMSE, map RMSE and landmarks mapped,
@@ -48,13 +53,21 @@ STEPS: dict[str, tuple[str, str, dict]] = {
     "dslam-per-scan": ("dslam", "unknown", {"local_map_max_std": 0.0, "gate_pose_floor": (0.0, 0.0, 0.0)}),
     "dslam-floor": ("dslam", "unknown", {"local_map_max_std": 0.0}),
     "dslam-local-map": ("dslam", "unknown", {}),
+    "shared-jcbb-unique": ("fastslam", "unknown", {"unique_pairs": True}),
+    "shared-jcbb-turn-var": ("fastslam", "unknown", {}),
+    "dslam-unique": ("dslam", "unknown", {"unique_pairs": True}),
+    "dslam-turn-var": ("dslam", "unknown", {}),
+}
+DATA_OPTIONS = {  # step -> data set kind -> loader options
+    "shared-jcbb-turn-var": {"mrclam": {"turn_var": 0.015}},
+    "dslam-turn-var": {"mrclam": {"turn_var": 0.015}},
 }
 DETERMINISTIC = {"dslam"}  # estimators without random draws: one seed is every seed
 
 
 def one_run(spec: str, step: str, seed: int, particles: int) -> dict:
     estimator, association, settings = STEPS[step]
-    dataset = load_dataset(spec)
+    dataset = load_dataset(spec, **DATA_OPTIONS.get(step, {}).get(spec.partition(":")[0], {}))
     run = run_and_score(dataset, RunOptions(estimator, association, particles, seed, dict(settings)))
     ate = [v for v in run["ate_rmse_m"].values() if v is not None]
     gps = [v for v in run.get("gps_rmse_m", {}).values() if v is not None]
