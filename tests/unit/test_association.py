@@ -176,18 +176,16 @@ def joint_nis(pairs, innovations, blocks, noise):
     return float(nu @ np.linalg.solve(s, nu))
 
 
-def brute_force_jcbb(problem, probability):
+def joint_compatible_hypotheses(problem, probability) -> list[set]:
+    """Every matching of gated pairs whose joint NIS passes the gate of its size (as sets of pairs)."""
     m, n = problem.nis.shape
-    best = ([], np.inf)
+    found = []
 
     def visit(row, pairs, used):
-        nonlocal best
         if row == m:
-            d2 = joint_nis(pairs, problem.innovations, problem.joint_blocks, problem.noise)
-            if pairs and d2 > solvers.gate_value(probability, 2 * len(pairs)):
-                return
-            if len(pairs) > len(best[0]) or (len(pairs) == len(best[0]) and d2 < best[1] - 1e-12):
-                best = (list(pairs), d2)
+            if not pairs or joint_nis(pairs, problem.innovations, problem.joint_blocks, problem.noise) <= \
+                    solvers.gate_value(probability, 2 * len(pairs)):
+                found.append(set(pairs))
             return
         visit(row + 1, pairs, used)
         for col in range(n):
@@ -195,6 +193,17 @@ def brute_force_jcbb(problem, probability):
                 visit(row + 1, pairs + [(row, col)], used | {col})
 
     visit(0, [], frozenset())
+    return found
+
+
+def brute_force_jcbb(problem, probability):
+    """The jointly compatible hypothesis with the most pairings, then the smallest joint NIS: (pairs, d2)."""
+    best = ([], np.inf)
+    for hypothesis in joint_compatible_hypotheses(problem, probability):
+        pairs = sorted(hypothesis)
+        d2 = joint_nis(pairs, problem.innovations, problem.joint_blocks, problem.noise)
+        if len(pairs) > len(best[0]) or (len(pairs) == len(best[0]) and d2 < best[1] - 1e-12):
+            best = (pairs, d2)
     return best
 
 
@@ -457,26 +466,6 @@ def test_unique_pairs_sets_aside_a_pairing_another_hypothesis_does_as_well_witho
     both = zhat[[1, 0]] + [0.02, 0.0]
     assert reply(both, unique=False).tolist() == [1, 0]
     assert reply(both, unique=True).tolist() == [1, 0]
-
-
-def joint_compatible_hypotheses(problem, probability) -> list[set]:
-    """Every matching of gated pairs whose joint NIS passes the gate of its size (as sets of pairs)."""
-    m, n = problem.nis.shape
-    found = []
-
-    def visit(row, pairs, used):
-        if row == m:
-            if not pairs or joint_nis(pairs, problem.innovations, problem.joint_blocks, problem.noise) <= \
-                    solvers.gate_value(probability, 2 * len(pairs)):
-                found.append(set(pairs))
-            return
-        visit(row + 1, pairs, used)
-        for col in range(n):
-            if col not in used and problem.gated[row, col]:
-                visit(row + 1, pairs + [(row, col)], used | {col})
-
-    visit(0, [], frozenset())
-    return found
 
 
 @pytest.mark.parametrize("compiled", [True, False], ids=["kernel", "reference"])
