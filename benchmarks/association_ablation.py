@@ -26,7 +26,7 @@ Per run: every robot's ATE (raw: the start poses are given), GPS RMSE, map RMSE 
 matched within 1 m, spurious, and the surveyed landmarks the truth passes within sensor range of, mapped
 within 0.3 m after the map's rigid fit to the survey; per step the median and the worst over the seeds.
 
-    .venv/bin/python benchmarks/association_ablation.py [--steps nn,shared-jcbb] [--seeds 10]
+    .venv/bin/python benchmarks/association_ablation.py [--steps nn,shared-jcbb] [--seeds 10] [--first-seed 0]
         [--data mrclam:,victoria-park:,car-park:] [--jobs 2] [--out FILE]
 """
 
@@ -111,7 +111,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", default="mrclam:,victoria-park:,car-park:", help="data set specs, comma-separated")
     parser.add_argument("--steps", default=",".join(STEPS), help=f"comma-separated, of: {', '.join(STEPS)}")
-    parser.add_argument("--seeds", type=int, default=10, help="seeds 0..N-1")
+    parser.add_argument("--seeds", type=int, default=10, help="how many seeds: FIRST..FIRST+N-1")
+    parser.add_argument("--first-seed", type=int, default=0, help="the first seed (held-out seeds: e.g. 10)")
     parser.add_argument("--particles", type=int, default=100)
     parser.add_argument("--jobs", type=int, default=2, help="runs in parallel (processes)")
     parser.add_argument("--out")
@@ -121,7 +122,7 @@ def main() -> None:
     if unknown:
         parser.error(f"unknown steps {unknown}; choose from {', '.join(STEPS)}")
     jobs = [(spec, step, seed) for spec in args.data.split(",") for step in steps
-            for seed in range(1 if STEPS[step][0] in DETERMINISTIC else args.seeds)]
+            for seed in range(args.first_seed, args.first_seed + (1 if STEPS[step][0] in DETERMINISTIC else args.seeds))]
     with ProcessPoolExecutor(max_workers=args.jobs) as pool:
         runs = list(pool.map(one_run, *zip(*jobs), [args.particles] * len(jobs)))
     report: dict = {"settings": vars(args), "runs": runs, "summary": {}}
