@@ -183,6 +183,16 @@ class FastSlam:
     def particle_count(self) -> int:
         return self.pose.shape[0]
 
+    def __setstate__(self, state: dict) -> None:
+        """Restore a pickled filter (a checkpoint), also one written before the weights were cached and the
+        known-landmark table kept its arrays: such a checkpoint holds ``logw`` and a plain dict."""
+        if "logw" in state:
+            state["_logw"] = state.pop("logw")
+        state["_weights"] = None
+        if not isinstance(state.get("known_slots"), SlotTable):
+            state["known_slots"] = SlotTable(state.get("known_slots", {}))
+        self.__dict__.update(state)
+
     @property
     def logw(self) -> np.ndarray:
         """Log-weights ``(P,)``. Assigning them (``+=`` included) forgets the normalised weights computed from them."""

@@ -99,6 +99,29 @@ def test_fastslam_carries_on_bitwise_after_a_checkpoint(two_robots, association,
     np.testing.assert_array_equal(straight.weights(), restored.weights())
 
 
+def test_a_fastslam_checkpoint_from_before_the_weight_cache_carries_on_bitwise(two_robots):
+    """A checkpoint pickled before the filter cached its weights and its known-landmark arrays (``logw`` in the
+    state, ``known_slots`` a plain dict) is restored as one of today's and carries on exactly."""
+    dataset, events = two_robots
+    make = lambda: FastSlam(FastSlamConfig(particles=30, association="shared", seed=5))  # noqa: E731
+    straight, interrupted = make(), make()
+    for core in (straight, interrupted):
+        [core.add_robot(r.info) for r in dataset.robots.values()]
+    split = len(events) // 3
+    _feed(straight, events)
+    _feed(interrupted, events[:split])
+    old = dict(interrupted.__dict__)
+    old["logw"] = old.pop("_logw")
+    old.pop("_weights")
+    old["known_slots"] = dict(old["known_slots"])
+    restored = FastSlam.__new__(FastSlam)
+    restored.__setstate__(pickle.loads(pickle.dumps(old)))
+    assert restored.known_slots.arrays()[0].size > 3
+    _feed(restored, events[split:])
+    np.testing.assert_array_equal(straight.weights(), restored.weights())
+    np.testing.assert_array_equal(straight.landmark_map().means, restored.landmark_map().means)
+
+
 def test_dslam_carries_on_after_a_checkpoint_to_its_solver_tolerance(two_robots):
     dataset, events = two_robots
     add = lambda core: [core.add_robot(r.info) for r in dataset.robots.values()]  # noqa: E731
