@@ -157,7 +157,7 @@ class MonteCarloLocalizer:
         if best is None:
             return False
         nu = self.model.sensor.innovation(z, self.model.sensor.observe(best[0], self._targets))
-        if np.any(quad2(nu, np.linalg.inv(self.model.noise_cov)) > CONTRADICTION_GATE):
+        if np.any(quad2(nu, self.model.information) > CONTRADICTION_GATE):
             return True
         self._confirmed.update(map(tuple, self._targets.tolist()))
         return False

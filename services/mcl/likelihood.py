@@ -113,6 +113,11 @@ class ScanModel:
         return self.fov >= 2 * math.pi - 1e-9
 
     @property
+    def information(self) -> np.ndarray:
+        """The inverse of ``noise_cov`` (2, 2): every Mahalanobis distance of a detection uses it."""
+        return np.linalg.inv(self.noise_cov)
+
+    @property
     def log_gauss_norm(self) -> float:
         return -math.log(2 * math.pi) - 0.5 * math.log(np.linalg.det(self.noise_cov))
 
@@ -240,7 +245,7 @@ class _ScanTerms:
             ranges=np.maximum(z[:, 0], 1e-6)[:, None].astype(np.float32),
             ux=np.cos(z[:, 1])[:, None].astype(np.float32),
             uy=np.sin(z[:, 1])[:, None].astype(np.float32),
-            info=np.linalg.inv(model.noise_cov).astype(np.float32),
+            info=model.information.astype(np.float32),
             match_scale=(1.0 - model.clutter_weight) * math.exp(model.log_gauss_norm),
             floor=math.exp(model.log_floor),
         )
@@ -253,7 +258,7 @@ def _compiled_log_likelihood(poses: np.ndarray, z: np.ndarray, lmap: LandmarkMap
     half = 0.5 * model.fov - model.margin_bearing
     return kernels.scan_log_likelihood_kernel(
         np.ascontiguousarray(poses), model.sensor.inverse(np.zeros(3), z), np.maximum(z[:, 0], 1e-6), z[:, 1].copy(),
-        np.cos(z[:, 1]), np.sin(z[:, 1]), np.linalg.inv(model.noise_cov),
+        np.cos(z[:, 1]), np.sin(z[:, 1]), model.information,
         (1.0 - model.clutter_weight) * math.exp(model.log_gauss_norm), math.exp(model.log_floor), lmap.padded,
         match.table, match.origin, match.cell, match.shape[0], match.shape[1],
         view.table, view.origin, view.cell, view.shape[0], view.shape[1],
@@ -325,7 +330,7 @@ def signed_log_likelihood(poses: np.ndarray, observations: np.ndarray, targets: 
         return np.zeros(poses.shape[0]), np.ones(poses.shape[0])
     predicted = model.sensor.observe(poses[:, None, :], targets[None, :, :])
     nu = model.sensor.innovation(z[None], predicted)
-    m2 = np.einsum("pji,ik,pjk->pj", nu, np.linalg.inv(model.noise_cov), nu)
+    m2 = np.einsum("pji,ik,pjk->pj", nu, model.information, nu)
     match = (1.0 - model.clutter_weight) * math.exp(model.log_gauss_norm)
     loglik = np.log(match * np.exp(-0.5 * m2) + math.exp(model.log_floor)).sum(1)
     return loglik, np.exp((loglik - n * model.log_peak) / n)
