@@ -7,7 +7,12 @@ Cases (FastSLAM, 100 particles, unless said):
   places the others;
 - ``known-first``: barcodes, only the first robot's start pose;
 - ``unknown-none``: barcodes ignored (``--association unknown``), no start pose;
-- ``mcl-signatures``: MCL alone against the surveyed map, every robot from no pose, barcodes as signatures.
+- ``mcl-signatures``: MCL alone against the surveyed map, every robot from no pose, barcodes as signatures;
+- ``known-known-turn-slip``, ``known-none-turn-slip``: the same with the robots' announced turn slip in
+  FastSLAM's motion (``turn_slip``; D-SLAM models it by default);
+- ``dslam-known-known``, ``dslam-known-none``, ``dslam-unknown-known``, ``dslam-unknown-none``: D-SLAM, with
+  barcodes or without (``--association unknown``), with every start pose or none (D-SLAM draws nothing at
+  random: the seed is MCL's).
 
 The data bound the placement delays stand against (``data_bound_s``, no estimator): after its first scan,
 how long each robot takes to have seen two distinct landmarks that the anchor (the first robot to scan) had
@@ -36,19 +41,25 @@ from schemas.contract import RunOptions
 from services.evaluation.metrics import Trajectory, fleet_alignment
 from services.offline import run_estimator
 
-CASES: dict[str, tuple[str, str, str]] = {  # estimator, association, start poses
+CASES: dict[str, tuple] = {  # estimator, association, start poses[, settings]
     "known-known": ("fastslam", "known", "known"),
     "known-none": ("fastslam", "known", "none"),
     "known-first": ("fastslam", "known", "first"),
     "unknown-none": ("fastslam", "unknown", "none"),
     "mcl-signatures": ("mcl", "known", "none"),
+    "known-known-turn-slip": ("fastslam", "known", "known", {"turn_slip": True}),
+    "known-none-turn-slip": ("fastslam", "known", "none", {"turn_slip": True}),
+    "dslam-known-known": ("dslam", "known", "known"),
+    "dslam-known-none": ("dslam", "known", "none"),
+    "dslam-unknown-known": ("dslam", "unknown", "known"),
+    "dslam-unknown-none": ("dslam", "unknown", "none"),
 }
 
 
 def one_run(spec: str, case: str, seed: int) -> dict:
-    estimator, association, start_poses = CASES[case]
+    estimator, association, start_poses, *settings = CASES[case]
     dataset = load_dataset(spec)
-    options = RunOptions(estimator, association, None, seed)
+    options = RunOptions(estimator, association, None, seed, dict(settings[0]) if settings else {})
     if estimator == "mcl":
         options.landmarks, options.landmark_ids = dataset.landmarks, dataset.landmark_ids
     run = run_estimator(dataset, options, start_poses=start_poses)

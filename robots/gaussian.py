@@ -88,6 +88,12 @@ def valid_cov2(cov: np.ndarray) -> bool:
     return finite and abs(b - c) <= 1e-9 + 1e-6 * abs(b) and a >= 0 and d >= 0 and a * d - b * c >= -1e-12 * max(a * d, 1e-300)
 
 
+def valid_cov3(cov: np.ndarray) -> bool:
+    """A finite, symmetric, positive semi-definite 3×3 covariance."""
+    return (cov.shape == (3, 3) and bool(np.all(np.isfinite(cov))) and np.allclose(cov, cov.T, atol=1e-9, rtol=1e-6)
+            and bool(np.all(np.linalg.eigvalsh(cov) >= -1e-12)))
+
+
 def sqrt_psd(cov: np.ndarray) -> np.ndarray:
     """A matrix L with L Lᵀ = cov for a symmetric positive semi-definite ``cov`` (stacks allowed).
 
@@ -116,13 +122,27 @@ def systematic_resample(weights: np.ndarray, count: int, rng: np.random.Generato
     return np.minimum(np.searchsorted(cdf, points, side="right"), weights.size - 1)
 
 
-def ekf_predict_pose(x: np.ndarray, P: np.ndarray, model, control, control_cov, dt: float) -> None:
-    """EKF-SLAM prediction in place: the pose x[:3] moves by one control of ``model``; the landmarks stay."""
+def ekf_predict_pose(x: np.ndarray, P: np.ndarray, model, control, control_cov, dt: float,
+                     turn_slip_var: float = 0.0) -> None:
+    """EKF-SLAM prediction in place: the pose x[:3] moves by one control of ``model``; the landmarks stay.
+    ``turn_slip_var``: heading variance added per radian turned (:func:`turn_slip`)."""
     f_pose, f_control = model.jacobians(x[:3], control, dt)
+    heading = x[2]
     x[:3] = model.step(x[:3], control, dt)
     P[:3, :] = f_pose @ P[:3, :]
     P[:, :3] = P[:, :3] @ f_pose.T
     P[:3, :3] += f_control @ np.asarray(control_cov, float) @ f_control.T
+    P[2, 2] += turn_slip(turn_slip_var, x[2] - heading)
+
+
+def turn_slip(var_per_rad: float, turn: float) -> float:
+    """Heading variance a turn of ``turn`` rad adds beyond the control noise: ``var_per_rad`` per radian turned
+    (``RobotInfo.turn_slip_var``). Wheels slip in turns, so odometry's heading error grows with the angle turned,
+    not only with time: on MR.CLAM 0.013–0.015 rad² per rad over 1–30 s windows of all five robots, where σ_ω alone
+    leaves 28 % of the turning windows outside 3σ."""
+    if var_per_rad <= 0.0:
+        return 0.0
+    return var_per_rad * abs(math.remainder(float(turn), 2.0 * math.pi))
 
 
 def ekf_update(x: np.ndarray, P: np.ndarray, nu: np.ndarray, h: np.ndarray, r: np.ndarray,

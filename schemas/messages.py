@@ -111,6 +111,10 @@ class RobotInfo(Message):
     max_turn_rate: float | None = Field(None, gt=0.0, allow_inf_nan=False, description="unicycle: largest |ω| (rad/s)")
     max_steering: float | None = Field(None, gt=0.0, le=math.pi / 2, allow_inf_nan=False,
                                        description="ackermann: largest |steering angle| (rad)")
+    turn_slip_var: float = Field(
+        0.0, ge=0.0, allow_inf_nan=False,
+        description="heading variance (rad²) per radian turned that the odometry covariance leaves out: wheels "
+        "slip in turns (estimators that model it add it to each prediction, robots.gaussian.turn_slip)")
 
     @model_validator(mode="after")
     def _ackermann_has_wheelbase(self) -> "RobotInfo":

@@ -95,8 +95,6 @@ def run_estimator(dataset: Dataset, options: RunOptions, robots: list[str] | Non
     if any(info.start_pose is None for info in infos) and hasattr(estimator, "place_robot"):
         placer = FleetPlacer(estimator, infos, MclConfig(seed=options.seed),
                              use_signatures=options.association == "known")
-    elif any(info.start_pose is None for info in infos) and options.estimator == "dslam":
-        log.info("dslam places robots without a start pose itself, once they see two mapped landmarks by id")
     elif any(info.start_pose is None for info in infos) and options.estimator not in ("mcl", "odometry"):
         log.warning("%s cannot place robots without a start pose: they stay out", options.estimator)
     samples: dict[str, tuple[list, list, list]] = {rid: ([], [], []) for rid in chosen}
@@ -138,6 +136,8 @@ def run_estimator(dataset: Dataset, options: RunOptions, robots: list[str] | Non
                 tick = time.perf_counter()
                 if placer is not None and placer.holds(event):
                     held[type(event).__name__] += 1
+                    if isinstance(event, OdomEvent):  # once placed, its first pose holds from here on
+                        pose_stamp[event.robot_id] = event.stamp
                 elif isinstance(event, OdomEvent):
                     estimator.on_odometry(event)
                     odom_s.append(time.perf_counter() - tick)

@@ -2,7 +2,7 @@
 
 ``fleetslam run --start-poses known|first|none`` decides which robots keep the start pose of the data
 (:func:`withhold_start_poses`). An estimator that can take robots without a pose (it offers ``is_waiting``,
-``place_robot``, ``landmark_map`` and ``robot_count``: the central FastSLAM) then gets them placed by a
+``place_robot``, ``landmark_map`` and ``robot_count``: FastSLAM and D-SLAM) then gets them placed by a
 :class:`FleetPlacer` that sits between the data and the estimator, as the MCL service does live:
 
 - while no robot is placed, the first robot to scan anchors the world frame: it is placed at the origin
@@ -114,7 +114,7 @@ class FleetPlacer:
         self.prior_map = len(estimator.landmark_map().means) > 0  # a saved map: its frame, no anchor
         self.placements = {info.robot_id: Placement(info.robot_id) for info in infos}
         for info in infos:
-            if estimator.has_robot(info.robot_id):
+            if not estimator.is_waiting(info.robot_id):
                 self.placements[info.robot_id].how = "start pose"
 
     def holds(self, event: Event) -> bool:

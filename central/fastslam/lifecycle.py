@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from robots.gaussian import sqrt_psd
+from robots.gaussian import sqrt_psd, valid_cov3
 from robots.models import MotionModel, RangeBearingSensor, robot_models, wrap_angle
 from schemas.messages import RobotInfo
 
@@ -46,12 +46,6 @@ class RobotState:
     @property
     def robot_id(self) -> str:
         return self.info.robot_id
-
-
-def valid_cov3(cov: np.ndarray) -> bool:
-    """A finite, symmetric, positive semi-definite 3×3 covariance."""
-    return (cov.shape == (3, 3) and bool(np.all(np.isfinite(cov))) and np.allclose(cov, cov.T, atol=1e-9, rtol=1e-6)
-            and bool(np.all(np.linalg.eigvalsh(cov) >= -1e-12)))
 
 
 def add(slam: FastSlam, info: RobotInfo) -> bool:

@@ -17,7 +17,7 @@ import numpy as np
 from central.fastslam import kernels
 from central.fastslam.config import FastSlamConfig
 from central.fastslam.lifecycle import RobotState
-from robots.gaussian import diagonal_variances, sqrt_psd, valid_cov2
+from robots.gaussian import diagonal_variances, sqrt_psd, turn_slip, valid_cov2
 from robots.models import integrate_controls, se2_compose
 from schemas.contract import OdomEvent
 
@@ -83,6 +83,8 @@ def pending_motion(robot: RobotState, config: FastSlamConfig) -> tuple[np.ndarra
     integrate = kernels.integrate_controls if config.compiled else integrate_controls
     delta, cov = integrate(robot.model, np.array(robot.controls), np.array(robot.dts), np.array(robot.covs))
     cov = cov + diagonal_variances(config.pose_noise_per_s) * robot.pending_s
+    if config.turn_slip and robot.info.turn_slip_var > 0.0:
+        cov[2, 2] += turn_slip(robot.info.turn_slip_var, delta[2])
     robot.pending_memo = (key, (delta, cov))
     return delta, cov
 

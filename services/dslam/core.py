@@ -40,7 +40,7 @@ from typing import Callable
 import numpy as np
 import scipy.linalg
 
-from robots.gaussian import chi2_quantile, inv2
+from robots.gaussian import chi2_quantile, inv2, valid_cov3
 from robots.models import in_field_of_view, robot_models, wrap_angle
 from schemas.association import AMBIGUOUS, NEW, AssociationReply, AssociationRequest
 from schemas.contract import MapView, OdomEvent, RunOptions, ScanEvent, SettingsError, build_config
@@ -172,6 +172,42 @@ class DSlam:
             cov = np.diag([1e-9, 1e-9, 1e-12]) if info.start_pose_cov is None else np.asarray(info.start_pose_cov, float)
         self.robots[info.robot_id] = RobotState(info, pose, cov)
 
+    def is_waiting(self, rid: str) -> bool:
+        """True when the robot is known but has no pose (no start pose, or a missed start): :meth:`place_robot`."""
+        robot = self.robots.get(rid)
+        return robot is not None and robot.pose is None
+
+    @property
+    def robot_count(self) -> int:
+        """Robots with a pose."""
+        return sum(robot.pose is not None for robot in self.robots.values())
+
+    def place_robot(self, rid: str, pose, cov, stamp: float | None = None) -> bool:
+        """Give a waiting robot ``pose`` ``(3,)`` with covariance ``cov`` ``(3, 3)`` at ``stamp`` (the hook of
+        :class:`services.placement.FleetPlacer`). A robot placed while the map is empty starts it, as from a known
+        start pose (phase I); one placed against a map is localized on it. False (counted) if refused."""
+        robot = self.robots.get(rid)
+        pose, cov = np.asarray(pose, float), np.asarray(cov, float)
+        if robot is None or robot.pose is not None:
+            self.counts["place_refused"] += 1
+            return False
+        if (pose.shape != (3,) or not np.all(np.isfinite(pose)) or not valid_cov3(cov)
+                or (stamp is not None and not np.isfinite(stamp))):
+            self.counts["bad_placement"] += 1
+            return False
+        cov = 0.5 * (cov + cov.T) + np.diag([1e-9, 1e-9, 1e-12])
+        if self.map.n == 0 and not self.tentative:
+            robot.info = robot.info.model_copy(update={"start_pose": pose.copy(), "start_pose_cov": cov})
+        else:
+            cov = cov + np.diag(np.square(self.config.placement_floor))
+            robot.localized = True
+        robot.pose, robot.cov, robot.moved, robot.local = pose.copy(), cov, False, None
+        robot.streams.update(("odom", "scan"))  # its earlier messages went to the localizer: no missed start
+        if stamp is not None:
+            robot.stamp = float(stamp)
+        self.counts["robots_placed"] += 1
+        return True
+
     def remove_robot(self, rid: str) -> None:
         """Forget a robot's localization (its map contributions stay); nothing if it is unknown."""
         self.robots.pop(rid, None)
@@ -214,11 +250,12 @@ class DSlam:
             return
         if np.any(np.asarray(event.control) != 0.0):
             robot.moved = True
+        slip = robot.info.turn_slip_var if self.config.turn_slip else 0.0
         if robot.local is not None:
-            robot.local.predict(robot.model, event.control, event.control_cov, event.dt)
+            robot.local.predict(robot.model, event.control, event.control_cov, event.dt, slip)
         if robot.pose is None:
             return
-        robot.pose, robot.cov = predict(robot.pose, robot.cov, robot.model, event.control, event.control_cov, event.dt)
+        robot.pose, robot.cov = predict(robot.pose, robot.cov, robot.model, event.control, event.control_cov, event.dt, slip)
         robot.stamp = event.stamp
 
     def poses(self) -> dict[str, tuple[np.ndarray, np.ndarray]]:

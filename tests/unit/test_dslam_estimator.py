@@ -3,6 +3,7 @@
 import dataclasses
 
 import numpy as np
+import pytest
 from scipy.stats import chi2
 
 from robots.simulator import simulate
@@ -128,3 +129,23 @@ def test_two_measurements_of_one_feature_are_set_aside():
     estimator.on_scan(scan)
     assert estimator.counts["assoc_shared_landmark"] == 2
     assert estimator.map.n == len(set(scan.landmark_ids.tolist())) - 1
+
+
+def test_the_turn_slip_a_robot_announces_widens_its_heading_by_the_angle_turned():
+    """A robot announcing turn_slip_var gets that much heading variance per radian turned on top of its odometry
+    covariance; ``turn_slip=False`` ignores it, and a robot announcing none is unchanged."""
+    data = simulate("arena", robots=1, duration=1.0)
+    info = data.robots["r1"].info.model_copy(update={"turn_slip_var": 0.02})
+    cov = np.diag([1e-4, 1e-4])
+    events = [OdomEvent("r1", k, 0.1 * (k + 1), 0.1, np.array([0.5, 0.4]), cov) for k in range(10)]
+
+    def heading_variance(config: DslamConfig, robot_info) -> float:
+        estimator = DSlam(config)
+        estimator.add_robot(robot_info)
+        for event in events:
+            estimator.on_odometry(event)
+        return float(estimator.poses()["r1"][1][2, 2])
+
+    plain = heading_variance(DslamConfig(turn_slip=False), info)
+    assert heading_variance(DslamConfig(), info) - plain == pytest.approx(0.02 * 0.4 * 1.0, rel=1e-9)
+    assert heading_variance(DslamConfig(), data.robots["r1"].info) == pytest.approx(plain, rel=1e-12)

@@ -513,3 +513,27 @@ def test_fastslam2_proposal_tracks_a_robot():
     assert np.hypot(*(pose[:2] - data.robots["r1"].truth_pose[-1, :2])) < 0.2
     assert nearest(slam.landmark_map().means, data.landmarks).max() < 0.3
     assert math.isfinite(slam.effective_particles())
+
+
+def test_turn_slip_widens_the_drawn_heading_only_when_set():
+    """``turn_slip``: the buffered motion's heading variance grows by the robot's announced turn_slip_var per radian
+    turned; off by default, and a robot announcing none is unchanged."""
+    from central.fastslam import motion
+
+    data = simulate("arena", robots=1, duration=1.0)
+    info = data.robots["r1"].info.model_copy(update={"turn_slip_var": 0.02})
+    events = [OdomEvent("r1", k, 0.1 * (k + 1), 0.1, np.array([0.5, -0.4]), np.diag([1e-4, 1e-4])) for k in range(5)]
+
+    def pending(config: FastSlamConfig, robot_info) -> tuple[np.ndarray, np.ndarray]:
+        slam = FastSlam(config, [robot_info])
+        for event in events:
+            slam.on_odometry(event)
+        return motion.pending_motion(slam.robots["r1"], slam.config)
+
+    delta, plain = pending(FastSlamConfig(particles=4, seed=0), info)
+    _, slipped = pending(FastSlamConfig(particles=4, seed=0, turn_slip=True), info)
+    assert delta[2] == pytest.approx(-0.2)
+    assert slipped[2, 2] - plain[2, 2] == pytest.approx(0.02 * 0.2, rel=1e-9)
+    np.testing.assert_allclose(np.delete(slipped.ravel(), 8), np.delete(plain.ravel(), 8))
+    _, unannounced = pending(FastSlamConfig(particles=4, seed=0, turn_slip=True), data.robots["r1"].info)
+    np.testing.assert_allclose(unannounced, plain)

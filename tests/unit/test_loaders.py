@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 
+from robots.gaussian import turn_slip
 from robots.loaders import data_root, detect_beacons, load_dataset
 from robots.loaders.common import gps_spikes, group_by_stamp, odometry_intervals, read_table
 from robots.models import AckermannModel, RangeBearingSensor
@@ -120,29 +121,28 @@ def test_beacon_detector_clusters_reflective_beams_inside_the_range_window():
     assert found.rejected == 1
 
 
-def test_mrclam_turn_var_gives_each_control_a_variance_that_grows_with_its_turn(tiny_mrclam):
-    """Each reading's ω variance is σ_ω² + turn_var·|ω|/dt, so a turn adds turn_var per radian to the heading
-    variance, however finely it is sampled; without turn_var every control shares one covariance."""
-    log = load_dataset(f"mrclam:{tiny_mrclam}", w_std=0.1, turn_var=0.02).robots["r1"]
-    assert log.odom_cov.shape == (log.odom_stamp.size, 2, 2)
-    turning = np.abs(log.odom_control[:, 1])
-    np.testing.assert_allclose(log.odom_cov[:, 1, 1], 0.1**2 + 0.02 * turning / log.odom_dt)
-    np.testing.assert_allclose(log.odom_cov[:, 0, 0], 0.02**2)
-    np.testing.assert_allclose(np.sum((log.odom_cov[:, 1, 1] - 0.1**2) * log.odom_dt**2), 0.02 * np.sum(turning * log.odom_dt))
-    assert log.odom(int(np.argmax(turning))).control_cov[1, 1] > log.odom(int(np.argmin(turning))).control_cov[1, 1]
-    assert load_dataset(f"mrclam:{tiny_mrclam}").robots["r1"].odom_cov.shape == (2, 2)
+def test_mrclam_robots_announce_their_turn_slip(tiny_mrclam):
+    """Every MR.CLAM robot announces the heading variance per radian turned its odometry covariance leaves out
+    (0.015 by default, the loader's ``turn_slip_var`` otherwise); the odometry covariance stays one for all controls."""
+    data = load_dataset(f"mrclam:{tiny_mrclam}")
+    assert {log.info.turn_slip_var for log in data.robots.values()} == {0.015}
+    assert data.robots["r1"].odom_cov.shape == (2, 2)
+    assert load_dataset(f"mrclam:{tiny_mrclam}", turn_slip_var=0.0).robots["r1"].info.turn_slip_var == 0.0
 
 
 @needs_data
-def test_mrclam_turn_var_covers_the_heading_error_of_turns():
-    """Over 4 s windows of Dataset 6, the odometry's heading error against Vicon is within 3σ of the model in
-    at least 99 % of the windows with turn_var 0.015, turning or not; with σ_ω alone, in under 80 % of the turns."""
-    def within_three_sigma(data) -> tuple[float, float]:
+def test_mrclam_turn_slip_covers_the_heading_error_of_turns():
+    """Over 4 s windows of Dataset 6, the odometry's heading error against Vicon is within 3σ of the model (σ_ω
+    and the announced turn slip, :func:`robots.gaussian.turn_slip` per reading) in at least 99 % of the windows,
+    turning or not; with σ_ω alone, in under 80 % of the turns."""
+    def within_three_sigma(data, slip: bool) -> tuple[float, float]:
         every, turning = [], []
         for log in data.robots.values():
             covs = np.broadcast_to(log.odom_cov, (log.odom_stamp.size, 2, 2))
-            heading = np.concatenate([[0.0], np.cumsum(log.odom_control[:, 1] * log.odom_dt)])
-            variance = np.concatenate([[0.0], np.cumsum(covs[:, 1, 1] * log.odom_dt**2)])
+            turns = log.odom_control[:, 1] * log.odom_dt
+            added = [turn_slip(log.info.turn_slip_var if slip else 0.0, turn) for turn in turns]
+            heading = np.concatenate([[0.0], np.cumsum(turns)])
+            variance = np.concatenate([[0.0], np.cumsum(covs[:, 1, 1] * log.odom_dt**2 + np.array(added))])
             turned = np.concatenate([[0.0], np.cumsum(np.abs(log.odom_control[:, 1]) * log.odom_dt)])
             ends = np.concatenate([[log.odom_stamp[0] - log.odom_dt[0]], log.odom_stamp])
             valid = np.isfinite(log.truth_pose[:, 2])
@@ -156,9 +156,10 @@ def test_mrclam_turn_var_covers_the_heading_error_of_turns():
             turning.append(inside[turned[i1] - turned[i0] > 0.5])
         return float(np.mean(np.concatenate(every))), float(np.mean(np.concatenate(turning)))
 
-    every, turning = within_three_sigma(load_dataset("mrclam:utias_mrclam/MRCLAM_Dataset6", turn_var=0.015))
+    data = load_dataset("mrclam:utias_mrclam/MRCLAM_Dataset6")
+    every, turning = within_three_sigma(data, slip=True)
     assert every >= 0.99 and turning >= 0.99
-    _, turning_without = within_three_sigma(load_dataset("mrclam:utias_mrclam/MRCLAM_Dataset6"))
+    _, turning_without = within_three_sigma(data, slip=False)
     assert turning_without < 0.8
 
 

@@ -44,6 +44,44 @@ def test_robots_without_start_poses_are_anchored_and_placed_and_the_fleet_lines_
     assert raw > 1.0, "the anchor's frame is not the truth's: only the fleet alignment lines them up"
 
 
+@pytest.mark.parametrize("association, world, seed", [("known", "arena", 0), ("unknown", "random", 3)])
+def test_dslam_takes_robots_without_start_poses_through_the_same_placement(association, world, seed):
+    """D-SLAM: the first robot to scan starts the map (phase I from the origin), MCL places the others against it,
+    and the fleet lines up with the truth under one SE(2) transform."""
+    data = simulate(world, robots=3, seed=seed, duration=40.0)
+    run = run_estimator(data, RunOptions("dslam", association, None, 0), start_poses="none")
+    placement = run.extra["placement"]
+    assert sorted(record["how"] for record in placement.values()) == ["anchor", "mcl", "mcl"], placement
+    assert run.extra["dslam"]["robots_placed"] == 3
+    truth = {rid: Trajectory(log.truth_stamp, log.truth_pose) for rid, log in data.robots.items()}
+    fleet = fleet_alignment(run.trajectories, truth, true_landmarks=data.landmarks, map_means=run.map_means)
+    assert max(fleet["ate_rmse_m"].values()) < 0.5, fleet
+
+
+def test_dslam_placement_refuses_bad_poses_and_placed_robots_and_widens_a_pose_placed_against_a_map():
+    from services.dslam.config import DslamConfig
+    from services.dslam.core import DSlam
+
+    infos = withhold_start_poses([log.info for log in simulate("arena", robots=2, seed=0, duration=1.0).robots.values()],
+                                 "none")
+    slam = DSlam(DslamConfig(placement_floor=(0.3, 0.3, 0.1)))
+    for info in infos:
+        slam.add_robot(info)
+    assert slam.is_waiting("r1") and slam.robot_count == 0
+    assert not slam.place_robot("r1", np.array([0.0, np.nan, 0.0]), np.zeros((3, 3)))
+    assert not slam.place_robot("r1", np.zeros(3), -np.eye(3))
+    assert not slam.place_robot("nobody", np.zeros(3), np.zeros((3, 3)))
+    assert slam.counts["bad_placement"] == 2 and slam.counts["place_refused"] == 1
+    assert slam.place_robot("r1", np.zeros(3), np.zeros((3, 3)), stamp=1.0)
+    assert slam.robots["r1"].known_start and not slam.is_waiting("r1") and slam.robot_count == 1
+    assert not slam.place_robot("r1", np.zeros(3), np.zeros((3, 3)))
+    slam.load_landmarks(np.array([7]), np.array([[1.0, 2.0]]), np.eye(2)[None] * 0.01)
+    assert slam.place_robot("r2", np.ones(3), np.eye(3) * 0.01)
+    robot = slam.robots["r2"]
+    assert robot.localized and not robot.known_start
+    np.testing.assert_allclose(np.diag(robot.cov), 0.01 + np.square([0.3, 0.3, 0.1]), rtol=1e-6)
+
+
 def test_a_robot_that_is_never_placed_is_reported_with_the_reason():
     data = simulate("arena", robots=2, seed=1, duration=20.0)
     blind = data.robots["r2"]

@@ -184,7 +184,7 @@ def test_a_recording_is_the_data_set_it_recorded_and_gives_the_same_estimates(tm
 
 
 def test_a_covariance_per_control_is_recorded_and_loaded_per_control(tmp_path):
-    """A robot whose odometry covariance follows its controls (MR.CLAM's ``turn_var``) keeps one per message;
+    """A robot whose odometry covariance follows its controls keeps one per message;
     a robot with one covariance for every control keeps that one."""
     original = fleet(duration=2.0)
     log = original.robots["r1"]
