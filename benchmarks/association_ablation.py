@@ -20,7 +20,8 @@ Steps (D-SLAM, ``--association unknown``: the association service's ``auto``; de
 - ``dslam-floor``: ... gating with ``gate_pose_floor`` added to the pose covariance;
 - ``dslam-local-map``: ... and scans with fewer than two mapped features collected into local maps;
 - ``dslam-turn-slip``: ... and the heading variance per radian turned the robots announce (MR.CLAM's 0.015;
-  the other data sets announce none) added to each prediction: the default;
+  the other data sets announce none), summed since the last localization, added to the association's gate: the
+  default;
 - ``dslam-unique``: the default with ``unique_pairs``.
 
 Data: MR.CLAM 6 (five robots in one filter), Victoria Park (GPS), ACFR car park (GPS and surveyed beacons).

@@ -122,17 +122,13 @@ def systematic_resample(weights: np.ndarray, count: int, rng: np.random.Generato
     return np.minimum(np.searchsorted(cdf, points, side="right"), weights.size - 1)
 
 
-def ekf_predict_pose(x: np.ndarray, P: np.ndarray, model, control, control_cov, dt: float,
-                     turn_slip_var: float = 0.0) -> None:
-    """EKF-SLAM prediction in place: the pose x[:3] moves by one control of ``model``; the landmarks stay.
-    ``turn_slip_var``: heading variance added per radian turned (:func:`turn_slip`)."""
+def ekf_predict_pose(x: np.ndarray, P: np.ndarray, model, control, control_cov, dt: float) -> None:
+    """EKF-SLAM prediction in place: the pose x[:3] moves by one control of ``model``; the landmarks stay."""
     f_pose, f_control = model.jacobians(x[:3], control, dt)
-    heading = x[2]
     x[:3] = model.step(x[:3], control, dt)
     P[:3, :] = f_pose @ P[:3, :]
     P[:, :3] = P[:, :3] @ f_pose.T
     P[:3, :3] += f_control @ np.asarray(control_cov, float) @ f_control.T
-    P[2, 2] += turn_slip(turn_slip_var, x[2] - heading)
 
 
 def turn_slip(var_per_rad: float, turn: float) -> float:

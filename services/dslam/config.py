@@ -33,9 +33,11 @@ class DslamConfig(CoreConfig):
         "pairs as many measurements without it (JCBB; the measurement is set aside otherwise): under a wide pose "
         "uncertainty a wrong pairing passes every gate, and one taken by CI turns the robot for good")
     turn_slip: bool = Field(
-        True, description="add the heading variance per radian turned that the robot announces (RobotInfo.turn_slip_var, "
-        "wheel slip: MR.CLAM 0.015) to each prediction: without it a turning MR.CLAM robot's heading error grows to "
-        "0.8 rad while D-SLAM's heading std stays at 0.08–0.10 rad, and no detection gates again")
+        True, description="widen the association's gate by the heading variance per radian turned that the robot "
+        "announces (RobotInfo.turn_slip_var, wheel slip: MR.CLAM 0.015), summed since its last full-rank localization: "
+        "without it a turning MR.CLAM robot's heading error grows to 0.8 rad while its heading std stays at "
+        "0.08–0.10 rad, and no detection gates again. The fused pose keeps the odometry's covariance: the slip in "
+        "the prediction too made MR.CLAM with barcodes worse in every subset of robots tried")
     new_feature_density: float = Field(1e-3, gt=0, description="expected new features per m·rad of measurement space")
     candidate_margin: float = Field(1.0, ge=0, description="landmarks up to max range + this (m) are association candidates")
     confirm_hits: int = Field(2, ge=1, description="sightings before a tentative feature enters the map (association methods; known ids map at once)")

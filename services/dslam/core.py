@@ -40,7 +40,7 @@ from typing import Callable
 import numpy as np
 import scipy.linalg
 
-from robots.gaussian import chi2_quantile, inv2, valid_cov3
+from robots.gaussian import chi2_quantile, inv2, turn_slip, valid_cov3
 from robots.models import in_field_of_view, robot_models, wrap_angle
 from schemas.association import AMBIGUOUS, NEW, AssociationReply, AssociationRequest
 from schemas.contract import MapView, OdomEvent, RunOptions, ScanEvent, SettingsError, build_config
@@ -91,6 +91,7 @@ class RobotState:
     localized: bool = False
     disagreements: int = 0
     local: LocalMap | None = None  # scans collected since the last z_map (local_map_max_std > 0)
+    turn_slip: float = 0.0  # heading variance turned since the last full-rank localization: widens the gate only
 
     def __post_init__(self) -> None:
         self.model, self.sensor = robot_models(self.info)
@@ -201,7 +202,7 @@ class DSlam:
         else:
             cov = cov + np.diag(np.square(self.config.placement_floor))
             robot.localized = True
-        robot.pose, robot.cov, robot.moved, robot.local = pose.copy(), cov, False, None
+        robot.pose, robot.cov, robot.moved, robot.local, robot.turn_slip = pose.copy(), cov, False, None, 0.0
         robot.streams.update(("odom", "scan"))  # its earlier messages went to the localizer: no missed start
         if stamp is not None:
             robot.stamp = float(stamp)
@@ -220,6 +221,7 @@ class DSlam:
             robot.pose = robot.cov = None
             robot.localized = False
             robot.local = None
+            robot.turn_slip = 0.0
             self.counts["lost_pose"] += 1
 
     def __getstate__(self) -> dict:
@@ -250,12 +252,14 @@ class DSlam:
             return
         if np.any(np.asarray(event.control) != 0.0):
             robot.moved = True
-        slip = robot.info.turn_slip_var if self.config.turn_slip else 0.0
         if robot.local is not None:
-            robot.local.predict(robot.model, event.control, event.control_cov, event.dt, slip)
+            robot.local.predict(robot.model, event.control, event.control_cov, event.dt)
         if robot.pose is None:
             return
-        robot.pose, robot.cov = predict(robot.pose, robot.cov, robot.model, event.control, event.control_cov, event.dt, slip)
+        heading = robot.pose[2]
+        robot.pose, robot.cov = predict(robot.pose, robot.cov, robot.model, event.control, event.control_cov, event.dt)
+        if self.config.turn_slip:
+            robot.turn_slip += turn_slip(robot.info.turn_slip_var, robot.pose[2] - heading)
         robot.stamp = event.stamp
 
     def poses(self) -> dict[str, tuple[np.ndarray, np.ndarray]]:
@@ -374,7 +378,7 @@ class DSlam:
         request = AssociationRequest(
             measurements=obs.reshape(-1, 2), noise=noise, landmarks=landmarks.reshape(-1, 2),
             landmark_covs=0.5 * (landmark_covs + np.swapaxes(landmark_covs, 1, 2)), pose=robot.pose,
-            pose_cov=0.5 * (robot.cov + robot.cov.T) + np.diag(np.square(s.gate_pose_floor)),
+            pose_cov=0.5 * (robot.cov + robot.cov.T) + np.diag(np.square(s.gate_pose_floor) + [0.0, 0.0, robot.turn_slip]),
             sensor_offset=np.asarray(spec.offset, float),
             gate_probability=s.gate_probability, new_feature_gate_probability=s.new_feature_gate_probability,
             clutter_density=max(spec.clutter_rate / area, 1e-9), new_feature_density=s.new_feature_density,
@@ -416,10 +420,12 @@ class DSlam:
                     self.counts["localization_rejected"] += 1
                     return
                 robot.pose, robot.cov = estimate.pose, 0.5 * (cov + cov.T)
-                robot.disagreements = 0
+                robot.disagreements, robot.turn_slip = 0, 0.0
                 self.counts["relocalized"] += 1
                 return
         robot.pose, robot.cov, robot.omega = localize(robot.pose, robot.cov, estimate, self.config.ci_criterion)
+        if estimate.full_rank:  # the heading is observed again
+            robot.turn_slip = 0.0
         robot.localized = True
         robot.disagreements = 0
 

@@ -44,10 +44,9 @@ class LocalMap:
         """Largest standard deviation (m) of the robot's position relative to the start."""
         return float(np.sqrt(max(np.linalg.eigvalsh(self.P[:2, :2]).max(), 0.0)))
 
-    def predict(self, model: MotionModel, control: np.ndarray, control_cov: np.ndarray, dt: float,
-                turn_slip_var: float = 0.0) -> None:
-        """Move the robot by one control (``turn_slip_var``: :func:`robots.gaussian.turn_slip`); the features stay."""
-        ekf_predict_pose(self.x, self.P, model, control, control_cov, dt, turn_slip_var)
+    def predict(self, model: MotionModel, control: np.ndarray, control_cov: np.ndarray, dt: float) -> None:
+        """Move the robot by one control; the features stay."""
+        ekf_predict_pose(self.x, self.P, model, control, control_cov, dt)
 
     def observe(self, observations: np.ndarray, noise: np.ndarray, keys: np.ndarray) -> None:
         """Fuse one scan: rows with a key already held update it, new keys augment the state, key −1 is skipped."""

@@ -23,19 +23,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from robots.gaussian import turn_slip
 from robots.models import MotionModel, RangeBearingSensor, rotation, wrap_angle
 
 
 def predict(pose: np.ndarray, cov: np.ndarray, model: MotionModel, control: np.ndarray, control_cov: np.ndarray,
-            dt: float, turn_slip_var: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
-    """The process-model estimate: pose and covariance after one control (EKF prediction), with ``turn_slip_var``
-    heading variance per radian turned (:func:`robots.gaussian.turn_slip`)."""
+            dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """The process-model estimate: pose and covariance after one control (EKF prediction)."""
     f_pose, f_control = model.jacobians(pose, control, dt)
-    new_pose = model.step(pose, control, dt)
     new_cov = f_pose @ cov @ f_pose.T + f_control @ control_cov @ f_control.T
-    new_cov[2, 2] += turn_slip(turn_slip_var, new_pose[2] - pose[2])
-    return new_pose, 0.5 * (new_cov + new_cov.T)
+    return model.step(pose, control, dt), 0.5 * (new_cov + new_cov.T)
 
 
 @dataclass

@@ -131,21 +131,41 @@ def test_two_measurements_of_one_feature_are_set_aside():
     assert estimator.map.n == len(set(scan.landmark_ids.tolist())) - 1
 
 
-def test_the_turn_slip_a_robot_announces_widens_its_heading_by_the_angle_turned():
-    """A robot announcing turn_slip_var gets that much heading variance per radian turned on top of its odometry
-    covariance; ``turn_slip=False`` ignores it, and a robot announcing none is unchanged."""
+
+def test_the_turn_slip_a_robot_announces_widens_the_association_gate_until_the_heading_is_observed():
+    """A robot announcing turn_slip_var gets that much heading variance per radian turned added to the pose covariance
+    its detections are gated with, not to its pose; ``turn_slip=False`` or a robot announcing none adds nothing, and
+    a full-rank localization starts the sum again."""
     data = simulate("arena", robots=1, duration=1.0)
     info = data.robots["r1"].info.model_copy(update={"turn_slip_var": 0.02})
     cov = np.diag([1e-4, 1e-4])
-    events = [OdomEvent("r1", k, 0.1 * (k + 1), 0.1, np.array([0.5, 0.4]), cov) for k in range(10)]
+    events = [OdomEvent("r1", k, 0.1 * (k + 1), 0.1, np.array([0.5, -0.4]), cov) for k in range(10)]
 
-    def heading_variance(config: DslamConfig, robot_info) -> float:
+    def gate_and_pose(config: DslamConfig, robot_info) -> tuple[float, float]:
         estimator = DSlam(config)
         estimator.add_robot(robot_info)
         for event in events:
             estimator.on_odometry(event)
-        return float(estimator.poses()["r1"][1][2, 2])
+        robot = estimator.robots["r1"]
+        _, _, request = estimator.association_request(robot, np.array([[2.0, 0.1]]), np.diag([0.01, 0.001]))
+        return float(request.pose_cov[2, 2]), float(robot.cov[2, 2])
 
-    plain = heading_variance(DslamConfig(turn_slip=False), info)
-    assert heading_variance(DslamConfig(), info) - plain == pytest.approx(0.02 * 0.4 * 1.0, rel=1e-9)
-    assert heading_variance(DslamConfig(), data.robots["r1"].info) == pytest.approx(plain, rel=1e-12)
+    plain_gate, plain_pose = gate_and_pose(DslamConfig(turn_slip=False), info)
+    gate, pose = gate_and_pose(DslamConfig(), info)
+    assert gate - plain_gate == pytest.approx(0.02 * 0.4, rel=1e-9)
+    assert pose == pytest.approx(plain_pose, rel=1e-12)
+    assert gate_and_pose(DslamConfig(), data.robots["r1"].info)[0] == pytest.approx(plain_gate, rel=1e-12)
+
+    mapped = simulate("grid196", robots=1, seed=0, duration=20.0)
+    slipping = mapped.robots["r1"].info.model_copy(update={"turn_slip_var": 0.02})
+    estimator = DSlam(DslamConfig(association="jcbb"))
+    estimator.add_robot(slipping)
+    turned = 0.0
+    for event in mapped.events():
+        if isinstance(event, OdomEvent):
+            estimator.on_odometry(event)
+            turned += abs(float(event.control[1])) * event.dt
+        elif isinstance(event, ScanEvent):
+            estimator.on_scan(event)
+    assert turned > 1.0
+    assert estimator.robots["r1"].turn_slip < 0.02 * 0.5 * turned

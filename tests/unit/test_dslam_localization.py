@@ -106,17 +106,3 @@ def test_predict_is_the_ekf_prediction_of_the_model():
     np.testing.assert_allclose(pose, model.step(np.zeros(3), control, 0.5))
     np.testing.assert_allclose(cov, f_pose @ p @ f_pose.T + f_control @ q @ f_control.T)
 
-
-@pytest.mark.parametrize("turn_rate", [0.2, -0.2, 0.0])
-def test_predict_adds_the_turn_slip_per_radian_turned(turn_rate):
-    """The heading variance grows by turn_slip_var per radian turned, in either direction (none when driving
-    straight), the rest of the prediction untouched."""
-    model = UnicycleModel()
-    control, q, p = np.array([1.0, turn_rate]), np.diag([0.01, 0.001]), np.diag([1e-4, 2e-4, 1e-5])
-    plain_pose, plain_cov = predict(np.zeros(3), p, model, control, q, 0.5)
-    pose, cov = predict(np.zeros(3), p, model, control, q, 0.5, turn_slip_var=0.015)
-    np.testing.assert_allclose(pose, plain_pose)
-    extra = cov - plain_cov
-    np.testing.assert_allclose(extra[2, 2], 0.015 * abs(turn_rate) * 0.5, atol=1e-15)
-    extra[2, 2] = 0.0
-    np.testing.assert_allclose(extra, 0.0, atol=1e-15)
