@@ -94,6 +94,13 @@ def valid_cov3(cov: np.ndarray) -> bool:
             and bool(np.all(np.linalg.eigvalsh(cov) >= -1e-12)))
 
 
+def valid_placement(pose: np.ndarray, cov: np.ndarray, stamp: float | None = None) -> bool:
+    """A finite pose ``(3,)`` with a valid 3×3 covariance (:func:`valid_cov3`), at a finite ``stamp`` if one is
+    given: what an estimator accepts to place a robot."""
+    return (pose.shape == (3,) and bool(np.all(np.isfinite(pose))) and valid_cov3(cov)
+            and (stamp is None or math.isfinite(stamp)))
+
+
 def sqrt_psd(cov: np.ndarray) -> np.ndarray:
     """A matrix L with L Lᵀ = cov for a symmetric positive semi-definite ``cov`` (stacks allowed).
 

@@ -7,13 +7,12 @@ removed; the landmarks it mapped stay in the shared map.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import numpy as np
 
-from robots.gaussian import sqrt_psd, valid_cov3
+from robots.gaussian import sqrt_psd, valid_placement
 from robots.models import MotionModel, RangeBearingSensor, robot_models, wrap_angle
 from schemas.messages import RobotInfo
 
@@ -74,8 +73,7 @@ def place(slam: FastSlam, robot_id: str, pose, cov, stamp: float | None) -> bool
     if robot_id not in slam.waiting:
         slam.rejected["place_unknown_robot"] += 1
         return False
-    if (pose.shape != (3,) or not np.all(np.isfinite(pose)) or not valid_cov3(cov)
-            or (stamp is not None and not math.isfinite(stamp))):
+    if not valid_placement(pose, cov, stamp):
         slam.rejected["bad_placement"] += 1
         return False
     take_in(slam, slam.waiting.pop(robot_id), pose, cov)

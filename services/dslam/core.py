@@ -40,7 +40,7 @@ from typing import Callable
 import numpy as np
 import scipy.linalg
 
-from robots.gaussian import chi2_quantile, inv2, turn_slip, valid_cov3
+from robots.gaussian import chi2_quantile, inv2, turn_slip, valid_placement
 from robots.models import in_field_of_view, robot_models, wrap_angle
 from schemas.association import AMBIGUOUS, NEW, AssociationReply, AssociationRequest
 from schemas.contract import MapView, OdomEvent, RunOptions, ScanEvent, SettingsError, build_config
@@ -192,8 +192,7 @@ class DSlam:
         if robot is None or robot.pose is not None:
             self.counts["place_refused"] += 1
             return False
-        if (pose.shape != (3,) or not np.all(np.isfinite(pose)) or not valid_cov3(cov)
-                or (stamp is not None and not np.isfinite(stamp))):
+        if not valid_placement(pose, cov, stamp):
             self.counts["bad_placement"] += 1
             return False
         cov = 0.5 * (cov + cov.T) + np.diag([1e-9, 1e-9, 1e-12])
