@@ -13,6 +13,7 @@ from central.fastslam.core import FastSlam
 from robots.simulator import simulate
 from schemas.contract import OdomEvent
 from services.checkpoint import CheckpointError, CheckpointStore, decode_checkpoint, encode_checkpoint
+from services.dslam.config import DslamConfig
 from services.dslam.core import DSlam
 from services.mcl.config import MclConfig
 from services.mcl.fleet import MclFleet
@@ -130,6 +131,23 @@ def test_dslam_carries_on_after_a_checkpoint_to_its_solver_tolerance(two_robots)
     np.testing.assert_allclose(restored.landmark_map().means, straight.landmark_map().means, atol=1e-6)
     for rid, (pose, _) in straight.poses().items():
         np.testing.assert_allclose(restored.poses()[rid][0], pose, atol=1e-6)
+
+
+def test_a_dslam_checkpoint_from_before_the_turn_slip_carries_on(two_robots):
+    """A checkpoint whose robots have no summed turn slip (written before it existed) reads the field's default,
+    none, and the filter carries on."""
+    dataset, events = two_robots
+    half = len(events) // 2
+    old = DSlam(DslamConfig(association="jcbb"))
+    for log in dataset.robots.values():
+        old.add_robot(log.info.model_copy(update={"turn_slip_var": 0.02}))
+    _feed(old, events[:half])
+    for robot in old.robots.values():
+        del robot.__dict__["turn_slip"]
+    restored = pickle.loads(pickle.dumps(old))
+    assert {robot.turn_slip for robot in restored.robots.values()} == {0.0}
+    _feed(restored, events[half:])
+    assert len(restored.ids) > 3 and all(robot.pose is not None for robot in restored.robots.values())
 
 
 def test_mcl_carries_on_bitwise_after_a_checkpoint(two_robots):
