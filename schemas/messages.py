@@ -114,7 +114,8 @@ class RobotInfo(Message):
     turn_slip_var: float = Field(
         0.0, ge=0.0, allow_inf_nan=False,
         description="heading variance (rad²) per radian turned that the odometry covariance leaves out: wheels "
-        "slip in turns (estimators that model it add it to each prediction, robots.gaussian.turn_slip)")
+        "slip in turns (robots.gaussian.turn_slip; D-SLAM widens its association gate by it, FastSLAM its motion when "
+        "asked)")
 
     @model_validator(mode="after")
     def _ackermann_has_wheelbase(self) -> "RobotInfo":
