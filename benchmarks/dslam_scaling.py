@@ -14,6 +14,14 @@ recovery of the mean and of the cached columns, exactly as the service does.
 The first revolution fills the column cache (a column not cached is solved by
 PCG): those scans are reported apart; the steady state is the rest.
 
+Between two scans the benchmark does what the D-SLAM service does while it waits
+for the next one (``--no-prefetch``: nothing): it solves the covariance columns
+the robot will soon need (:meth:`DSlam.column_prefetch`, in the service a worker
+thread) and takes them into the cache just before the next scan, in that scan's
+time. Those solves are reported apart (``prefetch``: count, mean and longest,
+against the 0.5 s between two scans); the five slowest scans are listed with the
+columns each solved itself.
+
 Reported per N: build time per scan, steady-state time per scan (median,
 mean, p90, max), the cost of a first-sighting column solve, the information
 matrix's non-zeros, the bytes of the filter's arrays and the process RSS, and
@@ -44,7 +52,7 @@ from services.dslam.config import DslamConfig
 from services.dslam.core import DSlam
 from services.dslam.information_filter import InformationMap
 from report import emit
-from support.grid_world import FOV, NOISE, RANGE, SCANS_PER_LAP, SPACING, GridWorld, exponent, rss_mb
+from support.grid_world import CIRCLE_DT, FOV, NOISE, RANGE, SCANS_PER_LAP, SPACING, GridWorld, exponent, rss_mb
 
 def lawnmower(width: float, lane: float = 6.0, step: float = 1.0) -> np.ndarray:
     poses = []
@@ -93,20 +101,36 @@ def build(world: GridWorld, rng: np.random.Generator):
                          "final_sparse_solve_s": time.perf_counter() - final}
 
 
-def drive(world: GridWorld, dslam: DSlam, rng: np.random.Generator, scans: int) -> tuple[np.ndarray, np.ndarray]:
-    """The circle of radius 4 m around the world's centre; returns seconds per scan and columns solved per scan."""
-    seconds, solves = [], []
+def drive(world: GridWorld, dslam: DSlam, rng: np.random.Generator, scans: int,
+          prefetch: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The circle of radius 4 m around the world's centre; returns seconds per scan, columns solved per scan and
+    the seconds of each column prefetch solve.
+
+    With ``prefetch``, what the service does between two scans: the columns the robot will soon need are solved
+    (:meth:`DSlam.column_prefetch`, the service's worker thread) and, just before the next scan, taken into the
+    cache; that taking counts in the next scan's time (the service takes them under the map's lock, so a scan
+    may wait for it)."""
+    seconds, solves, prefetch_s = [], [], []
+    pending = None
     for odometry, scan, _ in world.circle(rng, scans):
         dslam.on_odometry(odometry)
         before = dslam.map.column_solves
         tick = time.perf_counter()
+        if pending is not None:
+            dslam.take_prefetched(*pending)
+            pending = None
         dslam.on_scan(scan)
         seconds.append(time.perf_counter() - tick)
         solves.append(dslam.map.column_solves - before)
-    return np.array(seconds), np.array(solves)
+        job = dslam.column_prefetch() if prefetch else None
+        if job is not None:
+            tick = time.perf_counter()
+            pending = (job, job.run())
+            prefetch_s.append(time.perf_counter() - tick)
+    return np.array(seconds), np.array(solves), np.array(prefetch_s)
 
 
-def one_size(n: int, seed: int, scans: int, cache: int, settings: dict) -> dict:
+def one_size(n: int, seed: int, scans: int, cache: int, settings: dict, prefetch: bool) -> dict:
     rng = np.random.default_rng([seed, n])
     world = GridWorld(n)
     m, index_of, built = build(world, rng)
@@ -118,7 +142,7 @@ def one_size(n: int, seed: int, scans: int, cache: int, settings: dict) -> dict:
     dslam.add_robot(world.robot_info(None))
     per_lap = SCANS_PER_LAP
     factorisations = m.factorisations
-    seconds, solves = drive(world, dslam, rng, scans)
+    seconds, solves, prefetch_s = drive(world, dslam, rng, scans, prefetch)
     steady = seconds[per_lap:]
     first = seconds[:per_lap][solves[:per_lap] > 0]
     error = dslam.map.means - world.landmarks[np.asarray(dslam.ids)]
@@ -131,6 +155,13 @@ def one_size(n: int, seed: int, scans: int, cache: int, settings: dict) -> dict:
         "first_lap_max_ms": 1e3 * float(np.max(seconds[:per_lap])),
         "first_lap_column_solves": int(solves[:per_lap].sum()),
         "first_lap_max_ms_with_column_solves": 1e3 * float(np.max(first)) if first.size else None,
+        "slowest_scans": [{"scan": int(k), "ms": 1e3 * float(seconds[k]), "column_solves": int(solves[k])}
+                          for k in np.argsort(-seconds)[:5]],
+        "prefetch": {"solves": int(prefetch_s.size), "columns": int(m.columns_prefetched),
+                     "dropped": int(m.columns_prefetch_dropped),
+                     "max_ms": 1e3 * float(prefetch_s.max()) if prefetch_s.size else None,
+                     "mean_ms": 1e3 * float(prefetch_s.mean()) if prefetch_s.size else None,
+                     "scan_period_ms": 1e3 * CIRCLE_DT},
         "timed_factorisations": int(m.factorisations - factorisations),
         "info_nnz": int(m.matrix.nnz), "info_blocks": int(m.matrix.blocks),
         "filter_bytes": int(m.memory_bytes()), "column_cache_bytes": int(m.cache.nbytes()), "rss_mb": rss_mb(),
@@ -151,6 +182,8 @@ def main() -> None:
                         help="DslamConfig.recovery_check_every (1: the reference)")
     parser.add_argument("--column-solver", choices=["corrected", "pcg"], default=DslamConfig().column_solver,
                         help="DslamConfig.column_solver (pcg: the reference)")
+    parser.add_argument("--no-prefetch", dest="prefetch", action="store_false",
+                        help="solve every column a scan lacks in that scan (without the service's solves between scans)")
     parser.add_argument("--out")
     args = parser.parse_args()
     sizes = [int(s) for s in args.sizes.split(",")]
@@ -158,14 +191,14 @@ def main() -> None:
     for n in sizes:
         runs[n] = one_size(n, args.seed, args.scans, args.cache,
                            {"covariance_columns": args.columns, "recovery_check_every": args.check_every,
-                            "column_solver": args.column_solver})
+                            "column_solver": args.column_solver}, args.prefetch)
         print(json.dumps({n: runs[n]}), flush=True)
     ns = [runs[n]["landmarks"] for n in sizes]
     result = {
         "benchmark": "dslam_scaling", "setup": {"spacing_m": SPACING, "range_m": RANGE, "fov_rad": FOV,
                                                 "column_cache": args.cache, "timed_scans": args.scans, "seed": args.seed,
                                                 "covariance_columns": args.columns, "recovery_check_every": args.check_every,
-                                                "column_solver": args.column_solver},
+                                                "column_solver": args.column_solver, "prefetch": args.prefetch},
         "runs": {str(n): runs[n] for n in sizes},
         "fitted_exponent": {
             "steady_ms_per_scan_median": exponent(ns, [runs[n]["steady_ms_per_scan"]["median"] for n in sizes]),

@@ -67,6 +67,12 @@ class DslamConfig(CoreConfig):
     column_correction_limit: int = Field(
         64, ge=0, description="corrected: landmarks touched since the factorisation kept cached (pinned) for the "
         "correction; beyond this many the next column solve factorises I afresh")
+    column_prefetch_margin: float = Field(
+        2.0, ge=0, description="the service solves, in a worker thread between scans, the covariance columns of the "
+        "landmarks within max range + candidate_margin + this (m) of a placed robot that are not cached, so that a "
+        "scan first seeing them does not stall on the solve (10^5 landmarks: about 160 ms a column); 0: off. "
+        "Offline runs (no time between scans) never do")
+    column_prefetch_batch: int = Field(8, ge=1, description="landmarks whose columns one such solve takes (nearest first)")
     column_cache: int = Field(64, ge=1, description="covariance columns kept to warm-start the next solves (landmarks)")
     covariance_columns: Literal["factored", "explicit"] = Field(
         "factored", description="cached covariance columns kept as full-length base vectors times a small mixing "

@@ -46,7 +46,7 @@ from schemas.association import AMBIGUOUS, NEW, AssociationReply, AssociationReq
 from schemas.contract import MapView, OdomEvent, RunOptions, ScanEvent, SettingsError, build_config
 from schemas.messages import RobotInfo
 from services.dslam.config import DslamConfig
-from services.dslam.information_filter import InformationMap
+from services.dslam.information_filter import ColumnJob, InformationMap
 from services.dslam.local_map import LocalMap
 from services.dslam.localization import localize, observation_estimate, pose_from_points, predict
 from services.dslam.recast import scan_points
@@ -654,6 +654,31 @@ class DSlam:
             stamp=max(stamps) if stamps else 0.0,
         )
 
+    # ------------------------------------------------------ columns off the scan
+    def column_prefetch(self) -> ColumnJob | None:
+        """The covariance columns the placed robots will soon need and the cache lacks, as a :class:`ColumnJob`
+        for a worker thread between scans (None: nothing to do, or ``column_prefetch_margin`` 0). Their landmarks
+        lie within max range + ``candidate_margin`` + ``column_prefetch_margin`` of a robot's sensor (the
+        association asks for those within max range + ``candidate_margin``), nearest first."""
+        s = self.config
+        if s.column_prefetch_margin <= 0 or self.map.n == 0:
+            return None
+        means = self.map.stale_means()
+        best = np.full(self.map.n, np.inf)
+        for robot in self.robots.values():
+            if robot.pose is None:
+                continue
+            reach = robot.info.sensor.max_range + s.candidate_margin + s.column_prefetch_margin
+            position = robot.sensor.sensor_position(robot.pose)[0]
+            d2 = np.sum((means - position) ** 2, axis=1)
+            best = np.where(d2 <= reach * reach, np.minimum(best, d2), best)
+        near = np.flatnonzero(np.isfinite(best))
+        return self.map.column_job(near[np.argsort(best[near], kind="stable")], s.column_prefetch_batch)
+
+    def take_prefetched(self, job: ColumnJob, solved: np.ndarray) -> int:
+        """Cache the columns a :meth:`column_prefetch` job solved (exact for the updates since); how many."""
+        return self.map.take_columns(job, solved)
+
     def extra_metrics(self) -> dict:
         """Figures for ``fleetslam run``: the core's counters and sparsity."""
         return {"dslam": self.stats()}
@@ -668,6 +693,8 @@ class DSlam:
             "column_iterations": float(self.map.column_iterations),
             "column_solves": float(self.map.column_solves),
             "factorisations": float(self.map.factorisations),
+            "columns_prefetched": float(self.map.columns_prefetched),
+            "columns_prefetch_dropped": float(self.map.columns_prefetch_dropped),
             "step_ms": float(self.last_step_ms),
             "memory_mb": self.map.memory_bytes() / 2**20,
             **{k: float(v) for k, v in self.counts.items()},

@@ -378,11 +378,17 @@ class FactoredColumns(_LandmarkSlots):
             self.base = grown
         self.size = rows
 
-    def add_bases(self, count: int) -> np.ndarray:
-        """Append ``count`` zero base vectors; return their indices."""
+    def reserved_bases(self) -> int:
+        """Base vectors to allocate room for: as many as the cache can use before :meth:`wants_compaction`, and a
+        batch more. Growing the base copies it (at 10^5 landmarks 1.6 MB a vector: 0.1–0.4 s within a scan); the
+        room beyond ``used`` is zeros the system allocates only when written."""
+        return 4 * self.capacity + 128
+
+    def add_bases(self, count: int, zero: bool = True) -> np.ndarray:
+        """Append ``count`` base vectors, zero unless the caller writes them whole (``zero`` False); their indices."""
         need = self.used + count
         if need > self.base.shape[0]:
-            cap = max(need, 2 * self.base.shape[0])
+            cap = max(need, 2 * self.base.shape[0], self.reserved_bases())
             base = np.zeros((cap, self.base.shape[1]))
             base[: self.used] = self.base[: self.used]
             mix = np.zeros((cap, self.mix.shape[1]))
@@ -391,7 +397,8 @@ class FactoredColumns(_LandmarkSlots):
             shift[: self.used], scale[: self.used] = self.shift[: self.used], self.scale[: self.used]
             self.base, self.mix, self.shift, self.scale = base, mix, shift, scale
         added = np.arange(self.used, need)
-        self.base[added] = 0.0
+        if zero:
+            self.base[added] = 0.0
         self.mix[added] = 0.0
         self.shift[added] = 0.0
         self.scale[added] = 0.0
@@ -422,13 +429,16 @@ class FactoredColumns(_LandmarkSlots):
 
     def insert_corrected(self, landmarks: list[int], solved: np.ndarray, positions: np.ndarray,
                          coefficients: np.ndarray) -> None:
-        """Store the columns solved − P[:, cached at ``positions``] ``coefficients`` of ``landmarks``: ``solved``
-        (2n, 2k) becomes new base vectors, the correction only mixes the cached columns' coefficients."""
+        """Store the columns solved − P[:, cached at ``positions``] ``coefficients`` of ``landmarks``: ``solved``,
+        as rows (2k, up to 2n; the rows beyond are zero), becomes new base vectors, the correction only mixes the
+        cached columns' coefficients."""
         correction = self.mix[: self.used, positions] @ coefficients
         used = self.used
-        bases = self.add_bases(solved.shape[1])
-        self.base[bases, : self.size] = solved.T
-        self.scale[bases] = np.max(np.abs(solved), axis=0)
+        bases = self.add_bases(solved.shape[0], zero=False)
+        known = solved.shape[1]
+        self.base[used: used + bases.size, :known] = solved
+        self.base[used: used + bases.size, known:] = 0.0
+        self.scale[bases] = np.max(np.abs(solved), axis=1)
         new = self.new_slots(landmarks)
         self.mix[bases, new] = 1.0
         self.mix[:used, new] = -correction
@@ -459,17 +469,40 @@ class FactoredColumns(_LandmarkSlots):
         """Make the cached columns themselves the base (B ← B T, T ← 1); the pending shift must be taken first."""
         landmarks = list(self.slot)
         positions = self.columns(landmarks) if landmarks else np.zeros(0, np.int64)
-        base = np.zeros((positions.size, self.base.shape[1]))
-        base[:, : self.size] = self.mix[: self.used, positions].T @ self.base[: self.used, : self.size]
+        rows = max(positions.size, self.reserved_bases())
+        base = np.zeros((rows, self.base.shape[1]))
+        base[: positions.size, : self.size] = self.mix[: self.used, positions].T @ self.base[: self.used, : self.size]
         self.base, self.used = base, positions.size
-        self.scale = np.max(np.abs(base), axis=1) if base.size else np.zeros(positions.size)
-        self.mix = np.eye(positions.size)
-        self.shift = np.zeros(positions.size)
+        self.scale = np.zeros(rows)
+        self.scale[: positions.size] = np.max(np.abs(base[: positions.size]), axis=1) if positions.size else 0.0
+        self.mix = np.eye(rows, positions.size)
+        self.shift = np.zeros(rows)
         self.slot = OrderedDict((landmark, k) for k, landmark in enumerate(landmarks))
         self._free = []
 
     def nbytes(self) -> int:
-        return int(self.base.nbytes + self.mix.nbytes + self.shift.nbytes)
+        """Bytes of the base vectors in use and of the mixing matrix (the room reserved beyond them is not written)."""
+        return int(self.used * self.base.shape[1] * self.base.itemsize + self.mix.nbytes + self.shift.nbytes)
+
+
+class ColumnJob:
+    """Covariance columns solved off the scan (a worker thread between scans, :meth:`InformationMap.column_job`).
+
+    Only the expensive part: b = I₀⁻¹ e_j for each landmark j, one multi-column solve with the stored sparse LU
+    factor of I₀ (SuperLU releases the GIL while it solves, and only reads the factor). Made exact for the updates
+    since and stored in the cache by :meth:`InformationMap.take_columns`, on the thread that owns the map.
+    """
+
+    def __init__(self, factor, size: int, landmarks: list[int]):
+        self.factor, self.size, self.landmarks = factor, size, landmarks
+
+    def run(self) -> np.ndarray:
+        """The solves as rows (2k, size), the layout of the cache's base vectors; touches nothing but the factor
+        it was given."""
+        k = len(self.landmarks)
+        rhs = np.zeros((self.size, 2 * k))
+        rhs[block_rows(np.array(self.landmarks, np.int64)), np.arange(2 * k)] = 1.0
+        return np.ascontiguousarray(self.factor.solve(rhs).T)
 
 
 class InformationMap:
@@ -486,6 +519,9 @@ class InformationMap:
     warm-started there, which usually stops at once: :meth:`maintain` does that every
     ``check_every`` scans (the check is one product with I, O(nnz)). Nothing inverts I.
     """
+
+    columns_prefetched = 0  # class defaults: a map checkpointed before column jobs existed carries on
+    columns_prefetch_dropped = 0
 
     def __init__(self, tol: float = 1e-5, max_iter: int = 200, column_tol: float = 1e-9,
                  column_max_iter: int = 100, cache_columns: int = 64, track_columns: bool = True,
@@ -523,6 +559,8 @@ class InformationMap:
         self.column_iterations_total = 0
         self.column_direct_solves = 0
         self.recovery_unconverged = 0
+        self.columns_prefetched = 0  # columns a ColumnJob solved off the scan and the cache took
+        self.columns_prefetch_dropped = 0  # ... and that it could not take (the factor changed meanwhile)
 
     @property
     def n(self) -> int:
@@ -545,6 +583,11 @@ class InformationMap:
     def means(self) -> np.ndarray:
         """Current landmark estimates (n, 2) (a view of the recovered mean)."""
         return self.mean.reshape(-1, 2)
+
+    def stale_means(self) -> np.ndarray:
+        """The landmark estimates (n, 2) without the change the factored columns still hold (the last scans' small
+        corrections): good enough to choose landmarks by distance, without the O(n) update of the whole mean."""
+        return self._mean.reshape(-1, 2)
 
     def landmark_means(self, index) -> np.ndarray:
         """Estimates (k, 2) of the landmarks ``index`` (k,), without bringing the whole mean up to date."""
@@ -982,21 +1025,62 @@ class InformationMap:
                 or 2 * int(missing_arr.max()) + 2 > self._factor_size):
             self.factorise()
             touched = np.zeros(0, np.int64)
-        size, known, k = 2 * self.n, self._factor_size, len(missing)
-        rhs = np.zeros((known, 2 * k))
-        rhs[block_rows(missing_arr), np.arange(2 * k)] = 1.0
-        solved = np.zeros((size, 2 * k))
-        solved[:known] = self._factor.solve(rhs)
-        coefficients = self._change_matrix(touched) @ solved[block_rows(touched)]
-        positions = self.cache.columns(touched) if touched.size else np.zeros(0, np.int64)
+        self._insert_corrected(missing, ColumnJob(self._factor, self._factor_size, missing).run(), touched)
         self.column_iterations = 0
-        self.column_solves += k
+        self.column_solves += len(missing)
+
+    def _insert_corrected(self, missing: list[int], raw: np.ndarray, touched: np.ndarray) -> None:
+        """Cache the columns of ``missing`` from their solves ``raw`` = I₀⁻¹ e_j, as rows (2k, the factor's size:
+        the landmarks added since are zero), corrected by the cached columns of the ``touched`` landmarks (see
+        :meth:`_solve_corrected`)."""
+        size, known = 2 * self.n, raw.shape[1]
+        rows = block_rows(touched)
+        at_touched = np.zeros((rows.size, raw.shape[0]))
+        inside = rows < known
+        at_touched[inside] = raw[:, rows[inside]].T
+        coefficients = self._change_matrix(touched) @ at_touched
+        positions = self.cache.columns(touched) if touched.size else np.zeros(0, np.int64)
         if self.factored:
-            self.cache.insert_corrected(missing, solved, positions, coefficients)
+            self.cache.insert_corrected(missing, raw, positions, coefficients)
             return
+        solved = np.zeros((size, raw.shape[0]))
+        solved[:known] = raw.T
         columns = solved - self.cache.full(positions, size) @ coefficients
         for j, lm in enumerate(missing):
             self.cache.insert(lm, columns[:, 2 * j: 2 * j + 2])
+
+    def column_job(self, landmarks, limit: int) -> ColumnJob | None:
+        """The solve that would cache the columns of up to ``limit`` of ``landmarks`` (nearest first) not cached
+        yet, for a worker thread to run between scans (:meth:`take_columns` stores them); None when there is
+        nothing to do, or no factor to do it with (a scan makes one when it needs it).
+
+        ``landmarks`` is the working set the robots will soon need: those cached count as used now, and the
+        cache grows to hold it beside the columns pinned for the correction (else each job would evict the last
+        one's columns)."""
+        if self.column_solver != "corrected" or self._factor is None:
+            return None
+        landmarks = list(dict.fromkeys(int(i) for i in landmarks))
+        self.cache.touch(landmarks)
+        self.cache.capacity = max(self.cache.capacity, len(landmarks) + len(self.cache.pinned))
+        missing = [i for i in landmarks if i not in self.cache and 2 * i + 2 <= self._factor_size]
+        return ColumnJob(self._factor, self._factor_size, missing[:limit]) if missing else None
+
+    def take_columns(self, job: ColumnJob, raw: np.ndarray) -> int:
+        """Cache the columns a :class:`ColumnJob` solved, made exact for the updates since; the number taken. None
+        are taken if the factor changed meanwhile, or a touched landmark's column is no longer cached (both as
+        the scan's own solve would find them); a landmark cached meanwhile keeps its column."""
+        touched = np.fromiter(self._touched, np.int64, len(self._touched))
+        if job.factor is not self._factor or any(int(t) not in self.cache for t in touched):
+            self.columns_prefetch_dropped += len(job.landmarks)
+            return 0
+        keep = [k for k, lm in enumerate(job.landmarks) if lm not in self.cache]
+        if not keep:
+            return 0
+        missing = [job.landmarks[k] for k in keep]
+        self._insert_corrected(missing, raw[block_rows(np.array(keep, np.int64))], touched)
+        self.columns_prefetched += len(missing)
+        self._evict(missing)
+        return len(missing)
 
     def covariance_columns(self, landmarks: np.ndarray) -> np.ndarray:
         """Columns (2n, 2k) of I⁻¹ for ``landmarks`` (k,): from the cache, solved by PCG where missing."""

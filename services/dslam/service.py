@@ -6,7 +6,10 @@ liveliness, RobotInfo, odometry and scans, new runs), localizes each robot, asso
 ``{prefix}/assoc/{method}`` with a timeout; while the queryable is unreachable
 the failure is counted and the in-process ``associate`` answers, for
 ``assoc_retry_s`` before the service is asked again, so the stream never
-waits on it), and fuses every robot's z_map into one map. Publishes
+waits on it), and fuses every robot's z_map into one map. Between scans a worker
+thread solves the covariance columns of the landmarks the robots are about to see
+(:meth:`DSlam.column_prefetch`), so that a large map's first sighting of them does
+not stall a scan (10^5 landmarks: about 160 ms a column). Publishes
 ``MapEstimate`` on ``{prefix}/dslam/map`` every ``map_period_s`` (landmark
 means, marginal covariances of the landmarks near the robots, information
 matrix nnz, recovery iterations) and ``PoseEstimate`` on
@@ -62,6 +65,7 @@ class DslamService(ServiceShell):
         self._pose_seq: Counter = Counter()
         self._map_seq = 0
         self._lock = asyncio.Lock()
+        self._prefetch: asyncio.Task | None = None  # the covariance columns being solved between scans
         seed_from_file(self.core, settings.map, self.core.config.association)
         self.map_saver = MapSaver(settings.map_out, {"estimator": "dslam", "association": self.core.config.association,
                                                      "service": "dslam", "from_map": settings.map},
@@ -132,8 +136,29 @@ class DslamService(ServiceShell):
             return
         async with self._lock:
             await asyncio.to_thread(self.core.on_scan, event)
+            self._start_prefetch()
         self._publish_pose(event.robot_id, event.stamp)
         self.extra = self._extra()  # here, in the loop, while no worker thread touches the core
+
+    def _start_prefetch(self) -> None:
+        """Solve the covariance columns the robots will soon need in a worker thread, unless one is at it (the
+        map lock held: :meth:`DSlam.column_prefetch` reads the core)."""
+        if self._prefetch is not None and not self._prefetch.done():
+            return
+        job = self.core.column_prefetch()
+        if job is not None:
+            self._prefetch = asyncio.create_task(self._prefetch_columns(job))
+
+    async def _prefetch_columns(self, job) -> None:
+        """The solve without the lock (scans go on meanwhile; SuperLU releases the GIL), then the cache takes the
+        columns under it, made exact for the updates of those scans."""
+        try:
+            solved = await asyncio.to_thread(job.run)
+            async with self._lock:
+                self.core.take_prefetched(job, solved)
+        except Exception:  # a failed prefetch costs only time: the scan that needs the columns solves them
+            self.core.counts["column_prefetch_failed"] += 1
+            log.exception("solving covariance columns between scans failed")
 
     # ------------------------------------------------------------- publishing
     def _publish_pose(self, rid: str, stamp: float) -> None:
@@ -173,6 +198,8 @@ class DslamService(ServiceShell):
         return {**self.core.stats(), **{k: float(v) for k, v in self.assoc_counts.items()}}
 
     def on_stop(self) -> None:
+        if self._prefetch is not None:
+            self._prefetch.cancel()
         self._map_pub.put(self.map_message())
         self.published += 1
         self.extra = self._extra()

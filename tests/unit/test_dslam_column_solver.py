@@ -102,3 +102,39 @@ def test_changing_the_cache_refactorises_before_a_corrected_solve():
 def test_unknown_column_solver_is_refused():
     with pytest.raises(ValueError):
         InformationMap(column_solver="amg")
+
+
+@pytest.mark.parametrize("columns", ["factored", "explicit"])
+def test_columns_solved_off_the_scan_are_exact_after_later_updates(columns):
+    """A column job solved with the factor, taken after more updates touched other landmarks, caches the columns of
+    the dense inverse of the current I, so the next request solves nothing; a landmark cached meanwhile is kept."""
+    _, scans = scan_sequence(2)
+    m, ids = build(scans, "corrected", columns)
+    want = [i for i in range(m.n) if i not in m.cache][:4]
+    job = m.column_job(want + [want[0]], limit=8)
+    assert job is not None and job.landmarks == want
+    raw = job.run()  # as a worker thread would, before the updates below
+    continue_map(m, ids, scans[::-1][:8])
+    assert m._touched, "the updates since the job must need the correction"
+    taken = m.take_columns(job, raw)
+    assert taken == len([i for i in want if i in m.cache]) and m.columns_prefetched == taken > 0
+    solves = m.column_solves
+    cov = dense_inverse(m)
+    np.testing.assert_allclose(m.covariance_columns(np.array(want)), cov[:, block_rows(np.array(want))],
+                               atol=1e-9, rtol=1e-6)
+    assert m.column_solves == solves
+
+
+def test_a_column_job_is_dropped_when_the_factor_changed():
+    """A job solved with a factor the map has since replaced is not taken (counted): its solves would not be
+    corrected by the right changes."""
+    _, scans = scan_sequence(2)
+    m, _ = build(scans, "corrected", "factored")
+    want = [i for i in range(m.n) if i not in m.cache][:3]
+    job = m.column_job(want, limit=8)
+    raw = job.run()
+    m.factorise()
+    assert m.take_columns(job, raw) == 0
+    assert m.columns_prefetch_dropped == 3 and not any(i in m.cache for i in want)
+    m._factor = None
+    assert m.column_job(want, limit=8) is None  # no factor: the scan that needs the columns makes one
