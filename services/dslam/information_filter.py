@@ -374,9 +374,18 @@ class FactoredColumns(_LandmarkSlots):
         """Make room for ``rows`` state rows (new rows of the base vectors are zero, filled by the caller)."""
         if rows > self.base.shape[1]:
             grown = np.zeros((self.base.shape[0], max(rows, 2 * self.base.shape[1])))
-            grown[:, : self.size] = self.base[:, : self.size]
+            grown[: self.used, : self.size] = self.base[: self.used, : self.size]  # the reserved room stays unwritten
             self.base = grown
         self.size = rows
+
+    def __getstate__(self) -> dict:
+        """Pickled without the room reserved beyond the base vectors in use (a checkpoint stays small); it is
+        reserved again when the next vectors are added."""
+        state = dict(self.__dict__)
+        used = self.used
+        state["base"] = self.base[:used, : self.size].copy()
+        state["mix"], state["shift"], state["scale"] = self.mix[:used].copy(), self.shift[:used].copy(), self.scale[:used].copy()
+        return state
 
     def reserved_bases(self) -> int:
         """Base vectors to allocate room for: as many as the cache can use before :meth:`wants_compaction`, and a

@@ -138,3 +138,22 @@ def test_a_column_job_is_dropped_when_the_factor_changed():
     assert m.columns_prefetch_dropped == 3 and not any(i in m.cache for i in want)
     m._factor = None
     assert m.column_job(want, limit=8) is None  # no factor: the scan that needs the columns makes one
+
+
+def test_a_pickled_factored_cache_leaves_its_reserved_room_out_and_carries_on():
+    """The base reserves room for the vectors to come; a checkpoint does not carry it, and the restored cache gives
+    the same columns and takes new ones."""
+    import pickle
+
+    _, scans = scan_sequence(2)
+    m, ids = build(scans, "corrected", "factored")
+    cache = m.cache
+    assert cache.base.shape[0] > cache.used  # room reserved beyond the vectors in use
+    restored = pickle.loads(pickle.dumps(m))
+    assert restored.cache.base.shape == (cache.used, cache.size)
+    cached = np.array(list(cache.slot))
+    np.testing.assert_array_equal(restored.cache.full(restored.cache.columns(cached), cache.size),
+                                  cache.full(cache.columns(cached), cache.size))
+    want = np.array([i for i in range(m.n) if i not in m.cache][:2])
+    np.testing.assert_allclose(restored.covariance_columns(want), dense_inverse(m)[:, block_rows(want)],
+                               atol=1e-9, rtol=1e-6)
