@@ -55,7 +55,7 @@ from schemas.config import CentralSettings, add_settings_arguments, settings_fro
 from schemas.contract import OdomEvent
 from schemas.messages import Estimate, MclPose, RobotEstimate, RobotInfo
 from services.maps import MapSaver, seed_from_file, serve_mapping_service
-from services.placement import PlacementCheck
+from services.placement import PlacementCheck, anchor_due
 from services.roster import StreamEvent
 from services.runtime import ServiceShell
 
@@ -132,11 +132,9 @@ class CentralService(ServiceShell):
         announced meanwhile is placed instead, and the frame stays the one its start pose is given in)."""
         if not self.settings.anchor_first or self.slam.robot_count or self.joining or self.prior_landmarks:
             return
-        waiting = [(t, rid) for rid, t in self.announced_waiting.items() if self.slam.is_waiting(rid)]
-        if not waiting or time.monotonic() - min(waiting)[0] < self.settings.anchor_after_s:
-            return
-        rid = min(waiting)[1]
-        if self.slam.place_robot(rid, np.zeros(3), np.zeros((3, 3))):
+        rid = anchor_due({rid: t for rid, t in self.announced_waiting.items() if self.slam.is_waiting(rid)},
+                         time.monotonic(), self.settings.anchor_after_s)
+        if rid is not None and self.slam.place_robot(rid, np.zeros(3), np.zeros((3, 3))):
             log.info("no robot has a start pose: robot %s anchors the world frame at the origin", rid)
             await self.admit(rid)
 

@@ -365,6 +365,17 @@ class MclSettings(FleetSettings, MclConfig, CheckpointSettings):
 
 
 
+class AnchorSettings(BaseModel):
+    """How the mapping services (``fleetslam central``, ``fleetslam dslam``) start a world frame when no robot has a
+    start pose (DESIGN §3: the first robot's start pose)."""
+
+    anchor_first: bool = Field(
+        True, description="when no robot is placed anchor_after_s after the first robot without a start pose was "
+        "announced, it anchors the world frame at the origin (DESIGN §3); the others wait for MCL")
+    anchor_after_s: float = Field(2.0, ge=0, description="wall seconds a robot without a start pose waits before it "
+                                  "may anchor the frame (a robot with a start pose announced meanwhile comes first)")
+
+
 class SavedMapSettings(BaseModel):
     """The saved-map flags of the mapping services (``fleetslam central``, ``fleetslam dslam``)."""
 
@@ -376,7 +387,7 @@ class SavedMapSettings(BaseModel):
     map_out_period_s: float = Field(30.0, ge=0, description="with map_out: rewrite the map file this often (s; 0: on exit only)")
 
 
-class DslamSettings(FleetSettings, DslamConfig, SavedMapSettings, CheckpointSettings):
+class DslamSettings(FleetSettings, DslamConfig, SavedMapSettings, AnchorSettings, CheckpointSettings):
     """``fleetslam dslam``: one D-SLAM map fed by every robot; association through the queryable."""
 
     assoc_timeout_s: float = Field(0.5, gt=0, description="how long to wait for the association queryable (s)")
@@ -486,17 +497,12 @@ class AssocSettings(FleetSettings):
     duration: float | None = Field(None, gt=0, description="stop after this many seconds (default: until SIGINT/SIGTERM)")
 
 
-class CentralSettings(FleetSettings, FastSlamConfig, SavedMapSettings, CheckpointSettings):
+class CentralSettings(FleetSettings, FastSlamConfig, SavedMapSettings, AnchorSettings, CheckpointSettings):
     """``fleetslam central``: the central multi-robot FastSLAM service (every robot in one filter)."""
 
     estimate_rate_hz: float = Field(2.0, gt=0, le=100, description="rate of the estimate publication on {prefix}/central/estimate")
     max_state_queries: int = Field(64, ge=1, description="queries of {prefix}/central/state that may wait for the next "
                                    "estimate (all get the one built then); more are answered busy at once")
-    anchor_first: bool = Field(
-        True, description="when no robot is placed anchor_after_s after the first robot without a start pose was "
-        "announced, it anchors the world frame at the origin (DESIGN §3); the others wait for MCL")
-    anchor_after_s: float = Field(2.0, ge=0, description="wall seconds a robot without a start pose waits before it "
-                                  "may anchor the frame (a robot with a start pose announced meanwhile comes first)")
     late_join: Literal["start_pose", "wait"] = Field(
         "start_pose", description="a robot whose first odometry was missed: keep its announced start pose, "
         "or wait for MCL to place it")

@@ -46,6 +46,16 @@ def withhold_start_poses(infos: list[RobotInfo], mode: str) -> list[RobotInfo]:
             for k, info in enumerate(infos)]
 
 
+def anchor_due(waiting: dict[str, float], now: float, after_s: float) -> str | None:
+    """Live: the robot that anchors the world frame at the origin now (DESIGN §3), of the robots ``waiting`` for a pose
+    (robot id → when it was announced, wall clock): the first announced, once it has waited ``after_s`` (a robot
+    with a start pose announced meanwhile is placed instead); None while none is due."""
+    if not waiting:
+        return None
+    announced, rid = min((t, rid) for rid, t in waiting.items())
+    return rid if now - announced >= after_s else None
+
+
 @dataclass
 class Placement:
     """How one robot entered the estimator (``how``: start pose, anchor, mcl), or why it has not."""

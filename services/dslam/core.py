@@ -92,6 +92,7 @@ class RobotState:
     disagreements: int = 0
     local: LocalMap | None = None  # scans collected since the last z_map (local_map_max_std > 0)
     turn_slip: float = 0.0  # heading variance turned since the last full-rank localization: widens the gate only
+    placed_at: float = float("-inf")  # the stamp of the pose it was placed at: its events before then are past
 
     def __post_init__(self) -> None:
         self.model, self.sensor = robot_models(self.info)
@@ -183,6 +184,11 @@ class DSlam:
         """Robots with a pose."""
         return sum(robot.pose is not None for robot in self.robots.values())
 
+    def map_is_empty(self) -> bool:
+        """No landmark mapped and no feature placed in the world yet (features seen only by robots without a pose,
+        with ids, do not count): a robot placed now starts the map, as from a known start pose."""
+        return self.map.n == 0 and not any(np.all(np.isfinite(t.position)) for t in self.tentative.values())
+
     def place_robot(self, rid: str, pose, cov, stamp: float | None = None) -> bool:
         """Give a waiting robot ``pose`` ``(3,)`` with covariance ``cov`` ``(3, 3)`` at ``stamp`` (the hook of
         :class:`services.placement.FleetPlacer`). A robot placed while the map is empty starts it, as from a known
@@ -196,7 +202,7 @@ class DSlam:
             self.counts["bad_placement"] += 1
             return False
         cov = 0.5 * (cov + cov.T) + np.diag([1e-9, 1e-9, 1e-12])
-        if self.map.n == 0 and not self.tentative:
+        if self.map_is_empty():
             robot.info = robot.info.model_copy(update={"start_pose": pose.copy(), "start_pose_cov": cov})
         else:
             cov = cov + np.diag(np.square(self.config.placement_floor))
@@ -204,7 +210,7 @@ class DSlam:
         robot.pose, robot.cov, robot.moved, robot.local, robot.turn_slip = pose.copy(), cov, False, None, 0.0
         robot.streams.update(("odom", "scan"))  # its earlier messages went to the localizer: no missed start
         if stamp is not None:
-            robot.stamp = float(stamp)
+            robot.stamp = robot.placed_at = float(stamp)
         self.counts["robots_placed"] += 1
         return True
 
@@ -236,11 +242,20 @@ class DSlam:
             return None
         return robot.pose.copy(), robot.cov.copy()
 
+    def before_placement(self, rid: str, stamp: float) -> bool:
+        """Whether ``stamp`` is older than the pose the robot was placed at (its events then are skipped)."""
+        robot = self.robots.get(rid)
+        return robot is not None and stamp < robot.placed_at
+
     def _robot_of(self, event: OdomEvent | ScanEvent, stream: str) -> RobotState | None:
-        """The robot an event belongs to (None, counted, if unknown); notes a missed start."""
+        """The robot an event belongs to (None, counted, if unknown, or if the event is older than the pose the robot
+        was placed at: that pose has it already); notes a missed start."""
         robot = self.robots.get(event.robot_id)
         if robot is None:
             self.counts["unknown_robot"] += 1
+        elif self.before_placement(event.robot_id, event.stamp):
+            self.counts["before_placement_pose"] += 1
+            return None
         elif not robot.check_start(stream, event.seq):
             self.counts["missed_start"] += 1
         return robot

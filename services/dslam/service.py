@@ -16,10 +16,18 @@ matrix nnz, recovery iterations) and ``PoseEstimate`` on
 ``{prefix}/dslam/pose/{rid}`` after each scan. Stats on ``{prefix}/dslam/stats``
 carry the core's figures in ``extra``.
 
+Robots without a start pose (as ``fleetslam central`` does): when no robot has been placed ``anchor_after_s``
+after the first of them was announced, it anchors the world frame at the origin (``anchor_first``; its map starts
+as from a known start pose, phase I). The others are placed by ``{prefix}/mcl/{rid}/pose`` (MclPose) once it
+says ``localized`` (the MCL service localizes against this map by default), their covariance widened by
+``placement_floor``; without landmark ids their events wait in the roster until then, and those older than the
+MCL pose are dropped (counted). With landmark ids a robot also places itself, from a scan that sees two mapped
+landmarks, whichever comes first.
+
 With ``map`` (``--map FILE``, :mod:`schemas.mapfile`) the map starts from a saved one, its landmarks entered
-as prior information (:meth:`DSlam.load_landmarks`) and published from the first tick; a robot without a
-start pose is placed once it sees two of its landmarks (known association). With ``map_out`` the map is
-saved (atomically) every ``map_out_period_s`` and on exit.
+as prior information (:meth:`DSlam.load_landmarks`) and published from the first tick; no robot anchors a frame,
+and a robot without a start pose is placed against that map as above. With ``map_out`` the map is saved
+(atomically) every ``map_out_period_s`` and on exit.
 """
 
 from __future__ import annotations
@@ -30,18 +38,20 @@ import logging
 import time
 from collections import Counter
 
+import numpy as np
 import zenoh
 
 from schemas.association import AssociationReply, AssociationRequest
-from schemas.codec import DecodeError
+from schemas.codec import DecodeError, decode
 from schemas.config import DslamSettings, add_settings_arguments, settings_from_args
 from schemas.contract import OdomEvent
-from schemas.messages import MapEstimate, PoseEstimate, RobotInfo
+from schemas.messages import MapEstimate, MclPose, PoseEstimate, RobotInfo
 from schemas.transport import StreamPublisher
 from services.association.client import AssociationClient, AssociationRefused
 from services.dslam.config import DslamConfig
 from services.dslam.core import DSlam, in_process_associate
 from services.maps import MapSaver, seed_from_file, serve_mapping_service
+from services.placement import anchor_due
 from services.runtime import ServiceShell
 
 log = logging.getLogger(__name__)
@@ -66,6 +76,8 @@ class DslamService(ServiceShell):
         self._map_seq = 0
         self._lock = asyncio.Lock()
         self._prefetch: asyncio.Task | None = None  # the covariance columns being solved between scans
+        self.waiting: dict[str, float] = {}  # robots announced without a pose: when (wall clock)
+        self.held: set[str] = set()  # ... whose events the roster holds until MCL places them (no landmark ids)
         seed_from_file(self.core, settings.map, self.core.config.association)
         self.map_saver = MapSaver(settings.map_out, {"estimator": "dslam", "association": self.core.config.association,
                                                      "service": "dslam", "from_map": settings.map},
@@ -73,6 +85,7 @@ class DslamService(ServiceShell):
 
     def setup(self, session: zenoh.Session) -> None:
         self.follow_robots()
+        self.subscribe(f"{self.settings.prefix}/mcl/*/pose", "mcl", recover=False)
         self._map_pub = self.publisher(self.keys.dslam_map)
         self._client = AssociationClient(session, self.keys, self.settings.assoc_timeout_s)
 
@@ -97,12 +110,66 @@ class DslamService(ServiceShell):
 
     # ---------------------------------------------------------------- robots
     async def robot_announced(self, info: RobotInfo) -> None:
+        """Into the core; a robot without a start pose waits to anchor the frame or for MCL, its events held
+        meanwhile unless it can place itself by landmark ids."""
+        rid = info.robot_id
         self.core.add_robot(info)
-        await self.admit(info.robot_id)
+        if info.start_pose is None:
+            self.waiting.setdefault(rid, time.monotonic())
+            if self.core.config.association != "known":
+                self.held.add(rid)
+                log.info("robot %s waits for a pose from MCL", rid)
+                return
+        await self.admit(rid)
+
+    async def _anchor(self) -> None:
+        """With ``anchor_first``, on an empty map no robot has been placed in: the first robot announced without a
+        start pose anchors the world frame at the origin once it has waited ``anchor_after_s``."""
+        if not self.settings.anchor_first or self.core.robot_count or not self.core.map_is_empty():
+            return
+        rid = anchor_due({rid: t for rid, t in self.waiting.items() if self.core.is_waiting(rid)},
+                         time.monotonic(), self.settings.anchor_after_s)
+        if rid is None:
+            return
+        async with self._lock:
+            placed = self.core.place_robot(rid, np.zeros(3), np.zeros((3, 3)))
+        if placed:
+            log.info("no robot has a start pose: robot %s anchors the world frame at the origin", rid)
+            await self._placed(rid)
+
+    async def handle(self, tag: str, key: str, payload) -> None:
+        if tag == "mcl":
+            await self._on_mcl(decode(payload, MclPose), key)
+        await self.release_events()
+
+    async def _on_mcl(self, message: MclPose, key: str) -> None:
+        """A localized MCL pose places a robot that waits for one (:meth:`DSlam.place_robot`)."""
+        rid = message.robot_id
+        if key != self.keys.mcl_pose(rid):
+            self.reject("robot_id_mismatch", f"{rid} on {key}")
+            return
+        if not message.localized or not self.core.is_waiting(rid):
+            return
+        async with self._lock:
+            placed = self.core.place_robot(rid, message.best_pose, message.best_cov, stamp=message.stamp)
+        if not placed:
+            self.reject("bad_placement", f"MCL pose of {rid}")
+            return
+        log.info("robot %s placed by MCL at %s", rid, np.round(message.best_pose, 3).tolist())
+        await self._placed(rid, after=message.stamp)
+
+    async def _placed(self, rid: str, after: float | None = None) -> None:
+        """A waiting robot has its pose: its held events after ``after`` go to the core."""
+        self.waiting.pop(rid, None)
+        if rid in self.held:
+            self.held.discard(rid)
+            await self.admit(rid, after=after)
 
     def robot_new_run(self, robot_id: str) -> None:
         """Its old pose no longer applies; its RobotInfo says where the new run starts (the map stays)."""
         self.core.remove_robot(robot_id)
+        self.waiting.pop(robot_id, None)
+        self.held.discard(robot_id)
 
     def robot_lost_odometry(self, robot_id: str) -> None:
         """Its pose is unknown until it is localized against the map again (:meth:`DSlam.lose_pose`)."""
@@ -163,7 +230,7 @@ class DslamService(ServiceShell):
     # ------------------------------------------------------------- publishing
     def _publish_pose(self, rid: str, stamp: float) -> None:
         estimate = self.core.robot_pose(rid)
-        if estimate is None:
+        if estimate is None or self.core.before_placement(rid, stamp):
             return
         pose, cov = estimate
         pub = self._pose_pubs.get(rid)
@@ -184,6 +251,7 @@ class DslamService(ServiceShell):
         )
 
     async def tick(self) -> None:
+        await self._anchor()
         async with self._lock:
             message = self.map_message()
             self.extra = self._extra()

@@ -169,3 +169,27 @@ def test_the_turn_slip_a_robot_announces_widens_the_association_gate_until_the_h
             estimator.on_scan(event)
     assert turned > 1.0
     assert estimator.robots["r1"].turn_slip < 0.02 * 0.5 * turned
+
+
+def test_a_robot_placed_at_a_stamp_skips_its_older_events_and_the_first_placed_starts_the_map():
+    """Features seen by ids before any robot has a pose do not make the map non-empty: the first robot placed
+    starts it as from a known start pose (phase I); a robot placed with MCL's pose at a stamp skips its older events,
+    counted, and moves with the later ones."""
+    data = simulate("arena", robots=2, seed=0, duration=3.0, unknown_start=True)
+    estimator = DSlam(DslamConfig(association="known"))
+    for log in data.robots.values():
+        estimator.add_robot(log.info)
+    first_scan = next(e for e in data.events() if isinstance(e, ScanEvent) and e.robot_id == "r1" and len(e.observations))
+    estimator.on_scan(first_scan)
+    assert estimator.tentative and estimator.map_is_empty()  # seen by a robot without a pose: nowhere yet
+    assert estimator.place_robot("r1", np.zeros(3), np.zeros((3, 3)))
+    assert estimator.robots["r1"].info.start_pose is not None  # phase I, as from a start pose
+    r2 = data.robots["r2"]
+    stamp = float(r2.odom_stamp[10])
+    truth = r2.truth_at(np.array([stamp]))[0]
+    assert estimator.place_robot("r2", truth, np.diag([1e-4, 1e-4, 1e-5]), stamp=stamp)
+    estimator.on_odometry(r2.odom(5))
+    assert estimator.counts["before_placement_pose"] == 1
+    np.testing.assert_allclose(estimator.poses()["r2"][0], truth)
+    estimator.on_odometry(r2.odom(11))
+    assert not np.allclose(estimator.poses()["r2"][0], truth) and estimator.counts["before_placement_pose"] == 1
