@@ -77,7 +77,6 @@ class DslamService(ServiceShell):
         self._lock = asyncio.Lock()
         self._prefetch: asyncio.Task | None = None  # the covariance columns being solved between scans
         self.waiting: dict[str, float] = {}  # robots announced without a pose: when (wall clock)
-        self.held: set[str] = set()  # ... whose events the roster holds until MCL places them (no landmark ids)
         seed_from_file(self.core, settings.map, self.core.config.association)
         self.map_saver = MapSaver(settings.map_out, {"estimator": "dslam", "association": self.core.config.association,
                                                      "service": "dslam", "from_map": settings.map},
@@ -116,8 +115,7 @@ class DslamService(ServiceShell):
         self.core.add_robot(info)
         if info.start_pose is None:
             self.waiting.setdefault(rid, time.monotonic())
-            if self.core.config.association != "known":
-                self.held.add(rid)
+            if self.core.config.association != "known":  # its events wait in the roster until it is placed
                 log.info("robot %s waits for a pose from MCL", rid)
                 return
         await self.admit(rid)
@@ -159,17 +157,15 @@ class DslamService(ServiceShell):
         await self._placed(rid, after=message.stamp)
 
     async def _placed(self, rid: str, after: float | None = None) -> None:
-        """A waiting robot has its pose: its held events after ``after`` go to the core."""
+        """A waiting robot has its pose: the events the roster held for it, those after ``after``, go to the core."""
         self.waiting.pop(rid, None)
-        if rid in self.held:
-            self.held.discard(rid)
+        if self.roster is not None and not self.roster.is_admitted(rid):
             await self.admit(rid, after=after)
 
     def robot_new_run(self, robot_id: str) -> None:
         """Its old pose no longer applies; its RobotInfo says where the new run starts (the map stays)."""
         self.core.remove_robot(robot_id)
         self.waiting.pop(robot_id, None)
-        self.held.discard(robot_id)
 
     def robot_lost_odometry(self, robot_id: str) -> None:
         """Its pose is unknown until it is localized against the map again (:meth:`DSlam.lose_pose`)."""
@@ -186,6 +182,8 @@ class DslamService(ServiceShell):
         self.assoc_counts.update(state["assoc_counts"])
         self._pose_seq.update(state["pose_seq"])
         self._map_seq = state["map_seq"]
+        now = time.monotonic()  # robots without a pose wait afresh (to anchor the frame, or for MCL)
+        self.waiting = {rid: now for rid in self.core.robots if self.core.is_waiting(rid)}
         self.extra = self._extra()
 
     def checkpoint_summary(self) -> dict:
