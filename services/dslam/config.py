@@ -72,7 +72,9 @@ class DslamConfig(CoreConfig):
         "landmarks within max range + candidate_margin + this (m) of a placed robot that are not cached, so that a "
         "scan first seeing them does not stall on the solve (10^5 landmarks: about 160 ms a column); 0: off. "
         "Offline runs (no time between scans) never do")
-    column_prefetch_batch: int = Field(8, ge=1, description="landmarks whose columns one such solve takes (nearest first)")
+    column_prefetch_batch: int = Field(4, ge=1, description="landmarks whose columns one such solve takes (nearest first): "
+                                       "at 10^5 landmarks 8 took up to 565 ms, beyond the 500 ms between two scans, and the "
+                                       "next scan 102 ms to take them in; 4: 296 and 52 ms")
     column_cache: int = Field(64, ge=1, description="covariance columns kept to warm-start the next solves (landmarks)")
     covariance_columns: Literal["factored", "explicit"] = Field(
         "factored", description="cached covariance columns kept as full-length base vectors times a small mixing "
