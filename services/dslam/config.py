@@ -75,6 +75,9 @@ class DslamConfig(CoreConfig):
     column_prefetch_batch: int = Field(4, ge=1, description="landmarks whose columns one such solve takes (nearest first): "
                                        "at 10^5 landmarks 8 took up to 565 ms, beyond the 500 ms between two scans, and the "
                                        "next scan 102 ms to take them in; 4: 296 and 52 ms")
+    max_deferred_scans: int = Field(20, ge=0, description="scans of a robot without a pose kept while the columns of "
+                                    "their mapped landmarks are solved between scans (a service only); beyond, they are "
+                                    "handled, solving what they need")
     column_cache: int = Field(64, ge=1, description="covariance columns kept to warm-start the next solves (landmarks)")
     covariance_columns: Literal["factored", "explicit"] = Field(
         "factored", description="cached covariance columns kept as full-length base vectors times a small mixing "

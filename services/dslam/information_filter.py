@@ -1071,8 +1071,16 @@ class InformationMap:
         landmarks = list(dict.fromkeys(int(i) for i in landmarks))
         self.cache.touch(landmarks)
         self.cache.capacity = max(self.cache.capacity, len(landmarks) + len(self.cache.pinned))
-        missing = [i for i in landmarks if i not in self.cache and 2 * i + 2 <= self._factor_size]
+        missing = self.solvable_off_scan(landmarks)
         return ColumnJob(self._factor, self._factor_size, missing[:limit]) if missing else None
+
+    def solvable_off_scan(self, landmarks) -> list[int]:
+        """Those of ``landmarks`` whose columns a :class:`ColumnJob` could solve now: not cached, and known to the
+        stored factor (none without a factor, or with the PCG reference)."""
+        if self.column_solver != "corrected" or self._factor is None:
+            return []
+        return [i for i in dict.fromkeys(int(i) for i in landmarks)
+                if i not in self.cache and 2 * i + 2 <= self._factor_size]
 
     def take_columns(self, job: ColumnJob, raw: np.ndarray) -> int:
         """Cache the columns a :class:`ColumnJob` solved, made exact for the updates since; the number taken. None

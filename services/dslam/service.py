@@ -68,6 +68,7 @@ class DslamService(ServiceShell):
         self.settings: DslamSettings = settings
         self.tick_period_s = settings.map_period_s
         self.core = DSlam(settings.core(DslamConfig), associator=self.associate)
+        self.core.prefetching = settings.column_prefetch_margin > 0  # its worker thread solves columns between scans
         self.assoc_counts: Counter = Counter()
         self._client: AssociationClient | None = None
         self._remote_down_until = 0.0
@@ -179,6 +180,7 @@ class DslamService(ServiceShell):
     def restore_state(self, state: dict) -> None:
         self.core = state["core"]
         self.core.associator = self.associate
+        self.core.prefetching = self.settings.column_prefetch_margin > 0
         self.assoc_counts.update(state["assoc_counts"])
         self._pose_seq.update(state["pose_seq"])
         self._map_seq = state["map_seq"]

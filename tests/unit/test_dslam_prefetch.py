@@ -70,3 +70,43 @@ def test_the_service_solves_columns_between_scans_and_caches_them_exactly():
         np.testing.assert_allclose(service.core.map.marginals(np.array([i]))[0],
                                    reference[2 * i:2 * i + 2, 2 * i:2 * i + 2], atol=1e-12)
     assert service.core.map.column_solves == solves
+
+
+def test_a_robot_without_a_pose_waits_for_the_columns_of_what_it_saw_and_loses_no_scan():
+    """With ``prefetching`` (the service), the scan of a robot without a pose that sees mapped landmarks whose
+    columns are not cached is kept (counted), their columns are solved between scans, and the next scan places the
+    robot, after the kept one, without a solve of its own; without it (offline) the first scan solves them and
+    places the robot at once."""
+    from schemas.contract import ScanEvent
+
+    pose = np.array([16.5, 16.5, 0.3])
+    noise = np.asarray(SENSOR.noise_cov, float)
+
+    def scan(seq, means):
+        seen = [k for k in range(means.shape[0]) if 0.5 < np.hypot(*(means[k] - pose[:2])) < 4.5
+                and abs(np.arctan2(*(means[k] - pose[:2])[::-1]) - pose[2]) < 1.2]
+        d = means[seen] - pose[:2]
+        bearing = np.arctan2(d[:, 1], d[:, 0]) - pose[2]
+        return ScanEvent("r1", seq, 1.0 + seq, np.hypot(d[:, 0], d[:, 1]), bearing, np.array(seen, np.int64), noise)
+
+    for prefetching in (True, False):
+        core = DSlam(DslamConfig(association="known", column_cache=4))
+        means = grid_map(core)
+        core.add_robot(RobotInfo(robot_id="r1", stamp=0.0, motion_model="unicycle", sensor=SENSOR,
+                                 odom_rate_hz=10.0, scan_rate_hz=10.0))
+        core.prefetching = prefetching
+        first = scan(0, means)
+        assert len(first.landmark_ids) >= 2 and not any(core.index_of[k] in core.map.cache for k in first.landmark_ids)
+        solves = core.map.column_solves
+        core.on_scan(first)
+        if not prefetching:
+            assert core.robot_pose("r1") is not None and core.map.column_solves > solves
+            continue
+        assert core.robot_pose("r1") is None and core.counts["scans_deferred"] == 1 and core.counts["scans"] == 0
+        job = core.column_prefetch()
+        assert sorted(job.landmarks) == sorted(core.index_of[k] for k in first.landmark_ids)
+        core.take_prefetched(job, job.run())
+        core.on_scan(scan(1, means))
+        placed = core.robot_pose("r1")
+        assert placed is not None and core.map.column_solves == solves and core.counts["scans"] == 2
+        assert np.hypot(*(placed[0][:2] - pose[:2])) < 0.05 and not core.robots["r1"].deferred
