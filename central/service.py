@@ -50,7 +50,7 @@ import zenoh
 
 from central.fastslam.config import FastSlamConfig
 from central.fastslam.core import FastSlam
-from schemas.codec import decode, encode
+from schemas.codec import encode
 from schemas.config import CentralSettings, add_settings_arguments, settings_from_args
 from schemas.contract import OdomEvent
 from schemas.messages import Estimate, MclPose, RobotEstimate, RobotInfo
@@ -209,17 +209,12 @@ class CentralService(ServiceShell):
     async def handle(self, tag: str, key: str, payload) -> None:
         if tag == "state":
             self._answer_state_queries()
-        elif tag == "mcl":
-            await self._on_mcl(decode(payload, MclPose), key)
+        elif tag == "mcl" and (message := self.localized_mcl_pose(payload, key)) is not None:
+            await self._on_mcl(message)
         await self.release_events()
 
-    async def _on_mcl(self, message: MclPose, key: str) -> None:
+    async def _on_mcl(self, message: MclPose) -> None:
         rid = message.robot_id
-        if key != self.keys.mcl_pose(rid):
-            self.reject("robot_id_mismatch", f"{rid} on {key}")
-            return
-        if not message.localized:
-            return
         if not self.slam.is_waiting(rid):
             self._check_placement(rid, message)
             return

@@ -50,7 +50,7 @@ import zenoh.ext
 from schemas.codec import DecodeError, decode
 from schemas.config import FleetSettings
 from schemas.keys import Keys
-from schemas.messages import Odometry, RobotInfo, Scan, ServiceStats
+from schemas.messages import MclPose, Odometry, RobotInfo, Scan, ServiceStats
 from schemas.streams import StreamLimits
 from schemas.transport import ConnectError, StreamPublisher, history_query, open_session, replier_zid, sample_source
 from services import compiled
@@ -477,6 +477,15 @@ class ServiceShell:
         self.rejected[reason] += count
         if self.rejected[reason] <= 3:
             log.warning("%s rejected a message (%s)%s", self.name, reason, f": {detail}" if detail else "")
+
+    def localized_mcl_pose(self, payload: bytes, key: str) -> MclPose | None:
+        """An MclPose that says its robot is localized (DecodeError if malformed); None otherwise, and counted
+        ``robot_id_mismatch`` when it is not on its robot's key (the mapping services place robots with it)."""
+        message = decode(payload, MclPose)
+        if key != self.keys.mcl_pose(message.robot_id):
+            self.reject("robot_id_mismatch", f"{message.robot_id} on {key}")
+            return None
+        return message if message.localized else None
 
     def key_names_robot(self, key: str, robot_id: str, position: int) -> bool:
         """Whether ``key`` names the message's robot (``position`` counts segments after the prefix); a message on

@@ -42,7 +42,7 @@ import numpy as np
 import zenoh
 
 from schemas.association import AssociationReply, AssociationRequest
-from schemas.codec import DecodeError, decode
+from schemas.codec import DecodeError
 from schemas.config import DslamSettings, add_settings_arguments, settings_from_args
 from schemas.contract import OdomEvent
 from schemas.messages import MapEstimate, MclPose, PoseEstimate, RobotInfo
@@ -137,17 +137,14 @@ class DslamService(ServiceShell):
             await self._placed(rid)
 
     async def handle(self, tag: str, key: str, payload) -> None:
-        if tag == "mcl":
-            await self._on_mcl(decode(payload, MclPose), key)
+        if tag == "mcl" and (message := self.localized_mcl_pose(payload, key)) is not None:
+            await self._on_mcl(message)
         await self.release_events()
 
-    async def _on_mcl(self, message: MclPose, key: str) -> None:
+    async def _on_mcl(self, message: MclPose) -> None:
         """A localized MCL pose places a robot that waits for one (:meth:`DSlam.place_robot`)."""
         rid = message.robot_id
-        if key != self.keys.mcl_pose(rid):
-            self.reject("robot_id_mismatch", f"{rid} on {key}")
-            return
-        if not message.localized or not self.core.is_waiting(rid):
+        if not self.core.is_waiting(rid):
             return
         async with self._lock:
             placed = self.core.place_robot(rid, message.best_pose, message.best_cov, stamp=message.stamp)
