@@ -220,8 +220,11 @@ class DSlam:
         return True
 
     def remove_robot(self, rid: str) -> None:
-        """Forget a robot's localization (its map contributions stay); nothing if it is unknown."""
-        self.robots.pop(rid, None)
+        """Forget a robot's localization (its map contributions stay; the scans it kept waiting are dropped,
+        counted); nothing if it is unknown."""
+        robot = self.robots.pop(rid, None)
+        if robot is not None and robot.deferred:
+            self.counts["deferred_scans_dropped"] += len(robot.deferred)
 
     def lose_pose(self, rid: str) -> None:
         """The robot's odometry was lost for good: its pose is unknown until it is localized against the map again,
