@@ -482,8 +482,7 @@ class ServiceShell:
         """An MclPose that says its robot is localized (DecodeError if malformed); None otherwise, and counted
         ``robot_id_mismatch`` when it is not on its robot's key (the mapping services place robots with it)."""
         message = decode(payload, MclPose)
-        if key != self.keys.mcl_pose(message.robot_id):
-            self.reject("robot_id_mismatch", f"{message.robot_id} on {key}")
+        if not self.key_names_robot(key, message.robot_id, 1):  # {prefix}/mcl/{rid}/pose
             return None
         return message if message.localized else None
 

@@ -261,7 +261,7 @@ class DSlam:
         robot = self.robots.get(event.robot_id)
         if robot is None:
             self.counts["unknown_robot"] += 1
-        elif self.before_placement(event.robot_id, event.stamp):
+        elif event.stamp < robot.placed_at:
             self.counts["before_placement_pose"] += 1
             return None
         elif not robot.check_start(stream, event.seq):

@@ -109,3 +109,24 @@ def test_placement_check_asks_again_only_after_a_run_of_far_localized_poses():
     assert check.runs.get("r4") is None
     never = PlacementCheck(distance_m=2.0, messages=0)
     assert not any(never.observe("r4", here, far) for _ in range(50))
+
+
+def test_a_mapping_service_takes_only_a_localized_mcl_pose_on_its_robots_key():
+    """``ServiceShell.localized_mcl_pose`` (central and D-SLAM place robots with it): an MclPose on another robot's
+    key is refused and counted, one that is not localized is ignored."""
+    from schemas.codec import encode
+    from schemas.config import DslamSettings
+    from schemas.messages import MclPose
+    from services.dslam.service import DslamService
+
+    service = DslamService(DslamSettings(prefix="fleet"))
+
+    def pose(localized: bool) -> bytes:
+        return encode(MclPose(robot_id="r2", seq=0, stamp=1.0, best_pose=np.zeros(3), best_cov=np.eye(3) * 1e-3,
+                              localized=localized))
+
+    assert service.localized_mcl_pose(pose(True), "fleet/mcl/r2/pose").robot_id == "r2"
+    assert service.localized_mcl_pose(pose(False), "fleet/mcl/r2/pose") is None
+    assert not service.rejected
+    assert service.localized_mcl_pose(pose(True), "fleet/mcl/r1/pose") is None
+    assert service.rejected["robot_id_mismatch"] == 1
