@@ -8,6 +8,8 @@ Cases (FastSLAM, 100 particles, unless said):
 - ``known-first``: barcodes, only the first robot's start pose;
 - ``unknown-none``: barcodes ignored (``--association unknown``), no start pose;
 - ``mcl-signatures``: MCL alone against the surveyed map, every robot from no pose, barcodes as signatures;
+- ``mcl-unknown``: the same without barcodes (unknown correspondence); ``mcl-unknown-no-history``: poses drawn
+  from a scan need not explain the scans before it (``history_scans=0``);
 - ``known-known-turn-slip``, ``known-none-turn-slip``: the same with the robots' announced turn slip in
   FastSLAM's motion (``turn_slip``; D-SLAM models it by default);
 - ``dslam-known-known``, ``dslam-known-none``, ``dslam-unknown-known``, ``dslam-unknown-none``: D-SLAM, with
@@ -19,9 +21,9 @@ how long each robot takes to have seen two distinct landmarks that the anchor (t
 seen before. Landmark signatures cannot place a robot earlier against the anchor's map; robots placed in
 between can make it earlier by mapping more.
 
-Per run: every robot's ATE after one SE(2) transform for the whole fleet (raw for ``mcl-signatures``: its
+Per run: every robot's ATE after one SE(2) transform for the whole fleet (raw for the ``mcl-`` cases: their
 frame is the survey's), and for placement cases the delay from each robot's first scan to its placement
-(the anchor: 0); for ``mcl-signatures`` the time to first localized. Per case: median and worst over seeds of
+(the anchor: 0); for the ``mcl-`` cases the time to first localized. Per case: median and worst over seeds of
 the worst robot's ATE and of the longest delay.
 
     .venv/bin/python benchmarks/placement_seeds.py [--cases known-none,unknown-none] [--seeds 10] [--jobs 2]
@@ -47,6 +49,8 @@ CASES: dict[str, tuple] = {  # estimator, association, start poses[, settings]
     "known-first": ("fastslam", "known", "first"),
     "unknown-none": ("fastslam", "unknown", "none"),
     "mcl-signatures": ("mcl", "known", "none"),
+    "mcl-unknown": ("mcl", "unknown", "none"),
+    "mcl-unknown-no-history": ("mcl", "unknown", "none", {"history_scans": 0}),
     "known-known-turn-slip": ("fastslam", "known", "known", {"turn_slip": True}),
     "known-none-turn-slip": ("fastslam", "known", "none", {"turn_slip": True}),
     "dslam-known-known": ("dslam", "known", "known"),

@@ -24,7 +24,9 @@ likelihood; a sample added before the update (KLD-SRL) enters the update
 with the candidates' mean likelihood rather than its own, so the scan is not
 counted twice for it, and with a prior weight of ``reset_prior`` times a
 tracked particle's: a new hypothesis must explain the scans clearly better
-than the tracked ones before it becomes significant.
+than the tracked ones before it becomes significant. Poses drawn from a scan must also explain the robot's
+last few scans, carried back along its odometry (:mod:`services.mcl.history`, ``history_scans``): one to three
+detections fit many places, the scans before them far fewer (not with signatures: those name their landmarks).
 
 Signatures: when the map has landmark ids and a scan's detections carry ids (``use_signatures``), each
 detection is weighed against its own landmark only and poses are drawn around it
@@ -47,6 +49,7 @@ from robots.models import robot_models, wrap_angle
 from schemas.messages import RobotInfo
 from services.mcl.clustering import Clusters, cluster_particles
 from services.mcl.config import MclConfig
+from services.mcl.history import ScanHistory
 from services.mcl.kld import bin_keys, kld_prefix_size, kld_sample_size, support
 from services.mcl.likelihood import (
     LandmarkMap, ScanModel, poses_from_signatures, scan_log_likelihood, signed_log_likelihood,
@@ -118,8 +121,15 @@ class MonteCarloLocalizer:
         self._must_confirm = False  # a global localization with signed detections waits for _confirmed's baseline
         self._global = False  # the particles come from a global localization (not from a known start pose)
         self.last_report: UpdateReport | None = None
+        self.history = ScanHistory(config.history_scans, config.history_turn)
         if info.start_pose is not None:
             self.initialize_at(info.start_pose, info.start_pose_cov)
+
+    def __setstate__(self, state: dict) -> None:
+        """Unpickle (a service checkpoint); one written before the scan history existed starts with an empty one."""
+        self.__dict__.update(state)
+        if "history" not in state:
+            self.history = ScanHistory(self.config.history_scans, self.config.history_turn)
 
     # ----------------------------------------------------------------- state
 
@@ -218,7 +228,16 @@ class MonteCarloLocalizer:
             self.clusters, self.significant = None, np.zeros(0, np.int64)
             return
         self.particles = self._scan_candidates(observations, count * cfg.reset_oversample)
-        self.weights = np.full(self.count, 1.0 / self.count)
+        past = self._history_log_likelihood(self.particles)
+        weights = np.exp(past - past.max())
+        self.weights = weights / weights.sum()
+
+    def _history_log_likelihood(self, poses: np.ndarray) -> np.ndarray:
+        """The earlier scans' log-likelihood of ``poses`` (:mod:`services.mcl.history`), for a scan without
+        signatures (one with them names its landmarks: the odometry's drift would only blur it); zeros otherwise."""
+        if self._targets is not None or not len(self.history):
+            return np.zeros(poses.shape[0])
+        return self.history.log_likelihood(poses, self._likelihood_of)
 
     def _scan_candidates(self, observations: np.ndarray, count: int) -> np.ndarray:
         cfg = self.config
@@ -228,24 +247,45 @@ class MonteCarloLocalizer:
                                cfg.reset_jitter_theta, cfg.map_margin, self.rng, cfg.reset_draws)
 
     def _likelihood(self, poses: np.ndarray, observations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        if self._targets is not None:
-            return signed_log_likelihood(poses, observations, self._targets, self.model)
+        return self._scored(poses, observations, self._targets)
+
+    def _scored(self, poses: np.ndarray, observations: np.ndarray,
+                targets: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        """(log-likelihood, match quality) of a scan at ``poses``; by id against ``targets`` when it has them."""
+        if targets is not None:
+            return signed_log_likelihood(poses, observations, targets, self.model)
         return scan_log_likelihood(poses, observations, self.map, self.model, self.config.chunk_particles,
                                    self.config.compiled)
 
+    def _likelihood_of(self, poses: np.ndarray, observations: np.ndarray, targets: np.ndarray | None) -> np.ndarray:
+        return self._scored(poses, observations, targets)[0]
+
     def _draw_from_scan(self, observations: np.ndarray, count: int) -> tuple[np.ndarray, float]:
-        """``count`` poses drawn from p(y | x) over the map, and the log of the candidates' mean likelihood."""
+        """``count`` poses drawn from p(y | x) over the map, and the log of the candidates' mean likelihood.
+
+        With a scan history (:mod:`services.mcl.history`) and no signatures the candidates are drawn by the likelihood of the scan and
+        of the earlier scans together, and the evidence is that of both, less the tracked particles' (weighted)
+        likelihood of the earlier scans: those have already paid for them by surviving, a new pose has not.
+        """
         candidates = self._scan_candidates(observations, count * self.config.reset_oversample)
         loglik, _ = self._likelihood(candidates, observations)
+        reference = 0.0
+        if self._targets is None and len(self.history):
+            loglik = loglik + self._history_log_likelihood(candidates)
+            if self.initialized:
+                tracked = self._history_log_likelihood(self.particles)
+                top = tracked.max()
+                reference = float(top + math.log(np.dot(self.weights, np.exp(tracked - top)) / self.weights.sum()))
         top = loglik.max()
         likelihood = np.exp(loglik - top)
         chosen = candidates[systematic_resample(likelihood, count, self.rng)]
-        return chosen, float(top + math.log(likelihood.mean()))
+        return chosen, float(top + math.log(likelihood.mean())) - reference
 
     # ------------------------------------------------------------ prediction
 
     def predict(self, control: np.ndarray, dt: float, control_cov: np.ndarray) -> None:
         """Move every particle with a control drawn from the odometry's noise (Table 1 step 1)."""
+        self.history.move(self.motion.step(self.history.odometry[None], np.asarray(control, float)[None], dt)[0])
         if not self.initialized:
             return
         cfg = self.config
@@ -291,6 +331,8 @@ class MonteCarloLocalizer:
         kidnapped = self._check_lost(best_quality, float(quality.max()), z)
         contradicted = not kidnapped and self._contradicted(z)
         self.contradictions += int(contradicted)
+        if kidnapped:
+            self.history.clear()  # the odometry no longer ties the earlier scans to where the robot is now
         if kidnapped or contradicted:
             self.initialize_global(z)
             loglik, quality = self._likelihood(self.particles, z)
@@ -301,6 +343,7 @@ class MonteCarloLocalizer:
         hypotheses = int(self.significant.size)
         self._update_localized()
         added += self._resample(mean_quality, z, fresh)
+        self.history.add(z, self._targets)
         self.last_report = UpdateReport(before, self.count, added, mean_quality, best_quality, hypotheses,
                                         kidnapped, self.localized)
         return self.last_report
