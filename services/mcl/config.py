@@ -50,7 +50,8 @@ class MclConfig(CoreConfig):
         10, ge=0, description="poses drawn from a scan must also explain up to this many earlier scans with detections, "
         "carried back along the odometry (services.mcl.history); 0: the scan alone")
     history_turn: float = Field(
-        1.0, ge=0, description="... taken since the robot last turned this far (rad; dead reckoning drifts in turns)")
+        1.0, ge=0, description="... among those after which the robot has turned at most this far in all (rad; dead "
+        "reckoning drifts in turns)")
     reset_jitter_xy: float = Field(0.1, ge=0, description="std (m) added to poses drawn from a scan")
     reset_jitter_theta: float = Field(0.03, ge=0, description="std (rad) added to headings drawn from a scan")
     pair_sigmas: float = Field(3.0, gt=0, description="two observations match a landmark pair when distances agree within this many std")

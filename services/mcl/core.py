@@ -232,10 +232,14 @@ class MonteCarloLocalizer:
         weights = np.exp(past - past.max())
         self.weights = weights / weights.sum()
 
+    def _uses_history(self) -> bool:
+        """Whether poses drawn from the current scan are weighed by the earlier scans too: only for a scan without
+        signatures (one with them names its landmarks; the odometry's drift would only blur it)."""
+        return self._targets is None and len(self.history) > 0
+
     def _history_log_likelihood(self, poses: np.ndarray) -> np.ndarray:
-        """The earlier scans' log-likelihood of ``poses`` (:mod:`services.mcl.history`), for a scan without
-        signatures (one with them names its landmarks: the odometry's drift would only blur it); zeros otherwise."""
-        if self._targets is not None or not len(self.history):
+        """The earlier scans' log-likelihood of ``poses`` (:mod:`services.mcl.history`); zeros when not used."""
+        if not self._uses_history():
             return np.zeros(poses.shape[0])
         return self.history.log_likelihood(poses, self._likelihood_of)
 
@@ -263,14 +267,15 @@ class MonteCarloLocalizer:
     def _draw_from_scan(self, observations: np.ndarray, count: int) -> tuple[np.ndarray, float]:
         """``count`` poses drawn from p(y | x) over the map, and the log of the candidates' mean likelihood.
 
-        With a scan history (:mod:`services.mcl.history`) and no signatures the candidates are drawn by the likelihood of the scan and
-        of the earlier scans together, and the evidence is that of both, less the tracked particles' (weighted)
-        likelihood of the earlier scans: those have already paid for them by surviving, a new pose has not.
+        With a scan history (:mod:`services.mcl.history`) and no signatures the candidates are drawn by the
+        likelihood of the scan and of the earlier scans together, and the evidence is that of both, less the tracked
+        particles' (weighted) likelihood of the earlier scans: those have already paid for them by surviving, a new
+        pose has not.
         """
         candidates = self._scan_candidates(observations, count * self.config.reset_oversample)
         loglik, _ = self._likelihood(candidates, observations)
         reference = 0.0
-        if self._targets is None and len(self.history):
+        if self._uses_history():
             loglik = loglik + self._history_log_likelihood(candidates)
             if self.initialized:
                 tracked = self._history_log_likelihood(self.particles)

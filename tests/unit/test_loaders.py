@@ -132,8 +132,10 @@ def test_mrclam_robots_announce_their_turn_slip(tiny_mrclam):
 
 def test_mrclam_cameras_announce_their_detection_probability(tiny_mrclam):
     """The MR.CLAM sensor announces the share of the landmarks in view its camera detects (0.3 by default)."""
-    assert {log.info.sensor.detection_probability for log in load_dataset(f"mrclam:{tiny_mrclam}").robots.values()} == {0.3}
-    assert load_dataset(f"mrclam:{tiny_mrclam}", detection_probability=0.9).robots["r1"].info.sensor.detection_probability == 0.9
+    robots = load_dataset(f"mrclam:{tiny_mrclam}").robots.values()
+    assert {log.info.sensor.detection_probability for log in robots} == {0.3}
+    other = load_dataset(f"mrclam:{tiny_mrclam}", detection_probability=0.9)
+    assert other.robots["r1"].info.sensor.detection_probability == 0.9
 
 
 @needs_data
@@ -149,7 +151,8 @@ def test_mrclam_detection_probability_is_what_the_camera_detects_in_view():
             offset = data.landmarks - poses[k, :2]
             ranges = np.hypot(offset[:, 0], offset[:, 1])
             bearings = np.angle(np.exp(1j * (np.arctan2(offset[:, 1], offset[:, 0]) - poses[k, 2])))
-            view = (ranges > spec.min_range + 0.3) & (ranges < spec.max_range - 0.3) & (np.abs(bearings) < spec.fov / 2 - 0.05)
+            view = ((ranges > spec.min_range + 0.3) & (ranges < spec.max_range - 0.3)
+                    & (np.abs(bearings) < spec.fov / 2 - 0.05))
             seen = set(log.det_id[log.scan_offsets[k]:log.scan_offsets[k + 1]].tolist())
             in_view += int(view.sum())
             detected += sum(int(i) in seen for i in data.landmark_ids[view].tolist())

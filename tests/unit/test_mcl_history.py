@@ -67,7 +67,8 @@ def _localizer(history_scans: int) -> tuple[MonteCarloLocalizer, np.ndarray, np.
                      scan_rate_hz=1.0, start_pose=[-2.0, 2.0, -math.pi / 2])
     config = MclConfig(variant="mcl", history_scans=history_scans, seed=3)
     mcl = MonteCarloLocalizer(landmarks, info, config)
-    past = np.array([[math.hypot(2.0, 1.0), math.atan2(1.0, 2.0) + math.pi / 2],  # C and D seen from (-2, 2), facing south
+    # C and D seen from (-2, 2), facing south
+    past = np.array([[math.hypot(2.0, 1.0), math.atan2(1.0, 2.0) + math.pi / 2],
                      [math.hypot(1.0, 1.5), math.atan2(1.5, 1.0) + math.pi / 2]])
     mcl.update(past)
     for _ in range(4):
