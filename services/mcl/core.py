@@ -276,9 +276,9 @@ class MonteCarloLocalizer:
         loglik, _ = self._likelihood(candidates, observations)
         reference = 0.0
         if self._uses_history():
-            loglik = loglik + self._history_log_likelihood(candidates)
+            loglik = loglik + self.history.log_likelihood(candidates, self._likelihood_of)
             if self.initialized:
-                tracked = self._history_log_likelihood(self.particles)
+                tracked = self.history.log_likelihood(self.particles, self._likelihood_of)
                 top = tracked.max()
                 reference = float(top + math.log(np.dot(self.weights, np.exp(tracked - top)) / self.weights.sum()))
         top = loglik.max()

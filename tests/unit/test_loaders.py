@@ -146,11 +146,10 @@ def test_mrclam_detection_probability_is_what_the_camera_detects_in_view():
     in_view = detected = 0
     for log in data.robots.values():
         spec = log.info.sensor
+        camera = RangeBearingSensor(tuple(spec.offset))
         poses = log.truth_at(log.scan_stamp)
         for k in np.flatnonzero(np.all(np.isfinite(poses), axis=1)):
-            offset = data.landmarks - poses[k, :2]
-            ranges = np.hypot(offset[:, 0], offset[:, 1])
-            bearings = np.angle(np.exp(1j * (np.arctan2(offset[:, 1], offset[:, 0]) - poses[k, 2])))
+            ranges, bearings = camera.observe(poses[k], data.landmarks).T
             view = ((ranges > spec.min_range + 0.3) & (ranges < spec.max_range - 0.3)
                     & (np.abs(bearings) < spec.fov / 2 - 0.05))
             seen = set(log.det_id[log.scan_offsets[k]:log.scan_offsets[k + 1]].tolist())

@@ -8,7 +8,7 @@ import pickle
 
 import numpy as np
 
-from robots.models import se2_between, se2_compose
+from robots.models import se2_between, se2_compose, wrap_angle
 from schemas.messages import RobotInfo, SensorSpec
 from services.mcl.config import MclConfig
 from services.mcl.core import MonteCarloLocalizer
@@ -83,7 +83,7 @@ def test_a_global_restart_weighs_the_poses_drawn_from_a_scan_by_the_earlier_scan
         mcl, scan, truth = _localizer(history_scans)
         mcl.initialize_global(scan, count=500)
         near = (np.hypot(*(mcl.particles[:, :2] - truth[:2]).T) < 0.5) & (
-            np.abs(np.angle(np.exp(1j * (mcl.particles[:, 2] - truth[2])))) < 0.3)
+            np.abs(wrap_angle(mcl.particles[:, 2] - truth[2])) < 0.3)
         return float(mcl.weights[near].sum())
 
     assert weight_near_truth(0) < 0.1
