@@ -6,14 +6,16 @@ This measures ours (known and shared association: :class:`central.fastslam.align
 blocks). The world of :mod:`support.grid_world` (N landmarks on a 3 m grid, a 180° / 5 m sensor,
 about 8 landmarks per scan) is put whole into every particle's map first (the truth plus the sensor's
 noise, as if mapped, the same in every particle), then a robot with a known start drives a 4 m circle in the middle of it, with its
-scans' ids (``--association known``: the association's own cost is measured elsewhere) or without
-(``--association unknown``), and every scan is timed (wall and CPU) after a first lap of warm-up.
+scans' ids (``--association known``) or without them (``--association shared``: the method of ``fleetslam run
+--association unknown``, its candidate search through the map's spatial index included), and every scan is
+timed (wall and CPU) after a first lap of warm-up.
 
 Reported per N: time per scan (median, mean, p90, max), the bytes of the particles' landmark arrays (pool,
-block tables, per-slot data) and the blocks in use, the process RSS, the ratio of each figure to the previous decade's (target ≤ 1.5) and the exponents of power
-laws fitted against N.
+block tables, per-slot data, spatial index; ``table_bytes``: the block tables alone, the part that is per
+particle) and the blocks in use, the process RSS, the ratio of each figure to the previous decade's (target
+≤ 1.5) and the exponents of power laws fitted against N.
 
-    .venv/bin/python benchmarks/fastslam_scaling.py [--sizes 1000,10000,100000] [--association known]
+    .venv/bin/python benchmarks/fastslam_scaling.py [--sizes 1000,10000,100000] [--association known|shared]
         [--particles 100] [--scans 250] [--seed 0] [--out FILE]
 """
 
@@ -79,7 +81,8 @@ def one_size(n: int, particles: int, association: str, scans: int, seed: int) ->
                         "p90": float(np.percentile(steady, 90)), "max": float(np.max(steady)), "scans": int(steady.size)},
         "cpu_ms_per_scan_median": float(np.median(steady_cpu)),
         "detections_per_scan": float(np.mean(detections)),
-        "map_bytes": slam.map.nbytes, "map_capacity": int(slam.map.capacity), "rss_mb": round(rss_mb(), 1),
+        "map_bytes": slam.map.nbytes, "table_bytes": int(slam.map.table.nbytes),
+        "map_capacity": int(slam.map.capacity), "rss_mb": round(rss_mb(), 1),
         "blocks_in_use": slam.map.blocks_in_use(), "block_slots": slam.map.block,
         "landmarks_in_map": int(len(slam.known_slots)),
         "final_pose_error_m": float(np.hypot(*(pose[:2] - truth[:2]))),
@@ -102,7 +105,10 @@ def main() -> None:
     sizes = [int(s) for s in args.sizes.split(",")]
     runs = {n: one_size(n, args.particles, args.association, args.scans, args.seed) for n in sizes}
     decades = {f"{a}->{b}": {"ms_per_scan_median": runs[b]["ms_per_scan"]["median"] / runs[a]["ms_per_scan"]["median"],
-                             "map_bytes": runs[b]["map_bytes"] / runs[a]["map_bytes"]}
+                             "ms_per_scan_mean": runs[b]["ms_per_scan"]["mean"] / runs[a]["ms_per_scan"]["mean"],
+                             "map_bytes": runs[b]["map_bytes"] / runs[a]["map_bytes"],
+                             "table_bytes": runs[b]["table_bytes"] / runs[a]["table_bytes"],
+                             "rss_mb": runs[b]["rss_mb"] / runs[a]["rss_mb"]}
                for a, b in zip(sizes, sizes[1:])}
     emit({"benchmark": "fastslam_scaling", "settings": vars(args), "noise_cov": NOISE.tolist(),
           "target": "each decade of landmarks at most 1.5x the previous in time per scan and memory",

@@ -5,13 +5,22 @@ FastSLAM's cost per scan should not grow with the map (Montemerlo et al., "FastS
 simultaneous localization and mapping problem", §4: particles share the landmarks they have not changed, in a
 balanced tree, so resampling costs O(log L) per particle). Here the slots are cut into blocks of ``block`` slots;
 each particle has a table naming the physical block that holds each of its blocks, and a block is shared by
-every particle whose table names it. Resampling copies tables (one integer per block and particle), never
-landmarks. A particle that changes a landmark first gets a private copy of that block (:meth:`AlignedMap.private`):
-a scan copies the few blocks near the robot, whatever the size of the map.
+every particle whose table names it. A particle that changes a landmark first gets a private copy of that block
+(:meth:`AlignedMap.private`): a scan copies the few blocks near the robot, whatever the size of the map.
+Resampling copies table entries, never landmarks, and only those of the columns where the particles may disagree
+(blocks copied since every particle last held the same one): the rest of every table is the same in all rows.
 
 Only the Gaussians (mean, covariance) differ between particles; hit counts, existence scores, labels and
 validity are the same in every particle when every particle updates the same slots, so they are kept once per
 slot. Freed slots (dropped tentative landmarks) are reused by the next new landmarks.
+
+The landmarks near a point come from a grid over the slots (:meth:`AlignedMap.near`), so the shared association's
+candidate search does not read the whole map (Nieto, Guivant, Nebot and Thrun, "Real time data association for
+FastSLAM": a scan's cost must not grow with the map). Each slot is filed under the centre of the box holding its
+particles' means (its anchor); no particle's mean lies farther from it than half the box's diagonal (its spread).
+A slot whose block was written since is filed again before the next search. Every mixture of the particles' means lies within the spread
+of the anchor, so the grid cells within the radius plus the spread of a point hold every landmark whose mixture
+lies within the radius.
 """
 
 from __future__ import annotations
@@ -23,6 +32,8 @@ import numpy as np
 from central.fastslam import kernels
 
 BLOCK = 32  # slots per block: a scan's copies stay small, a table stays 1/32 of the map
+INDEX_CELLS_PER_RADIUS = 2  # the index's grid cell: half the first search's radius (a search reads 6 × 6 cells)
+UNFILED, IN_CELL, WIDE = 0, 1, 2  # where the spatial index holds a slot
 
 
 class SlotTable(dict):
@@ -76,10 +87,12 @@ class SlotTable(dict):
 class AlignedMap:
     """Pooled blocks ``pool_mean (B, block, 2)``, ``pool_cov (B, block, 2, 2)``, their reference counts ``refs``,
     each particle's ``table (P, blocks)`` (−1: nothing written there yet) and the per-slot ``hits``, ``exist``,
-    ``label``, ``valid``; ``used`` slots have ever been handed out."""
+    ``label``, ``valid`` and ``serial`` (the order the landmarks were added in); ``used`` slots have ever been
+    handed out."""
 
-    def __init__(self, particles: int, block: int = BLOCK):
+    def __init__(self, particles: int, block: int = BLOCK, index_cell: float | None = None):
         self.block = block
+        self.index_cell = index_cell  # m; None: chosen by the first search (INDEX_CELLS_PER_RADIUS)
         self.table = np.full((particles, 0), -1, np.int32)  # int32: resampling copies P × blocks of them
         self.pool_mean = np.zeros((0, block, 2))
         self.pool_cov = np.zeros((0, block, 2, 2))
@@ -90,8 +103,48 @@ class AlignedMap:
         self.exist = np.zeros(0)
         self.label = np.zeros(0, np.int64)
         self.valid = np.zeros(0, bool)
+        self.serial = np.zeros(0, np.int64)
         self.used = 0
+        self.added = 0  # landmarks ever added: the next serial
         self._free_slots: list[int] = []
+        self.mixed: set[int] = set()  # table columns whose particles may hold different blocks
+        self._index_reset()
+
+    def _index_reset(self) -> None:
+        """An empty spatial index with every block to be filed (after a restore, as the index is not pickled, and
+        when the slots grow)."""
+        capacity = self.valid.size
+        self._bucket = np.full(1 << max(4, capacity.bit_length()), -1, np.int32)  # hashed grid cell → first slot
+        self._following = np.full(capacity, -1, np.int32)  # slot → the next slot in its bucket's list
+        self._filed_state = np.zeros(capacity, np.int8)  # per slot: UNFILED, IN_CELL or WIDE
+        self._filed_cell = np.zeros((capacity, 2), np.int32)  # per slot: its grid cell when IN_CELL
+        self._wide: set[int] = set()  # slots every search checks
+        self._dirty: set[int] = set(range(self.table.shape[1]))  # blocks written since they were filed
+        self._position = np.full(self.refs.size, -1, np.int64)  # scratch of the mixture kernel: −1 between calls
+
+    def __getstate__(self) -> dict:
+        state = self.__dict__.copy()
+        for name in ("_bucket", "_following", "_filed_state", "_filed_cell", "_wide", "_dirty", "_position"):
+            state.pop(name, None)
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        """Restore a pickled map (a checkpoint), also one written before the spatial index and the mixed
+        columns: its landmarks are numbered in slot order until :meth:`set_order` gives the order they were added
+        in, its mixed columns are found in the tables. Every block is filed again."""
+        self.__dict__.update(state)
+        if "serial" not in state:
+            self.serial, self.added = np.arange(self.valid.size, dtype=np.int64), self.valid.size
+            self.index_cell = None
+        if "mixed" not in state:
+            self._count_refs()
+        self._index_reset()
+
+    def set_order(self, slots: np.ndarray) -> None:
+        """Number landmarks ``slots`` 0, 1, … in the order given (the order they were added in)."""
+        slots = np.asarray(slots, np.int64)
+        self.serial[slots] = np.arange(slots.size)
+        self.added = max(self.added, slots.size)
 
     @property
     def particles(self) -> int:
@@ -106,7 +159,8 @@ class AlignedMap:
     def nbytes(self) -> int:
         """Memory of the map's arrays (pool, tables and per-slot data)."""
         arrays = (self.table, self.pool_mean, self.pool_cov, self.refs, self.free_blocks, self.hits, self.exist,
-                  self.label, self.valid)
+                  self.label, self.valid, self.serial, self._bucket, self._following, self._filed_state,
+                  self._filed_cell, self._position)
         return int(sum(a.nbytes for a in arrays))
 
     def blocks_in_use(self) -> int:
@@ -137,6 +191,8 @@ class AlignedMap:
         self.write(slots, mean, cov)
         self.exist[slots], self.hits[slots] = exist, np.minimum(hits, np.iinfo(np.int32).max)
         self.label[slots], self.valid[slots] = labels, True
+        self.serial[slots] = self.added + np.arange(slots.size)
+        self.added += slots.size
         return slots
 
     def release(self, slots: np.ndarray) -> None:
@@ -145,6 +201,7 @@ class AlignedMap:
             if self.valid[slot]:
                 self.valid[slot] = False
                 heapq.heappush(self._free_slots, slot)
+                self._dirty.add(slot // self.block)
 
     def _grow_slots(self, blocks: int) -> None:
         blocks = max(blocks, 2 * self.table.shape[1])
@@ -155,6 +212,8 @@ class AlignedMap:
         self.exist = np.concatenate([self.exist, np.zeros(slots)])
         self.label = np.concatenate([self.label, np.full(slots, -1, np.int64)])
         self.valid = np.concatenate([self.valid, np.zeros(slots, bool)])
+        self.serial = np.concatenate([self.serial, np.zeros(slots, np.int64)])
+        self._index_reset()  # filed again at the next search, in a grid sized for the slots
 
     # ------------------------------------------------------------------ blocks
     def _reserve_blocks(self, count: int) -> None:
@@ -166,6 +225,7 @@ class AlignedMap:
         self.pool_mean = np.concatenate([self.pool_mean, np.zeros((size - old, self.block, 2))])
         self.pool_cov = np.concatenate([self.pool_cov, np.zeros((size - old, self.block, 2, 2))])
         self.refs = np.concatenate([self.refs, np.zeros(size - old, np.int64)])
+        self._position = np.concatenate([self._position, np.full(size - old, -1, np.int64)])
         free = np.concatenate([self.free_blocks[: int(self.free_count[0])], np.arange(old, size, dtype=np.int64)])
         self.free_blocks = np.zeros(size, np.int64)
         self.free_blocks[: free.size] = free
@@ -176,6 +236,8 @@ class AlignedMap:
         take a copy of each (:meth:`private`, or a kernel that copies one particle at a time)."""
         blocks = np.unique(np.asarray(slots, np.int64) // self.block)
         self._reserve_blocks(self.particles * blocks.size)
+        self._dirty.update(blocks.tolist())
+        self.mixed.update(blocks.tolist())
         return blocks
 
     def private(self, slots: np.ndarray) -> None:
@@ -185,13 +247,40 @@ class AlignedMap:
                                self.free_count)
 
     def select(self, index: np.ndarray) -> None:
-        """Keep particles ``index`` (with repetition): tables are copied, blocks shared; unheld blocks are freed."""
-        self.table = self.table[index]
+        """Keep particles ``index`` (with repetition): tables are copied, blocks shared; unheld blocks are freed.
+
+        Only the ``mixed`` columns of the tables (blocks some particle copied since every particle last held
+        the same one) can differ between particles: the others are the same in every row and stay as they are,
+        so resampling costs the part of the map the particles disagree on, not the whole map."""
+        index = np.asarray(index, np.int64)
+        if index.size != self.particles:  # the particle count changes: every row is copied
+            self.table = self.table[index]
+            self._count_refs()
+            return
+        mixed = np.array(sorted(self.mixed), np.int64)
+        if not mixed.size:
+            return
+        old = self.table[:, mixed]
+        new = old[index]
+        self.table[:, mixed] = new
+        held, count = np.unique(old[old >= 0], return_counts=True)
+        self.refs[held] -= count
+        held_now, count_now = np.unique(new[new >= 0], return_counts=True)
+        self.refs[held_now] += count_now
+        freed = held[self.refs[held] == 0]
+        start = int(self.free_count[0])
+        self.free_blocks[start:start + freed.size] = freed
+        self.free_count[0] = start + freed.size
+        self.mixed.difference_update(mixed[np.all(new == new[:1], 0)].tolist())
+
+    def _count_refs(self) -> None:
+        """Reference counts, free blocks and mixed columns counted again from the tables."""
         held = self.table[self.table >= 0]
         self.refs = np.bincount(held, minlength=self.refs.size).astype(np.int64)
         free = np.flatnonzero(self.refs == 0)
         self.free_blocks[: free.size] = free
         self.free_count[0] = free.size
+        self.mixed = set(np.flatnonzero(~np.all(self.table == self.table[:1], 0)).tolist())
 
     # ------------------------------------------------------------------ Gaussians
     def gather(self, particle: np.ndarray, slot: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -213,6 +302,7 @@ class AlignedMap:
         slots = np.asarray(slots, np.int64)
         blocks = slots // self.block
         if mean.ndim == 2 and np.all(self.table[:, np.unique(blocks)] < 0):
+            self._dirty.update(np.unique(blocks).tolist())
             for b in np.unique(blocks).tolist():
                 self._reserve_blocks(1)
                 count = int(self.free_count[0]) - 1
@@ -231,3 +321,43 @@ class AlignedMap:
         phys = self.table[:, blocks]
         self.pool_mean[phys, slots % self.block] = mean
         self.pool_cov[phys, slots % self.block] = cov
+
+    def scratch_positions(self) -> np.ndarray:
+        """One entry per physical block, all −1: scratch for :func:`central.fastslam.kernels.marginal_map_kernel`,
+        which leaves it all −1 (kept so that a search allocates nothing the size of the map)."""
+        if self._position.size != self.refs.size:
+            self._position = np.full(self.refs.size, -1, np.int64)
+        return self._position
+
+    # ------------------------------------------------------------------ spatial index
+    def near(self, point: np.ndarray, radius: float) -> np.ndarray:
+        """Slots of the landmarks whose mixture over the particles (any weights) may lie within ``radius`` of
+        ``point`` (a superset: the caller computes the mixtures and cuts), in the order they were added in."""
+        if self.index_cell is None:
+            self.index_cell = max(float(radius) / INDEX_CELLS_PER_RADIUS, 0.1)
+        self._file_dirty()
+        cell = self.index_cell
+        low = np.floor((np.asarray(point, float) - radius - cell) / cell).astype(np.int64)
+        high = np.floor((np.asarray(point, float) + radius + cell) / cell).astype(np.int64)
+        slots = kernels.grid_candidates_kernel(low[0], low[1], high[0], high[1], self._bucket, self._following,
+                                               self._filed_state, self._filed_cell, self.valid)
+        if self._wide:
+            wide = np.array(sorted(self._wide), np.int64)
+            slots = np.concatenate([slots, wide[self.valid[wide]]])
+        return slots[np.argsort(self.serial[slots], kind="stable")]
+
+    def _file_dirty(self) -> None:
+        """File again the slots of the blocks written since the last search (:func:`central.fastslam.kernels.
+        refile_kernel`)."""
+        if not self._dirty:
+            return
+        blocks = np.array(sorted(self._dirty), np.int64)
+        self._dirty.clear()
+        slots, states = kernels.refile_kernel(self.table, self.pool_mean, self.valid, blocks, self.block,
+                                              self.index_cell, self._filed_state, self._filed_cell, self._bucket,
+                                              self._following)
+        for slot, state in zip(slots.tolist(), states.tolist()):
+            if state == WIDE:
+                self._wide.add(slot)
+            else:
+                self._wide.discard(slot)

@@ -184,14 +184,17 @@ class FastSlam:
         return self.pose.shape[0]
 
     def __setstate__(self, state: dict) -> None:
-        """Restore a pickled filter (a checkpoint), also one written before the weights were cached and the
-        known-landmark table kept its arrays: such a checkpoint holds ``logw`` and a plain dict."""
+        """Restore a pickled filter (a checkpoint), also one written before the weights were cached, the
+        known-landmark table kept its arrays (such a checkpoint holds ``logw`` and a plain dict) or the map
+        numbered its landmarks."""
         if "logw" in state:
             state["_logw"] = state.pop("logw")
         state["_weights"] = None
         if not isinstance(state.get("known_slots"), SlotTable):
             state["known_slots"] = SlotTable(state.get("known_slots", {}))
         self.__dict__.update(state)
+        if isinstance(self.map, AlignedMap):  # a map pickled before it numbered its landmarks: the table's order
+            self.map.set_order(self.known_slots.arrays()[1])
 
     @property
     def logw(self) -> np.ndarray:

@@ -13,7 +13,9 @@ arrays of a few hundred 2 × 2 blocks, more than the arithmetic. Each kernel doe
 - :func:`weighted_pose`: a robot's particle-weighted mean and covariance, with its pending motion
   (:meth:`central.fastslam.core.FastSlam.poses`);
 - :func:`private_blocks`: copy on write of the blocks of :class:`central.fastslam.aligned_map.AlignedMap`;
-- :func:`marginal_map`: the landmarks' particle mixtures near the robot (:func:`central.fastslam.shared.marginal_map`);
+- :func:`marginal_map`: the landmarks' particle mixtures near the robot (:func:`central.fastslam.shared.marginal_map`),
+  reading only the blocks of the candidates the map's spatial index gives (:func:`refile_kernel` files the slots
+  of the blocks a scan wrote, :func:`grid_candidates_kernel` lists those of a few grid cells);
 - :func:`shared_gating_kernel`: the predicted detections, Jacobians and gating distances of a scan against those
   mixtures (:func:`central.fastslam.shared.associate`);
 - :func:`propose`: every particle's FastSLAM 2.0 step, its motion prior updated by the scan's matched detections,
@@ -296,19 +298,102 @@ def weighted_pose(pose: np.ndarray, w: np.ndarray, pending: tuple[np.ndarray, np
 
 
 @njit
-def _block_weights(w, table, needed, pool_size):
-    """For each block ``b`` with ``needed[b]``: the distinct physical blocks the particles hold there
-    (``phys[b, :count[b]]``) and the summed weight of the particles holding each (``weight[b, :count[b]]``)."""
-    particles, blocks = table.shape
-    phys = np.empty((blocks, particles), np.int64)
-    weight = np.zeros((blocks, particles))
-    count = np.zeros(blocks, np.int64)
-    position = np.full(pool_size, -1, np.int64)
-    for b in range(blocks):
-        if not needed[b]:
-            continue
+def _cell_bucket(cx, cy, mask):
+    """The hash bucket of grid cell (cx, cy) in a table of ``mask + 1`` buckets."""
+    return ((cx * 73856093) ^ (cy * 19349663)) & mask
+
+
+@njit
+def refile_kernel(table, pool_mean, valid, blocks, block, cell, filed_state, filed_cell, bucket, following):
+    """File again the slots of ``blocks`` in the map's spatial index, a hashed grid (:meth:`AlignedMap.near`): a
+    valid slot goes to the grid cell of its anchor, the centre of the box holding every particle's mean
+    (``IN_CELL`` = 1), unless half the box's diagonal (its spread: no particle's mean lies farther from the
+    anchor) exceeds ``cell`` (``WIDE`` = 2: every search checks it); an invalid slot is unfiled (0). A cell's slots are a list threaded through ``following`` from ``bucket`` (cells
+    sharing a bucket share the list; ``filed_cell`` tells them apart). Returns (slots, states) of the slots that
+    entered or left ``WIDE``."""
+    particles, mask = table.shape[0], bucket.shape[0] - 1
+    wide_slots = np.empty(blocks.shape[0] * block, np.int64)
+    wide_states = np.empty(blocks.shape[0] * block, np.int8)
+    wide = 0
+    low = np.empty((block, 2))
+    high = np.empty((block, 2))
+    for b in blocks:
+        low[:], high[:] = np.inf, -np.inf
+        for p in range(particles):  # the box of every particle's mean, slot by slot (a block is contiguous)
+            phys = table[p, b]
+            if phys < 0:
+                continue
+            for k in range(block):
+                for axis in range(2):
+                    value = pool_mean[phys, k, axis]
+                    low[k, axis] = min(low[k, axis], value)
+                    high[k, axis] = max(high[k, axis], value)
+        for k in range(block):
+            slot = b * block + k
+            state = 0
+            cx, cy = 0, 0
+            if valid[slot]:  # a valid slot was written in every particle
+                ax, ay = 0.5 * (low[k, 0] + high[k, 0]), 0.5 * (low[k, 1] + high[k, 1])  # the anchor: the box's centre
+                half_x, half_y = 0.5 * (high[k, 0] - low[k, 0]), 0.5 * (high[k, 1] - low[k, 1])
+                state = 2 if half_x * half_x + half_y * half_y > cell * cell else 1  # spread: half the box's diagonal
+                cx, cy = int(math.floor(ax / cell)), int(math.floor(ay / cell))
+            old = filed_state[slot]
+            if state == old and (state != 1 or (cx == filed_cell[slot, 0] and cy == filed_cell[slot, 1])):
+                continue
+            if old == 1:  # unlink from its cell's list
+                h = _cell_bucket(filed_cell[slot, 0], filed_cell[slot, 1], mask)
+                previous, current = -1, bucket[h]
+                while current != slot:
+                    previous, current = current, following[current]
+                if previous < 0:
+                    bucket[h] = following[slot]
+                else:
+                    following[previous] = following[slot]
+            if state == 1:
+                h = _cell_bucket(cx, cy, mask)
+                following[slot] = bucket[h]
+                bucket[h] = slot
+                filed_cell[slot, 0], filed_cell[slot, 1] = cx, cy
+            if old == 2 or state == 2:
+                wide_slots[wide], wide_states[wide] = slot, state
+                wide += 1
+            filed_state[slot] = state
+    return wide_slots[:wide], wide_states[:wide]
+
+
+@njit
+def grid_candidates_kernel(low_x, low_y, high_x, high_y, bucket, following, filed_state, filed_cell, valid):
+    """The valid slots filed in the grid cells [low_x, high_x] × [low_y, high_y] of :func:`refile_kernel`'s index."""
+    mask = bucket.shape[0] - 1
+    out = np.empty(0, np.int64)
+    for rounds in range(2):  # count, then fill
+        found = 0
+        for cx in range(low_x, high_x + 1):
+            for cy in range(low_y, high_y + 1):
+                slot = bucket[_cell_bucket(cx, cy, mask)]
+                while slot >= 0:
+                    if filed_state[slot] == 1 and filed_cell[slot, 0] == cx and filed_cell[slot, 1] == cy and valid[slot]:
+                        if rounds == 1:
+                            out[found] = slot
+                        found += 1
+                    slot = following[slot]
+        if rounds == 0:
+            out = np.empty(found, np.int64)
+    return out
+
+
+@njit
+def _block_weights(w, table, rows, blocks, position):
+    """For each block ``blocks[b]``: the distinct physical blocks the particles ``rows`` hold there
+    (``phys[b, :count[b]]``, in order of first holder) and the summed weight ``w`` of the rows holding each
+    (``weight[b, :count[b]]``). ``position`` (one entry per physical block, all −1) is scratch, left all −1."""
+    particles = rows.shape[0]
+    phys = np.empty((blocks.shape[0], particles), np.int64)
+    weight = np.zeros((blocks.shape[0], particles))
+    count = np.zeros(blocks.shape[0], np.int64)
+    for b in range(blocks.shape[0]):
         for p in range(particles):
-            held = table[p, b]
+            held = table[rows[p], blocks[b]]
             j = position[held]
             if j < 0:
                 j = count[b]
@@ -322,55 +407,49 @@ def _block_weights(w, table, needed, pool_size):
 
 
 @njit
-def marginal_map_kernel(w, pool_mean, pool_cov, table, block, slots, point, radius):
-    """(kept rows of ``slots``, means ``(k, 2)``, covariances ``(k, 2, 2)``): the particle mixture of each
-    landmark slot whose weighted mean lies within ``radius`` of ``point`` (the weighted covariances plus the
-    spread of the means). Particles sharing a block share its Gaussians: each distinct block is read once, with
-    the summed weight of its holders, so the cost follows the blocks, not particles × landmarks. A block is read
-    whole, holder after holder (its slots lie next to each other in memory), and each slot still sums its
-    holders in the same order as a loop over slots would."""
+def marginal_map_kernel(w, pool_mean, pool_cov, table, rows, block, slots, point, radius, position):
+    """(kept rows of ``slots``, means ``(k, 2)``, covariances ``(k, 2, 2)``): the mixture over particles ``rows``
+    (weights ``w``) of each landmark slot whose weighted mean lies within ``radius`` of ``point`` (the weighted
+    covariances plus the spread of the means). Particles sharing a block share its Gaussians: each distinct block
+    is read once, with the summed weight of its holders, so the cost follows the blocks of ``slots``, not
+    particles × landmarks, nor the size of the map; each slot sums its holders in the order of their first
+    holder. ``position`` is :func:`_block_weights`' scratch."""
     count = slots.shape[0]
-    needed = np.zeros(table.shape[1], np.bool_)
-    row_of = np.full(table.shape[1] * block, -1, np.int64)
-    for i in range(count):
-        needed[slots[i] // block] = True
-        row_of[slots[i]] = i
-    phys, weight, holders = _block_weights(w, table, needed, pool_mean.shape[0])
+    blocks = np.unique(slots // block)
+    local = np.searchsorted(blocks, slots // block)
+    order = np.argsort(local, kind="mergesort")  # the slots block by block: start[b]..start[b + 1] in ``order``
+    start = np.searchsorted(local[order], np.arange(blocks.shape[0] + 1))
+    phys, weight, holders = _block_weights(w, table, rows, blocks, position)
     means = np.zeros((count, 2))
-    for b in range(table.shape[1]):
-        if not needed[b]:
-            continue
+    for b in range(blocks.shape[0]):
         for j in range(holders[b]):
             wj, held = weight[b, j], phys[b, j]
-            for k in range(block):
-                i = row_of[b * block + k]
-                if i >= 0:
-                    means[i, 0] += wj * pool_mean[held, k, 0]
-                    means[i, 1] += wj * pool_mean[held, k, 1]
-    keep = np.zeros(count, np.int64)
+            for n in range(start[b], start[b + 1]):
+                i = order[n]
+                k = slots[i] % block
+                means[i, 0] += wj * pool_mean[held, k, 0]
+                means[i, 1] += wj * pool_mean[held, k, 1]
+    inside = np.zeros(count, np.bool_)
+    row_of = np.full(count, -1, np.int64)  # the output row of each kept slot
     kept = 0
     for i in range(count):
         if math.hypot(means[i, 0] - point[0], means[i, 1] - point[1]) < radius:
-            keep[kept] = i
+            inside[i] = True
+            row_of[i] = kept
             kept += 1
-    keep = keep[:kept]
+    keep = np.flatnonzero(inside)
     out_mean = np.empty((kept, 2))
     out_cov = np.zeros((kept, 2, 2))
-    row_of[:] = -1
-    needed[:] = False
     for n in range(kept):
         out_mean[n] = means[keep[n]]
-        row_of[slots[keep[n]]] = n
-        needed[slots[keep[n]] // block] = True
-    for b in range(table.shape[1]):
-        if not needed[b]:
-            continue
+    for b in range(blocks.shape[0]):
         for j in range(holders[b]):
             wj, held = weight[b, j], phys[b, j]
-            for k in range(block):
-                n = row_of[b * block + k]
-                if n < 0:
+            for q in range(start[b], start[b + 1]):
+                i = order[q]
+                if not inside[i]:
                     continue
+                n, k = row_of[i], slots[i] % block
                 r0, r1 = pool_mean[held, k, 0] - out_mean[n, 0], pool_mean[held, k, 1] - out_mean[n, 1]
                 out_cov[n, 0, 0] += wj * (pool_cov[held, k, 0, 0] + r0 * r0)
                 out_cov[n, 0, 1] += wj * (pool_cov[held, k, 0, 1] + r0 * r1)
@@ -383,9 +462,9 @@ def marginal_map(landmarks, w: np.ndarray, slots: np.ndarray, point: np.ndarray,
                  rows: np.ndarray | None = None) -> tuple:
     """:func:`marginal_map_kernel` on an :class:`AlignedMap`: over every particle, or over particles ``rows`` with
     weights ``w`` (one per row)."""
-    table = landmarks.table if rows is None else landmarks.table[rows]
-    return marginal_map_kernel(w, landmarks.pool_mean, landmarks.pool_cov, table, landmarks.block, slots, point,
-                               radius)
+    rows = np.arange(landmarks.particles) if rows is None else np.asarray(rows, np.int64)
+    return marginal_map_kernel(w, landmarks.pool_mean, landmarks.pool_cov, landmarks.table, rows, landmarks.block,
+                               np.asarray(slots, np.int64), point, radius, landmarks.scratch_positions())
 
 
 @njit
@@ -624,8 +703,8 @@ def warm_up() -> None:
     from robots.models import RangeBearingSensor
 
     landmarks = AlignedMap(2)
-    slots = landmarks.allocate(2)
-    landmarks.write(slots, np.array([[3.0, 0.0], [3.0, 1.0]]), np.broadcast_to(np.eye(2), (2, 2, 2)))
+    slots = landmarks.add(np.array([[3.0, 0.0], [3.0, 1.0]]), np.broadcast_to(np.eye(2), (2, 2, 2)), 1.0, 1,
+                          np.array([0, 1]))
     pose = np.zeros((2, 3))  # the wrappers make a robot's poses contiguous
     known_update(landmarks, RangeBearingSensor(), pose, slots[:1], np.array([[3.0, 0.0]]), np.eye(2) * 0.01, 1.0, 6.0)
     for model in (UnicycleModel(), AckermannModel()):
@@ -633,6 +712,7 @@ def warm_up() -> None:
     weights = np.full(2, 0.5)
     weighted_pose(pose, weights, None)
     weighted_pose(pose, weights, (np.zeros(3), np.eye(3)))
+    landmarks.near(np.zeros(2), 10.0)  # files the written blocks and searches: the index's kernels
     keep, mean, cov = marginal_map(landmarks, weights, slots, np.zeros(2), 10.0)
     shared_gating_kernel(np.zeros(3), 0.0, 0.0, mean, cov, np.zeros(keep.size, np.bool_), np.eye(3), np.eye(3),
                          np.eye(2), np.array([[3.0, 0.0]]))

@@ -41,19 +41,24 @@ def marginal_map(slam: FastSlam, near: tuple[np.ndarray, float] | None = None
     """(ids, slots, means ``(K, 2)``, covariances ``(K, 2, 2)``) of every landmark with an id (known or shared
     association), mixed over the particles: the weighted mean, and the weighted covariances plus the spread of
     the means. ``near`` = (point, radius): only the landmarks whose mean lies within ``radius`` of ``point``
-    (the association needs those alone; the covariances are the costly part)."""
+    (the association needs those alone; the kernel mixes only the candidates of the map's spatial index, the
+    reference mixes every landmark and cuts)."""
     if not slam.known_slots:
         return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros((0, 2, 2))
-    ids, slots = slam.known_slots.arrays()
     w = slam.weights()
     rows = None  # every particle
     cap = slam.config.association_particles
     if near is not None and 0 < cap < w.size:  # the association's mixtures: from ``cap`` particles drawn by weight
         rows, counts = np.unique(systematic_resample(w, cap, None, offset=0.5), return_counts=True)
         w = counts / cap
-    if slam.config.compiled:
-        point, radius = (np.zeros(2), np.inf) if near is None else (np.asarray(near[0], float), float(near[1]))
+    if slam.config.compiled and near is not None:
+        point, radius = np.asarray(near[0], float), float(near[1])
+        slots = slam.map.near(point, radius)
         keep, mean, cov = kernels.marginal_map(slam.map, w, slots, point, radius, rows)
+        return slam.map.label[slots[keep]], slots[keep], mean, cov
+    ids, slots = slam.known_slots.arrays()
+    if slam.config.compiled:
+        keep, mean, cov = kernels.marginal_map(slam.map, w, slots, np.zeros(2), np.inf, rows)
         return ids[keep], slots[keep], mean, cov
     means, covs = slam.map.gather((np.arange(w.size) if rows is None else rows)[:, None], slots[None])
     mean = np.einsum("p,pkj->kj", w, means)
