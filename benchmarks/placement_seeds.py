@@ -14,7 +14,9 @@ Cases (FastSLAM, 100 particles, unless said):
   FastSLAM's motion (``turn_slip``; D-SLAM models it by default);
 - ``dslam-known-known``, ``dslam-known-none``, ``dslam-unknown-known``, ``dslam-unknown-none``: D-SLAM, with
   barcodes or without (``--association unknown``), with every start pose or none (D-SLAM draws nothing at
-  random: the seed is MCL's).
+  random: the seed is MCL's);
+- ``unknown-none-no-meetings``, ``known-none-no-meetings``, ``dslam-unknown-none-no-meetings``: the placement
+  without the robots' detections of each other (``--no-robot-meetings``; on by default since they were added).
 
 The data bound the placement delays stand against (``data_bound_s``, no estimator): after its first scan,
 how long each robot takes to have seen two distinct landmarks that the anchor (the first robot to scan) had
@@ -48,6 +50,8 @@ CASES: dict[str, tuple] = {  # estimator, association, start poses[, settings]
     "known-none": ("fastslam", "known", "none"),
     "known-first": ("fastslam", "known", "first"),
     "unknown-none": ("fastslam", "unknown", "none"),
+    "unknown-none-no-meetings": ("fastslam", "unknown", "none", {"robot_meetings": False}),
+    "known-none-no-meetings": ("fastslam", "known", "none", {"robot_meetings": False}),
     "mcl-signatures": ("mcl", "known", "none"),
     "mcl-unknown": ("mcl", "unknown", "none"),
     "mcl-unknown-no-history": ("mcl", "unknown", "none", {"history_scans": 0}),
@@ -57,16 +61,19 @@ CASES: dict[str, tuple] = {  # estimator, association, start poses[, settings]
     "dslam-known-none": ("dslam", "known", "none"),
     "dslam-unknown-known": ("dslam", "unknown", "known"),
     "dslam-unknown-none": ("dslam", "unknown", "none"),
+    "dslam-unknown-none-no-meetings": ("dslam", "unknown", "none", {"robot_meetings": False}),
 }
 
 
 def one_run(spec: str, case: str, seed: int) -> dict:
     estimator, association, start_poses, *settings = CASES[case]
     dataset = load_dataset(spec)
-    options = RunOptions(estimator, association, None, seed, dict(settings[0]) if settings else {})
+    settings = dict(settings[0]) if settings else {}
+    meetings = settings.pop("robot_meetings", True)  # the placer's, not the estimator's
+    options = RunOptions(estimator, association, None, seed, settings)
     if estimator == "mcl":
         options.landmarks, options.landmark_ids = dataset.landmarks, dataset.landmark_ids
-    run = run_estimator(dataset, options, start_poses=start_poses)
+    run = run_estimator(dataset, options, start_poses=start_poses, robot_meetings=meetings)
     truth = {rid: Trajectory(log.truth_stamp, log.truth_pose) for rid, log in dataset.robots.items()}
     if estimator == "mcl":
         errors = {}

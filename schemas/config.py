@@ -425,6 +425,9 @@ class RunSettings(ProcessSettings):
         None, description="start poses the estimator is given: known (all the data has), first (the first robot's "
         "only), none (the first robot to scan anchors the frame at the origin); robots without one are placed by "
         "MCL against the map so far (default: known when the data has them, else none)")
+    robot_meetings: bool = Field(
+        True, description="robots without a start pose are also localized by the detections between them and robots "
+        "already placed (the robots' own ids; collaborative MCL)")
     estimator_settings: str | None = Field(
         None, description="the estimator's own settings, comma-separated NAME=VALUE (e.g. max_obs_range=40 or "
         "proposal=fastslam2 for fastslam, confirm_hits=3 for dslam, variant=kld for mcl); unknown names and bad "

@@ -69,12 +69,13 @@ def default_start_poses(dataset: Dataset, robots: list[str]) -> str:
 
 def run_estimator(dataset: Dataset, options: RunOptions, robots: list[str] | None = None,
                   duration: float | None = None, sample_period_s: float = 0.1, progress: bool = False,
-                  start_poses: str | None = None, should_stop: Callable[[], bool] | None = None) -> OfflineRun:
+                  start_poses: str | None = None, should_stop: Callable[[], bool] | None = None,
+                  robot_meetings: bool = True) -> OfflineRun:
     """Drive the estimator ``options.estimator`` over the data set's events; sample its poses.
 
     ``start_poses`` (known | first | none; default :func:`default_start_poses`) withholds start poses; an
-    estimator that can take robots without one gets them placed by :class:`services.placement.FleetPlacer`.
-    ``should_stop`` is asked between events (a signal handler's flag): when it says so, or on
+    estimator that can take robots without one gets them placed by :class:`services.placement.FleetPlacer`
+    (``robot_meetings``: also by detections between robots, :mod:`services.mcl.meeting`). ``should_stop`` is asked between events (a signal handler's flag): when it says so, or on
     KeyboardInterrupt, the run ends there and what was computed is returned (``extra["interrupted"]``).
     """
     from services.estimators import make_estimator
@@ -94,7 +95,7 @@ def run_estimator(dataset: Dataset, options: RunOptions, robots: list[str] | Non
     placer = None
     if any(info.start_pose is None for info in infos) and hasattr(estimator, "place_robot"):
         placer = FleetPlacer(estimator, infos, MclConfig(seed=options.seed),
-                             use_signatures=options.association == "known")
+                             use_signatures=options.association == "known", meetings=robot_meetings)
     elif any(info.start_pose is None for info in infos) and options.estimator not in ("mcl", "odometry"):
         log.warning("%s cannot place robots without a start pose: they stay out", options.estimator)
     samples: dict[str, tuple[list, list, list]] = {rid: ([], [], []) for rid in chosen}
@@ -251,7 +252,8 @@ def run(settings: RunSettings, console: Console | None = None, should_stop: Call
     robots = settings.robot_ids.split(",") if settings.robot_ids else None
     options = run_options(settings, dataset)
     result = run_estimator(dataset, options, robots, settings.duration, settings.sample_period_s,
-                           progress=settings.progress, start_poses=settings.start_poses, should_stop=should_stop)
+                           progress=settings.progress, start_poses=settings.start_poses, should_stop=should_stop,
+                           robot_meetings=settings.robot_meetings)
     chosen = robots or list(dataset.robots)
     if settings.map_out:
         save_run_map(settings, result, chosen)

@@ -17,7 +17,13 @@
 - with signatures, MCL calls a robot localized only once its hypothesis has explained, by id, detections of
   two landmarks at least ``MclConfig.localized_baseline_m`` apart, and starts again when a detection
   contradicts it: resampling can collapse the particles on one arc of the circle a single landmark allows
-  (MR.CLAM).
+  (MR.CLAM);
+- robots that detect each other (``meetings``, on by default): a detection between a robot without a pose
+  and a placed robot, either way, weighs the robot's localizer by where the placed robot's pose puts it, and
+  starts its localization again from there when no particle agrees; and the robot's recent meetings, each
+  at its dead-reckoned pose then, place it as soon as they fix its pose on their own, map or no map
+  (:mod:`services.mcl.meeting`). Without landmark ids a map can be nearly symmetric (MR.CLAM under a half
+  turn), and early in a run the anchor's map too small for MCL; the robots' own ids are neither.
 
 Each robot's :class:`Placement` says when and how it was placed, or why not.
 """
@@ -30,8 +36,10 @@ import numpy as np
 
 from schemas.contract import Event, OdomEvent, ScanEvent
 from schemas.messages import RobotInfo
+from robots.models import robot_models
 from services.mcl.config import MclConfig
 from services.mcl.fleet import MclFleet
+from services.mcl.meeting import Meeting, MeetingLog
 
 START_POSES = ("known", "first", "none")
 
@@ -68,6 +76,8 @@ class Placement:
     odometry_before: int = 0
     mcl_updates: int = 0
     mcl_restarts: int = 0  # global localizations MCL started again (a contradicted hypothesis, a lost robot)
+    meetings: int = 0  # detections between the robot and a placed robot weighed into its localizer
+    meeting_restarts: int = 0  # ... of which no particle agreed with: the localization started from the meeting
     reason: str | None = None  # why the robot is not placed (at the end)
 
     def report(self, start: float) -> dict:
@@ -78,6 +88,8 @@ class Placement:
         out["first_scan_s"] = None if first is None else round(first - start, 3)
         if self.placed_stamp is not None and self.first_scan_stamp is not None:
             out["placed_after_first_scan_s"] = round(self.placed_stamp - self.first_scan_stamp, 3)
+        elif self.placed_stamp is not None and self.how == "meetings":
+            out["placed_after_first_scan_s"] = 0.0  # placed by other robots' detections before its first scan
         return out
 
 
@@ -112,9 +124,10 @@ class FleetPlacer:
     """Hold back the events of robots the estimator has not placed, anchor the first, localize the others."""
 
     def __init__(self, estimator, infos: list[RobotInfo], config: MclConfig, use_signatures: bool,
-                 map_refresh_s: float = 5.0, min_landmarks: int = 3):
+                 map_refresh_s: float = 5.0, min_landmarks: int = 3, meetings: bool = True):
         self.estimator = estimator
         self.use_signatures = use_signatures
+        self.meetings = meetings
         self.map_refresh_s = map_refresh_s
         self.min_landmarks = min_landmarks
         self.infos = {info.robot_id: info for info in infos}
@@ -123,6 +136,8 @@ class FleetPlacer:
         self.map_ready = False
         self.prior_map = len(estimator.landmark_map().means) > 0  # a saved map: its frame, no anchor
         self.placements = {info.robot_id: Placement(info.robot_id) for info in infos}
+        self.meeting_logs = {info.robot_id: MeetingLog() for info in infos}
+        self.models = {info.robot_id: robot_models(info) for info in infos}
         for info in infos:
             if not estimator.is_waiting(info.robot_id):
                 self.placements[info.robot_id].how = "start pose"
@@ -130,12 +145,16 @@ class FleetPlacer:
     def holds(self, event: Event) -> bool:
         """Take the event if its robot waits for a pose (True); False: the estimator should have it."""
         rid = event.robot_id
+        if self.meetings and isinstance(event, ScanEvent) and len(event.robot_ids):
+            self._meet(event)
         if rid not in self.placements or not self.estimator.is_waiting(rid):
             return False
         record = self.placements[rid]
         if isinstance(event, OdomEvent):
             record.odometry_before += 1
             self.localizers.on_odometry(event)
+            log = self.meeting_logs[rid]
+            log.move(self.models[rid][0].step(log.odometry[None], np.asarray(event.control, float)[None], event.dt)[0])
             return True
         if not isinstance(event, ScanEvent):
             return True
@@ -153,8 +172,51 @@ class FleetPlacer:
         record.mcl_restarts = max(self.localizers.robots[rid].mcl.restarts - 1, 0)
         if not report.localized:
             return self._hold(record, "not localized against the map yet")
-        pose, cov = self.localizers.robots[rid].mcl.best()
+        mcl = self.localizers.robots[rid].mcl
+        pose, cov = mcl.best()
+        log = self.meeting_logs[rid]
+        if self.meetings and log.contradicts(pose, self.models[rid][1]):  # e.g. the twin of a symmetric map
+            record.meeting_restarts += 1
+            mcl.restart_from(log.latest())
+            return self._hold(record, "MCL's pose contradicts the robot's meetings")
         return self._place(record, pose, cov, event.stamp, "mcl")
+
+    def _localizing(self, rid: str) -> bool:
+        return rid in self.placements and self.estimator.is_waiting(rid)
+
+    def _placed(self, rid: str) -> bool:
+        return rid in self.placements and not self.estimator.is_waiting(rid)
+
+    def _meet(self, event: ScanEvent) -> None:
+        """Weigh the localizers of the robots being localized by the scan's detections of robots, or by robots,
+        placed (the placed robot's pose now, from the estimator)."""
+        observer = event.robot_id
+        pairs = []  # (robot being localized, placed robot, detected by the placed robot, (range, bearing))
+        for rid, r, b in zip(event.robot_ids, np.asarray(event.robot_ranges).tolist(),
+                             np.asarray(event.robot_bearings).tolist()):
+            if self._placed(observer) and self._localizing(rid):
+                pairs.append((rid, observer, True, (r, b)))
+            elif self._localizing(observer) and self._placed(rid):
+                pairs.append((observer, rid, False, (r, b)))
+        if not pairs:
+            return
+        poses = self.estimator.poses()
+        for subject, other, by_other, z in pairs:
+            if not self.estimator.is_waiting(subject):
+                continue  # placed by an earlier pair of this scan
+            pose, cov = poses[other]
+            meeting = Meeting(np.asarray(pose, float), np.asarray(cov, float), np.array(z), event.noise_cov, by_other,
+                              self.models[other][1])
+            record = self.placements[subject]
+            record.meetings += 1
+            state = self.localizers.robots.get(subject)
+            if state is not None and state.mcl is not None:
+                record.meeting_restarts += int(state.mcl.meet(meeting))
+            log = self.meeting_logs[subject]
+            log.add(meeting)
+            fix = log.solve(self.models[subject][1])
+            if fix is not None:
+                self._place(record, fix.pose, fix.cov, event.stamp, "meetings")
 
     @staticmethod
     def _hold(record: Placement, reason: str) -> bool:

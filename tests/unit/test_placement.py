@@ -9,7 +9,7 @@ import pytest
 
 from robots.simulator import simulate
 from schemas.contract import RunOptions
-from services.evaluation.metrics import Trajectory, fleet_alignment
+from services.evaluation.metrics import Trajectory, fleet_alignment, transform_points
 from services.offline import run_estimator
 from services.placement import PlacementCheck, withhold_start_poses
 
@@ -30,8 +30,9 @@ def test_withholding_start_poses_keeps_only_what_the_mode_says():
     ("shared", "random", 3, 0.5),  # without ids MCL needs a map without symmetries (in the arena it places robots wrongly)
 ])
 def test_robots_without_start_poses_are_anchored_and_placed_and_the_fleet_lines_up(association, world, seed, bound):
+    """MCL alone (the robots' detections of each other left out: the next tests)."""
     data = simulate(world, robots=3, seed=seed, duration=40.0)
-    run = run_estimator(data, RunOptions("fastslam", association, 50, 0), start_poses="none")
+    run = run_estimator(data, RunOptions("fastslam", association, 50, 0), start_poses="none", robot_meetings=False)
     placement = run.extra["placement"]
     assert sorted(record["how"] for record in placement.values()) == ["anchor", "mcl", "mcl"], placement
     assert sum(record["scans_before"] for record in placement.values()) == run.extra["held_for_placement"]["scan"] > 0
@@ -49,7 +50,7 @@ def test_dslam_takes_robots_without_start_poses_through_the_same_placement(assoc
     """D-SLAM: the first robot to scan starts the map (phase I from the origin), MCL places the others against it,
     and the fleet lines up with the truth under one SE(2) transform."""
     data = simulate(world, robots=3, seed=seed, duration=40.0)
-    run = run_estimator(data, RunOptions("dslam", association, None, 0), start_poses="none")
+    run = run_estimator(data, RunOptions("dslam", association, None, 0), start_poses="none", robot_meetings=False)
     placement = run.extra["placement"]
     assert sorted(record["how"] for record in placement.values()) == ["anchor", "mcl", "mcl"], placement
     assert run.extra["dslam"]["robots_placed"] == 3
@@ -88,11 +89,56 @@ def test_a_robot_that_is_never_placed_is_reported_with_the_reason():
     data.robots["r2"] = dataclasses.replace(blind, scan_offsets=np.zeros_like(blind.scan_offsets),
                                             det_range=blind.det_range[:0], det_bearing=blind.det_bearing[:0],
                                             det_id=blind.det_id[:0])
-    run = run_estimator(data, RunOptions("fastslam", "known", 30, 0), start_poses="none")
+    run = run_estimator(data, RunOptions("fastslam", "known", 30, 0), start_poses="none", robot_meetings=False)
     record = run.extra["placement"]["r2"]
     assert record["how"] is None and record["reason"] == "not localized against the map yet"
     assert record["scans_before"] == len(blind.scan_stamp) and record["odometry_before"] == len(blind.odom_stamp)
     assert "r2" not in run.trajectories or len(run.trajectories["r2"]) == 0
+
+
+@pytest.mark.parametrize("seed", [0, 2])
+def test_a_robot_blind_to_landmarks_is_placed_by_its_meetings_with_a_placed_robot(seed):
+    """The robots' detections of each other place a robot whose scans hold no landmark at all (here the two
+    robots see each other 70–140 times in 20 s); without them it is never placed."""
+    data = simulate("arena", robots=2, seed=seed, duration=20.0)
+    blind = data.robots["r2"]
+    data.robots["r2"] = dataclasses.replace(blind, scan_offsets=np.zeros_like(blind.scan_offsets),
+                                            det_range=blind.det_range[:0], det_bearing=blind.det_bearing[:0],
+                                            det_id=blind.det_id[:0])
+    met = run_estimator(data, RunOptions("fastslam", "known", 30, 0), start_poses="none")
+    record = met.extra["placement"]["r2"]
+    assert record["how"] == "meetings" and record["meetings"] >= 3 and record["reason"] is None, record
+    truth = {rid: Trajectory(log.truth_stamp, log.truth_pose) for rid, log in data.robots.items()}
+    fleet = fleet_alignment(met.trajectories, truth)
+    first = met.trajectories["r2"]
+    placed_at = transform_points(np.array(fleet["transform"]), first.poses[:1, :2])[0]
+    assert np.hypot(*(placed_at - data.robots["r2"].truth_at(first.stamps[:1])[0, :2])) < 0.3
+    assert max(fleet["ate_rmse_m"].values()) < 0.6  # then on odometry alone: it sees no landmark
+    alone = run_estimator(data, RunOptions("fastslam", "known", 30, 0), start_poses="none", robot_meetings=False)
+    assert alone.extra["placement"]["r2"]["how"] is None
+
+
+@pytest.mark.parametrize("estimator", ["fastslam", "dslam"])
+def test_robots_that_see_each_other_are_placed_in_a_symmetric_world_without_ids(estimator):
+    """The arena without landmark ids: MCL alone puts robots on the twin of a symmetric map; the robots'
+    detections of each other (their own ids) place them where they are. Seeds where no robot is placed by MCL
+    before it meets a placed robot: in seed 1 MCL places one on the twin before any meeting, with or without
+    them; a placement that contradicts a meeting already had is refused and MCL starts again from the meeting."""
+    association = "shared" if estimator == "fastslam" else "unknown"
+    particles = 50 if estimator == "fastslam" else None
+    truth_errors, blind_errors = [], []
+    for seed in (0, 2, 3):
+        data = simulate("arena", robots=3, seed=seed, duration=40.0)
+        truth = {rid: Trajectory(log.truth_stamp, log.truth_pose) for rid, log in data.robots.items()}
+        run = run_estimator(data, RunOptions(estimator, association, particles, 0), start_poses="none")
+        how = sorted(record["how"] for record in run.extra["placement"].values())
+        assert how[0] == "anchor" and set(how[1:]) <= {"meetings", "mcl"} and "meetings" in how, how
+        truth_errors.append(max(fleet_alignment(run.trajectories, truth)["ate_rmse_m"].values()))
+        blind = run_estimator(data, RunOptions(estimator, association, particles, 0), start_poses="none",
+                              robot_meetings=False)
+        blind_errors.append(max(fleet_alignment(blind.trajectories, truth)["ate_rmse_m"].values()))
+    assert max(truth_errors) < 0.3, truth_errors
+    assert max(blind_errors) > 1.0, blind_errors  # without them a robot lands on a twin
 
 
 def test_placement_check_asks_again_only_after_a_run_of_far_localized_poses():

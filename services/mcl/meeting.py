@@ -1,0 +1,238 @@
+"""Robots that detect each other: a detection between a robot being localized and a robot whose pose is known.
+
+Collaborative Monte Carlo localization (Fox, Burgard, Kruppa and Thrun, "A probabilistic approach to
+collaborative multi-robot localization", Autonomous Robots 8(3), 2000, §3.2): when robot A, whose pose is known
+(Gaussian), and robot B, being localized, detect each other, B's belief is multiplied by the density of where the
+detection puts B. Two cases:
+
+- A saw B at (r, b) in A's sensor frame: B's position is A's sensor position plus r in direction θ_A + b, with
+  the covariance of A's pose and of the detection carried through; B's heading is free;
+- B saw A at (r, b) in B's sensor frame: A's position is a landmark of known identity for B (a signature), its
+  covariance added to the detection's.
+
+Where B's particles all disagree with a meeting (no particle within the gate), B's localization starts again
+from poses the meeting allows (:func:`draw`): a robot lost on the twin of a symmetric map is found at once.
+
+A robot's meetings also place it without a map (:class:`MeetingLog`): each is kept with the robot's
+dead-reckoned pose then, and the pose of the odometry frame in the world that explains them all is a small
+least-squares problem (three unknowns). Its solution is taken when it is consistent, precise and unique (no
+other local minimum nearly as good): early in a run the anchor's map may hold too few landmarks for MCL, and a
+map without landmark ids can be nearly symmetric, the robots' own ids are not.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from robots.gaussian import chi2_quantile
+from robots.models import RangeBearingSensor, se2_between, se2_compose, wrap_angle
+
+GATE = chi2_quantile(0.999, 2)  # a particle farther than this (d²) from the meeting disagrees with it
+
+
+@dataclass(frozen=True)
+class Meeting:
+    """One detection between the robot being localized and another robot: ``other_pose`` ``(3,)`` with
+    ``other_cov`` ``(3, 3)``; ``z`` (range, bearing) with ``noise_cov`` ``(2, 2)``; ``by_other``: the other robot's
+    sensor (``other_sensor``) made the detection, else this robot's did."""
+
+    other_pose: np.ndarray
+    other_cov: np.ndarray
+    z: np.ndarray
+    noise_cov: np.ndarray
+    by_other: bool
+    other_sensor: RangeBearingSensor = RangeBearingSensor()
+
+    def position(self) -> tuple[np.ndarray, np.ndarray]:
+        """``by_other``: where the detection puts this robot (mean ``(2,)``, covariance ``(2, 2)``)."""
+        pose, z = np.asarray(self.other_pose, float), np.asarray(self.z, float)
+        g_pose, g_z = self.other_sensor.inverse_jacobians(pose, z)
+        return self.other_sensor.inverse(pose, z), g_pose @ self.other_cov @ g_pose.T + g_z @ self.noise_cov @ g_z.T
+
+
+def log_likelihood(poses: np.ndarray, meeting: Meeting, sensor: RangeBearingSensor) -> tuple[np.ndarray, np.ndarray]:
+    """(log-likelihood ``(P,)``, squared Mahalanobis distance ``(P,)``) of the meeting at this robot's ``poses``
+    ``(P, 3)`` (``sensor``: this robot's). The log-likelihood is Gaussian, capped at the gate: a meeting that no
+    particle explains does not single out the least wrong ones."""
+    poses = np.asarray(poses, float).reshape(-1, 3)
+    if meeting.by_other:
+        mean, cov = meeting.position()
+        d = poses[:, :2] - mean
+        d2 = np.einsum("pi,ij,pj->p", d, np.linalg.inv(cov), d)
+        return -0.5 * np.minimum(d2, GATE), d2
+    other = np.asarray(meeting.other_pose[:2], float)[None]
+    predicted, h_other = sensor.observe_with_jacobian(poses[:, None, :], other[None])  # (P, 1, 2), (P, 1, 2, 2)
+    nu = sensor.innovation(np.asarray(meeting.z, float), predicted[:, 0])
+    cov = meeting.noise_cov + h_other[:, 0] @ meeting.other_cov[:2, :2] @ np.swapaxes(h_other[:, 0], -1, -2)
+    d2 = np.einsum("pi,pij,pj->p", nu, np.linalg.inv(cov), nu)
+    return -0.5 * np.minimum(d2, GATE) - 0.5 * np.log(np.linalg.det(cov)), d2
+
+
+def draw(meeting: Meeting, sensor: RangeBearingSensor, count: int, rng: np.random.Generator) -> np.ndarray:
+    """``count`` poses ``(count, 3)`` the meeting allows: by the other robot, positions from the detection's
+    Gaussian and any heading; by this robot, its sensor on the circle of the measured range around the other
+    robot (jittered by that robot's covariance), the heading from the measured bearing."""
+    if meeting.by_other:
+        mean, cov = meeting.position()
+        position = rng.multivariate_normal(mean, cov, count)
+        return np.column_stack([position, rng.uniform(-math.pi, math.pi, count)])
+    sigma = np.sqrt(np.diag(meeting.noise_cov))
+    other = rng.multivariate_normal(np.asarray(meeting.other_pose[:2], float), meeting.other_cov[:2, :2], count)
+    r = np.maximum(meeting.z[0] + rng.normal(0.0, sigma[0], count), 1e-3)
+    bearing = meeting.z[1] + rng.normal(0.0, sigma[1], count)
+    direction = rng.uniform(-math.pi, math.pi, count)  # world direction from this robot's sensor to the other robot
+    at = other - r[:, None] * np.stack([np.cos(direction), np.sin(direction)], -1)
+    theta = wrap_angle(direction - bearing)
+    a, b = sensor.offset
+    c, s = np.cos(theta), np.sin(theta)
+    return np.stack([at[:, 0] - (a * c - b * s), at[:, 1] - (a * s + b * c), theta], -1)
+
+
+@dataclass(frozen=True)
+class MeetingFix:
+    """Where a robot's meetings put it now: ``pose`` ``(3,)``, ``cov`` ``(3, 3)``, from ``meetings`` meetings
+    with χ² ``chi2``."""
+
+    pose: np.ndarray
+    cov: np.ndarray
+    meetings: int
+    chi2: float
+
+
+@dataclass(frozen=True)
+class _Logged:
+    odometry: np.ndarray  # the robot's dead-reckoned pose at the meeting
+    turned: float
+    meeting: Meeting
+
+
+class MeetingLog:
+    """One robot's recent meetings with placed robots, each at its dead-reckoned pose then, and the pose they
+    give it now (:meth:`solve`). Meetings older than ``max_turn`` radians turned are dropped (odometry drifts in
+    turns), and all but the last ``max_meetings``."""
+
+    def __init__(self, max_meetings: int = 40, max_turn: float = 1.0, min_meetings: int = 3,
+                 max_std_xy: float = 0.3, max_std_theta: float = 0.1, headings: int = 12):
+        self.max_turn = max_turn
+        self.min_meetings = min_meetings
+        self.max_std_xy = max_std_xy
+        self.max_std_theta = max_std_theta
+        self.headings = headings
+        self.odometry = np.zeros(3)  # dead-reckoned pose in an arbitrary frame
+        self.turned = 0.0
+        self.entries: deque[_Logged] = deque(maxlen=max_meetings)
+
+    def __len__(self) -> int:
+        return len(self.usable())
+
+    def move(self, pose: np.ndarray) -> None:
+        """The dead-reckoned pose after one odometry reading."""
+        self.turned += abs(float(wrap_angle(pose[2] - self.odometry[2])))
+        self.odometry = np.asarray(pose, float).copy()
+
+    def add(self, meeting: Meeting) -> None:
+        self.entries.append(_Logged(self.odometry.copy(), self.turned, meeting))
+
+    def usable(self) -> list[_Logged]:
+        return [e for e in self.entries if self.turned - e.turned <= self.max_turn]
+
+    def latest(self) -> Meeting | None:
+        return self.entries[-1].meeting if self.entries else None
+
+    def contradicts(self, pose: np.ndarray, sensor: RangeBearingSensor) -> bool:
+        """Whether the robot at ``pose`` now (carried back along the odometry to each meeting) is outside the
+        gate of one of its usable meetings (``sensor``: its own)."""
+        for entry in self.usable():
+            then = se2_compose(pose, se2_between(self.odometry, entry.odometry))
+            if log_likelihood(then[None], entry.meeting, sensor)[1][0] > GATE:
+                return True
+        return False
+
+    def solve(self, sensor: RangeBearingSensor) -> MeetingFix | None:
+        """The robot's pose now from its usable meetings (``sensor``: its own), or None while they do not fix it:
+        too few, inconsistent (χ² beyond its 99.9 % quantile), imprecise (``max_std_xy``, ``max_std_theta``) or
+        ambiguous (a second minimum, found from another of ``headings`` starting headings, within the χ²(3) 99 %
+        quantile of the best and elsewhere)."""
+        entries = self.usable()
+        if len(entries) < self.min_meetings:
+            return None
+        odometry = np.array([e.odometry for e in entries])
+        residuals = _residual_function(entries, odometry, sensor)
+        solutions = []
+        for heading in np.linspace(-math.pi, math.pi, self.headings, endpoint=False):
+            start = _start(entries[0], odometry[0], heading, sensor)
+            fit = least_squares(residuals, start, method="lm", x_scale=[1.0, 1.0, 0.1])
+            solutions.append((2.0 * fit.cost, fit.x, fit.jac))
+        solutions.sort(key=lambda item: item[0])
+        chi2, frame, jacobian = solutions[0]
+        dof = residuals(frame).size - 3
+        if dof <= 0 or chi2 > chi2_quantile(0.999, dof):
+            return None
+        information = jacobian.T @ jacobian
+        if np.linalg.cond(information) > 1e12:
+            return None
+        lever = _compose_jacobian(frame, self.odometry)
+        pose = se2_compose(frame, self.odometry)
+        cov = lever @ np.linalg.inv(information) @ lever.T
+        if math.sqrt(cov[0, 0] + cov[1, 1]) > self.max_std_xy or math.sqrt(cov[2, 2]) > self.max_std_theta:
+            return None
+        margin = chi2_quantile(0.99, 3)
+        for other_chi2, other_frame, _ in solutions[1:]:
+            other = se2_compose(other_frame, self.odometry)
+            apart = math.hypot(*(other[:2] - pose[:2])) > 0.5 or abs(wrap_angle(other[2] - pose[2])) > 0.3
+            if apart and other_chi2 <= chi2 + margin:
+                return None
+        pose[2] = wrap_angle(pose[2])
+        return MeetingFix(pose, 0.5 * (cov + cov.T), len(entries), float(chi2))
+
+
+def _residual_function(entries: list[_Logged], odometry: np.ndarray, sensor: RangeBearingSensor):
+    """Whitened residuals of every meeting for a frame (the world pose of the odometry's origin)."""
+    seen = [k for k, e in enumerate(entries) if e.meeting.by_other]
+    saw = [k for k, e in enumerate(entries) if not e.meeting.by_other]
+    positions = [entries[k].meeting.position() for k in seen]
+    means = np.array([m for m, _ in positions]).reshape(-1, 2)
+    whiten = np.array([np.linalg.inv(np.linalg.cholesky(c)) for _, c in positions]).reshape(-1, 2, 2)
+    others = np.array([entries[k].meeting.other_pose[:2] for k in saw], float).reshape(-1, 2)
+    other_covs = np.array([entries[k].meeting.other_cov[:2, :2] for k in saw], float).reshape(-1, 2, 2)
+    z = np.array([entries[k].meeting.z for k in saw], float).reshape(-1, 2)
+    noise = np.array([entries[k].meeting.noise_cov for k in saw], float).reshape(-1, 2, 2)
+
+    def residuals(frame: np.ndarray) -> np.ndarray:
+        poses = se2_compose(frame, odometry)
+        out = [np.einsum("kij,kj->ki", whiten, poses[seen, :2] - means).ravel()]
+        if saw:
+            predicted, h_other = sensor.observe_with_jacobian(poses[saw][:, None, :], others[:, None, :])
+            nu = sensor.innovation(z, predicted[:, 0])
+            cov = noise + h_other[:, 0] @ other_covs @ np.swapaxes(h_other[:, 0], -1, -2)
+            out.append(np.einsum("kij,kj->ki", np.linalg.inv(np.linalg.cholesky(cov)), nu).ravel())
+        return np.concatenate(out)
+
+    return residuals
+
+
+def _start(entry: _Logged, odometry: np.ndarray, heading: float, sensor: RangeBearingSensor) -> np.ndarray:
+    """A frame with the given heading that puts the robot where its first meeting says."""
+    meeting = entry.meeting
+    theta = heading + odometry[2]  # the robot's heading at the meeting
+    if meeting.by_other:
+        position = meeting.position()[0]
+    else:  # the sensor at the measured range from the other robot, looking at it with the measured bearing
+        direction = theta + meeting.z[1]
+        at = np.asarray(meeting.other_pose[:2], float) - meeting.z[0] * np.array([math.cos(direction), math.sin(direction)])
+        a, b = sensor.offset
+        position = at - np.array([a * math.cos(theta) - b * math.sin(theta), a * math.sin(theta) + b * math.cos(theta)])
+    c, s = math.cos(heading), math.sin(heading)
+    return np.array([position[0] - (c * odometry[0] - s * odometry[1]),
+                     position[1] - (s * odometry[0] + c * odometry[1]), heading])
+
+
+def _compose_jacobian(frame: np.ndarray, local: np.ndarray) -> np.ndarray:
+    """∂(frame ⊕ local)/∂frame ``(3, 3)``."""
+    c, s = math.cos(frame[2]), math.sin(frame[2])
+    return np.array([[1.0, 0.0, -s * local[0] - c * local[1]], [0.0, 1.0, c * local[0] - s * local[1]], [0.0, 0.0, 1.0]])

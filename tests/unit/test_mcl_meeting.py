@@ -1,0 +1,150 @@
+"""Detections between a robot being localized and a placed robot (:mod:`services.mcl.meeting`): their
+likelihood and draws against simulated detections, the pose a robot's meetings fix on their own, and what a
+meeting does to a Monte Carlo localizer."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from robots.models import RangeBearingSensor, se2_compose, wrap_angle
+from services.mcl.config import MclConfig
+from services.mcl.core import MonteCarloLocalizer
+from services.mcl.meeting import GATE, Meeting, MeetingLog, draw, log_likelihood
+from robots.simulator import simulate
+
+OTHER_SENSOR, OWN_SENSOR = RangeBearingSensor((0.1, 0.0)), RangeBearingSensor((0.2, 0.05))
+NOISE = np.diag([0.02, 0.003])
+OTHER_COV = np.diag([0.02, 0.01, 0.002])
+
+
+def simulated_meeting(rng: np.random.Generator, robot: np.ndarray, other_true: np.ndarray, by_other: bool) -> Meeting:
+    """A detection between ``robot`` and the other robot, with the noise of the detection and of the other's pose."""
+    other_estimate = other_true + rng.multivariate_normal(np.zeros(3), OTHER_COV)
+    if by_other:
+        z = OTHER_SENSOR.observe(other_true, robot[None, :2])[0]
+    else:
+        z = OWN_SENSOR.observe(robot, other_true[None, :2])[0]
+    z = z + rng.multivariate_normal(np.zeros(2), NOISE)
+    return Meeting(other_estimate, OTHER_COV, z, NOISE, by_other, OTHER_SENSOR)
+
+
+@pytest.mark.parametrize("by_other", [True, False])
+def test_a_meeting_at_the_true_pose_is_chi_square_and_its_draws_are_where_it_says(by_other):
+    """Over many simulated meetings the true pose's d² averages the degrees of freedom (2): the covariance carried
+    from the other robot's pose and the detection is right. The draws of one meeting lie where it says (d² of 2 on
+    average too), and a pose 1 m away is far outside the gate."""
+    rng = np.random.default_rng(7)
+    robot, other = np.array([1.5, -0.5, 2.0]), np.array([-1.0, 0.8, -0.4])
+    d2 = [log_likelihood(robot[None], simulated_meeting(rng, robot, other, by_other), OWN_SENSOR)[1][0]
+          for _ in range(3000)]
+    assert 1.85 < np.mean(d2) < 2.15
+    meeting = simulated_meeting(rng, robot, other, by_other)
+    drawn = draw(meeting, OWN_SENSOR, 4000, rng)
+    assert 1.8 < np.mean(log_likelihood(drawn, meeting, OWN_SENSOR)[1]) < 2.2
+    _, far = log_likelihood((robot + [1.0, 0.0, 0.0])[None], meeting, OWN_SENSOR)
+    assert far[0] > GATE
+    loglik, d2_robot = log_likelihood(np.stack([robot, robot + [5.0, 0.0, 0.0]]), meeting, OWN_SENSOR)
+    assert loglik[0] > loglik[1] and d2_robot[1] > GATE  # capped, yet below the pose that explains it
+
+
+def robot_path(rng: np.random.Generator, frame: np.ndarray, steps: int, step: np.ndarray):
+    """A robot driving ``step`` per reading from its odometry origin, ``frame`` in the world: (odometry, world) poses."""
+    odometry = [np.zeros(3)]
+    for _ in range(steps):
+        odometry.append(se2_compose(odometry[-1], step))
+    odometry = np.array(odometry[1:])
+    return odometry, se2_compose(frame, odometry)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_robots_meetings_fix_its_pose_once_they_are_enough(seed):
+    """Meetings of both kinds with placed robots, each at the robot's dead-reckoned pose then: none with two, then
+    the robot's present pose within a few centimetres, with a covariance that covers the error."""
+    rng = np.random.default_rng(seed)
+    frame = np.array([rng.uniform(-5, 5), rng.uniform(-5, 5), rng.uniform(-math.pi, math.pi)])
+    odometry, world = robot_path(rng, frame, 8, np.array([0.25, 0.0, 0.08]))
+    log = MeetingLog()
+    fixes = []
+    for k in range(8):
+        log.move(odometry[k])
+        other = world[k] + np.array([rng.uniform(-3, 3), rng.uniform(-3, 3), rng.uniform(-3, 3)])
+        log.add(simulated_meeting(rng, world[k], other, by_other=k % 2 == 0))
+        fixes.append(log.solve(OWN_SENSOR))
+    assert fixes[0] is None and fixes[1] is None
+    fix = fixes[-1]
+    assert fix is not None and fix.meetings == 8
+    error = np.append(fix.pose[:2] - world[-1][:2], wrap_angle(fix.pose[2] - world[-1][2]))
+    assert np.hypot(*error[:2]) < 0.15 and abs(error[2]) < 0.05
+    assert error @ np.linalg.solve(fix.cov, error) < 16.3  # χ²(3) 99.9 %
+
+
+def test_meetings_that_do_not_fix_the_heading_or_disagree_fix_nothing():
+    """A robot standing still seen by placed robots: its position is known, its heading not — no fix. A meeting
+    from a placed robot whose pose is 3 m wrong: inconsistent — no fix either."""
+    rng = np.random.default_rng(4)
+    robot = np.array([2.0, 1.0, 0.7])
+    still = MeetingLog()
+    for _ in range(10):
+        other = robot + np.array([rng.uniform(-3, 3), rng.uniform(-3, 3), 0.0])
+        still.add(simulated_meeting(rng, robot, other, by_other=True))
+    assert len(still) == 10 and still.solve(OWN_SENSOR) is None
+    odometry, world = robot_path(rng, np.zeros(3), 6, np.array([0.3, 0.0, 0.1]))
+    liar = MeetingLog()
+    for k in range(6):
+        liar.move(odometry[k])
+        other = world[k] + np.array([2.0, -1.0, 0.3])
+        meeting = simulated_meeting(rng, world[k], other, by_other=k % 2 == 1)
+        if k == 5:
+            meeting = Meeting(meeting.other_pose + [3.0, 0.0, 0.0], OTHER_COV, meeting.z, NOISE, True, OTHER_SENSOR)
+        liar.add(meeting)
+    assert liar.solve(OWN_SENSOR) is None
+    assert liar.contradicts(world[-1], OWN_SENSOR)
+    liar.entries.pop()
+    assert liar.solve(OWN_SENSOR) is not None and not liar.contradicts(world[-1], OWN_SENSOR)
+    assert liar.contradicts(se2_compose(world[-1], [0.0, 0.0, math.pi]), OWN_SENSOR)  # the twin of a half turn
+
+
+def test_a_meeting_no_particle_agrees_with_starts_the_localization_from_it():
+    """Particles all on the twin of the truth: the meeting restarts the localizer from the poses it allows, and
+    its next update is a fresh start; a meeting some particle agrees with changes nothing."""
+    data = simulate("arena", robots=1, seed=0, duration=1.0)
+    info = data.robots["r1"].info
+    truth = data.robots["r1"].truth_pose[0]
+    mcl = MonteCarloLocalizer(data.landmarks, info.model_copy(update={"start_pose": None}), MclConfig(seed=0),
+                              np.random.default_rng(0))
+    twin = np.array([-truth[0], -truth[1], wrap_angle(truth[2] + math.pi)])
+    mcl.initialize_at(twin, np.diag([0.01, 0.01, 0.001]))
+    rng = np.random.default_rng(1)
+    other = truth + np.array([1.5, 0.5, 0.2])
+    meeting = simulated_meeting(rng, truth, other, by_other=True)
+    assert mcl.meet(meeting) and mcl.meetings == 1
+    apart = np.hypot(*(mcl.particles[:, :2] - truth[:2]).T)
+    assert np.median(apart) < 0.35 and (apart < 1.0).mean() > 0.95  # the meeting's spread: the other's pose and the detection
+    kept = mcl.particles.copy()
+    assert not mcl.meet(simulated_meeting(rng, truth, other, by_other=True))
+    np.testing.assert_array_equal(mcl.particles, kept)
+    scan = data.robots["r1"]
+    report = mcl.update(np.stack([scan.det_range[: scan.scan_offsets[1]], scan.det_bearing[: scan.scan_offsets[1]]], -1))
+    assert report.particles_after == mcl.config.particles and report.added == 0  # a fresh start: nothing drawn on top
+
+
+@pytest.mark.parametrize("bearing_std, fixed", [(1.0, False), (0.05, True)])
+def test_two_mirror_poses_that_explain_the_meetings_alike_fix_nothing(bearing_std, fixed):
+    """A robot standing still sees two placed robots: their ranges allow two positions, mirrored across the line
+    between them, which only the bearings tell apart. With bearings as good as useless both explain the meetings
+    about as well: ambiguous, no fix (the precision limits are lifted to isolate the check); with good bearings,
+    the true one."""
+    rng = np.random.default_rng(11)
+    robot, first, second = np.array([1.0, 2.0, 0.3]), np.array([-1.0, -1.0, 0.0]), np.array([3.0, -1.5, 1.0])
+    noise = np.diag([0.0004, bearing_std**2])
+    log = MeetingLog(max_std_xy=100.0, max_std_theta=100.0)
+    for other in (first, second, first, second):
+        z = OWN_SENSOR.observe(robot, other[None, :2])[0] + rng.multivariate_normal(np.zeros(2), noise)
+        log.add(Meeting(other, np.diag([1e-6, 1e-6, 1e-8]), z, noise, False))
+    fix = log.solve(OWN_SENSOR)
+    assert (fix is not None) == fixed
+    if fixed:
+        assert np.hypot(*(fix.pose[:2] - robot[:2])) < 0.1
