@@ -19,10 +19,10 @@
   contradicts it: resampling can collapse the particles on one arc of the circle a single landmark allows
   (MR.CLAM);
 - robots that detect each other (``meetings``, on by default): a detection between a robot without a pose
-  and a placed robot, either way, weighs the robot's localizer by where the placed robot's pose puts it, and
-  starts its localization again from there when no particle agrees; and the robot's recent meetings, each
-  at its dead-reckoned pose then, place it as soon as they fix its pose on their own, map or no map
-  (:mod:`services.mcl.meeting`). Without landmark ids a map can be nearly symmetric (MR.CLAM under a half
+  and a placed robot, either way, is kept with the robot's dead-reckoned pose then; its recent meetings place
+  it as soon as they fix its pose on their own, map or no map. A meeting no particle of its localizer agrees
+  with starts the localization again from where the meeting puts it, and a pose MCL calls localized that
+  contradicts one of its meetings is refused (:mod:`services.mcl.meeting`). Without landmark ids a map can be nearly symmetric (MR.CLAM under a half
   turn), and early in a run the anchor's map too small for MCL; the robots' own ids are neither.
 
 Each robot's :class:`Placement` says when and how it was placed, or why not.
@@ -34,9 +34,9 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from robots.models import robot_models
 from schemas.contract import Event, OdomEvent, ScanEvent
 from schemas.messages import RobotInfo
-from robots.models import robot_models
 from services.mcl.config import MclConfig
 from services.mcl.fleet import MclFleet
 from services.mcl.meeting import Meeting, MeetingLog
@@ -76,8 +76,8 @@ class Placement:
     odometry_before: int = 0
     mcl_updates: int = 0
     mcl_restarts: int = 0  # global localizations MCL started again (a contradicted hypothesis, a lost robot)
-    meetings: int = 0  # detections between the robot and a placed robot weighed into its localizer
-    meeting_restarts: int = 0  # ... of which no particle agreed with: the localization started from the meeting
+    meetings: int = 0  # detections between the robot and a placed robot, kept for it
+    meeting_restarts: int = 0  # localizations started again from a meeting (no particle agreed, or MCL's pose contradicted it)
     reason: str | None = None  # why the robot is not placed (at the end)
 
     def report(self, start: float) -> dict:
@@ -188,8 +188,9 @@ class FleetPlacer:
         return rid in self.placements and not self.estimator.is_waiting(rid)
 
     def _meet(self, event: ScanEvent) -> None:
-        """Weigh the localizers of the robots being localized by the scan's detections of robots, or by robots,
-        placed (the placed robot's pose now, from the estimator)."""
+        """Keep the scan's detections between a robot being localized and a placed robot (the placed robot's pose
+        now, from the estimator) for the robot being localized, check its localizer against them, and place it
+        when its meetings fix its pose."""
         observer = event.robot_id
         pairs = []  # (robot being localized, placed robot, detected by the placed robot, (range, bearing))
         for rid, r, b in zip(event.robot_ids, np.asarray(event.robot_ranges).tolist(),

@@ -27,6 +27,8 @@ tracked particle's: a new hypothesis must explain the scans clearly better
 than the tracked ones before it becomes significant. Poses drawn from a scan must also explain the robot's
 last few scans, carried back along its odometry (:mod:`services.mcl.history`, ``history_scans``): one to three
 detections fit many places, the scans before them far fewer (not with signatures: those name their landmarks).
+A detection between the robot and a robot whose pose is known (:meth:`MonteCarloLocalizer.meet`) starts the
+localization again from the poses it allows when no particle agrees with it (:mod:`services.mcl.meeting`).
 
 Signatures: when the map has landmark ids and a scan's detections carry ids (``use_signatures``), each
 detection is weighed against its own landmark only and poses are drawn around it
@@ -50,8 +52,8 @@ from schemas.messages import RobotInfo
 from services.mcl.clustering import Clusters, cluster_particles
 from services.mcl.config import MclConfig
 from services.mcl.history import ScanHistory
-from services.mcl.kld import bin_keys, kld_prefix_size, kld_sample_size, support
 from services.mcl import meeting as meetings
+from services.mcl.kld import bin_keys, kld_prefix_size, kld_sample_size, support
 from services.mcl.likelihood import (
     LandmarkMap, ScanModel, poses_from_signatures, scan_log_likelihood, signed_log_likelihood,
 )
@@ -123,7 +125,7 @@ class MonteCarloLocalizer:
         self._global = False  # the particles come from a global localization (not from a known start pose)
         self.last_report: UpdateReport | None = None
         self.history = ScanHistory(config.history_scans, config.history_turn)
-        self.meetings = 0  # detections between this robot and robots whose pose is known, weighed in
+        self.meetings = 0  # detections between this robot and robots whose pose is known, checked against it
         self._met_afresh = False  # a meeting started the localization again: the next update is a fresh start
         if info.start_pose is not None:
             self.initialize_at(info.start_pose, info.start_pose_cov)
