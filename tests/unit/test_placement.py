@@ -127,8 +127,8 @@ def test_robots_that_see_each_other_are_placed_in_a_symmetric_world_without_ids(
     association = "shared" if estimator == "fastslam" else "unknown"
     particles = 50 if estimator == "fastslam" else None
     truth_errors, blind_errors = [], []
-    for seed in (0, 2, 3):
-        data = simulate("arena", robots=3, seed=seed, duration=40.0)
+    for seed in (0, 3):
+        data = simulate("arena", robots=3, seed=seed, duration=20.0)
         truth = {rid: Trajectory(log.truth_stamp, log.truth_pose) for rid, log in data.robots.items()}
         run = run_estimator(data, RunOptions(estimator, association, particles, 0), start_poses="none")
         how = sorted(record["how"] for record in run.extra["placement"].values())
@@ -138,7 +138,7 @@ def test_robots_that_see_each_other_are_placed_in_a_symmetric_world_without_ids(
                               robot_meetings=False)
         blind_errors.append(max(fleet_alignment(blind.trajectories, truth)["ate_rmse_m"].values()))
     assert max(truth_errors) < 0.3, truth_errors
-    assert max(blind_errors) > 1.0, blind_errors  # without them a robot lands on a twin
+    assert min(blind_errors) > 1.0, blind_errors  # without them a robot lands on a twin, in every seed
 
 
 def test_placement_check_asks_again_only_after_a_run_of_far_localized_poses():
