@@ -17,10 +17,10 @@ slot. Freed slots (dropped tentative landmarks) are reused by the next new landm
 The landmarks near a point come from a grid over the slots (:meth:`AlignedMap.near`), so the shared association's
 candidate search does not read the whole map (Nieto, Guivant, Nebot and Thrun, "Real time data association for
 FastSLAM": a scan's cost must not grow with the map). Each slot is filed under the centre of the box holding its
-particles' means (its anchor); no particle's mean lies farther from it than half the box's diagonal (its spread).
-A slot whose block was written since is filed again before the next search. Every mixture of the particles' means lies within the spread
-of the anchor, so the grid cells within the radius plus the spread of a point hold every landmark whose mixture
-lies within the radius.
+particles' means (its anchor); no particle's mean lies farther from it than half the box's diagonal (its spread),
+and neither does any mixture of them. So the grid cells within the radius plus the spread of a point hold every
+landmark whose mixture lies within the radius. A slot whose block was written since is filed again before the
+next search.
 """
 
 from __future__ import annotations
