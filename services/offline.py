@@ -325,16 +325,20 @@ def print_results(output: dict, console: Console) -> None:
             console.print(f"{rid}: not placed ({record['reason'] or 'it never scanned'}); "
                           f"{record['scans_before']} scans and {record['odometry_before']} odometry messages held")
         elif record["how"] != "start pose":
+            met = f", {record['meetings']} meetings with placed robots" if record.get("meetings") else ""
             console.print(f"{rid}: placed by {record['how']} at {record['placed_s']:.1f} s "
                           f"({record.get('placed_after_first_scan_s', 0.0):.1f} s after its first scan; "
-                          f"{record['scans_before']} scans held before)")
+                          f"{record['scans_before']} scans held before{met})")
     fleet = output.get("fleet_aligned") or {}
+    map_rmse, landmarks, frame = output["map_rmse_m"], output["landmarks"], ""
     if fleet and output.get("start_poses") != "known":
         errors = ", ".join(f"{rid} {fmt(v)}" for rid, v in fleet["ate_rmse_m"].items())
         console.print(f"ATE after one SE(2) transform for the whole fleet: {errors} m")
-    marks = {k: "-" if v is None else v for k, v in (output["landmarks"] or {}).items()} or {
+        if "landmarks" in fleet:  # the map in the anchor's frame: judged after the same transform
+            map_rmse, landmarks, frame = fleet.get("map_rmse_m"), fleet["landmarks"], " (after that transform)"
+    marks = {k: "-" if v is None else v for k, v in (landmarks or {}).items()} or {
         k: "-" for k in ("estimated", "matched", "missed", "spurious")}
-    console.print(f"map RMSE {fmt(output['map_rmse_m'])} m; landmarks estimated {marks['estimated']}, matched "
+    console.print(f"map{frame} RMSE {fmt(map_rmse)} m; landmarks estimated {marks['estimated']}, matched "
                   f"{marks['matched']}, missed {marks['missed']}, spurious {marks['spurious']}"
                   + (f"; GPS RMSE (aligned) {fmt(output['gps_rmse_m'])} m" if output.get("gps_rmse_m") is not None else ""))
 

@@ -176,3 +176,35 @@ def test_a_mapping_service_takes_only_a_localized_mcl_pose_on_its_robots_key():
     assert not service.rejected
     assert service.localized_mcl_pose(pose(True), "fleet/mcl/r1/pose") is None
     assert service.rejected["robot_id_mismatch"] == 1
+
+
+def test_the_run_summary_judges_a_map_in_the_anchors_frame_after_the_fleets_transform():
+    """Without start poses the map is in the anchor's frame: the summary gives its error after the fleet's SE(2),
+    not the raw one (nothing matches there), and how many meetings each robot had."""
+    import io
+
+    from rich.console import Console
+
+    from services.offline import print_results
+
+    output = {
+        "estimator": "dslam", "dataset_name": "sim", "data_s": 10.0, "wall_s": 1.0, "robots": ["r1", "r2"],
+        "ate_rmse_m": {"r1": 4.0, "r2": 3.0}, "ate_aligned_rmse_m": {"r1": 0.2, "r2": 0.3},
+        "heading_rmse_rad": {"r1": 2.0, "r2": 2.0}, "start_poses": "none", "map_rmse_m": None,
+        "landmarks": {"estimated": 9, "matched": 0, "missed": 15, "spurious": 9},
+        "placement": {"r1": {"how": "anchor", "placed_s": 0.0, "placed_after_first_scan_s": 0.0, "scans_before": 0,
+                             "meetings": 0},
+                      "r2": {"how": "meetings", "placed_s": 4.7, "placed_after_first_scan_s": 2.2, "scans_before": 11,
+                             "meetings": 7}},
+        "fleet_aligned": {"ate_rmse_m": {"r1": 0.5, "r2": 0.6}, "map_rmse_m": 0.25,
+                          "landmarks": {"estimated": 9, "matched": 8, "missed": 7, "spurious": 1}},
+    }
+    buffer = io.StringIO()
+    print_results(output, Console(file=buffer, width=200))
+    text = buffer.getvalue()
+    assert "r2: placed by meetings at 4.7 s (2.2 s after its first scan; 11 scans held before, 7 meetings" in text
+    assert "map (after that transform) RMSE 0.250 m; landmarks estimated 9, matched 8, missed 7, spurious 1" in text
+    output["start_poses"] = "known"
+    buffer = io.StringIO()
+    print_results(output, Console(file=buffer, width=200))
+    assert "map RMSE - m; landmarks estimated 9, matched 0" in buffer.getvalue()
