@@ -247,6 +247,13 @@ def compose_jacobian(theta: np.ndarray) -> np.ndarray:
     return jac
 
 
+def compose_start_jacobian(start: np.ndarray, delta: np.ndarray) -> np.ndarray:
+    """d(x ⊕ Δ)/dx ``(3, 3)`` at start ``x`` ``(3,)`` and increment ``Δ`` ``(3,)``: the increment's lever arm turns
+    with the start's heading."""
+    c, s = np.cos(start[2]), np.sin(start[2])
+    return np.array([[1.0, 0.0, -s * delta[0] - c * delta[1]], [0.0, 1.0, c * delta[0] - s * delta[1]], [0.0, 0.0, 1.0]])
+
+
 @dataclass(frozen=True)
 class RangeBearingSensor:
     """Range-bearing sensor mounted at ``offset`` = (a, b) in the body frame (x forward, y left)."""
@@ -319,6 +326,18 @@ class RangeBearingSensor:
         beta = pose[..., 2] + observation[..., 1]
         r = observation[..., 0]
         return position + np.stack([r * np.cos(beta), r * np.sin(beta)], -1)
+
+    def pose_seeing(self, point, observation, direction) -> np.ndarray:
+        """Robot pose ``(..., 3)`` whose sensor sees ``point`` ``(..., 2)`` at ``observation`` (range, bearing)
+        ``(..., 2)`` while the world direction from the sensor to the point is ``direction`` ``(...)``: the one
+        unknown a single detection of a known point leaves (the sensor on a circle around it)."""
+        point, observation, direction = (np.asarray(v, float) for v in (point, observation, direction))
+        r, bearing = observation[..., 0], observation[..., 1]
+        at = point - r[..., None] * np.stack([np.cos(direction), np.sin(direction)], -1)
+        theta = wrap_angle(direction - bearing)
+        a, b = self.offset
+        c, s = np.cos(theta), np.sin(theta)
+        return np.stack([at[..., 0] - (a * c - b * s), at[..., 1] - (a * s + b * c), theta], -1)
 
     def inverse_jacobians(self, pose, observation) -> tuple[np.ndarray, np.ndarray]:
         """(G_pose ``(...,2,3)``, G_observation ``(...,2,2)``) of :meth:`inverse`."""

@@ -75,8 +75,9 @@ def run_estimator(dataset: Dataset, options: RunOptions, robots: list[str] | Non
 
     ``start_poses`` (known | first | none; default :func:`default_start_poses`) withholds start poses; an
     estimator that can take robots without one gets them placed by :class:`services.placement.FleetPlacer`
-    (``robot_meetings``: also by detections between robots, :mod:`services.mcl.meeting`). ``should_stop`` is asked between events (a signal handler's flag): when it says so, or on
-    KeyboardInterrupt, the run ends there and what was computed is returned (``extra["interrupted"]``).
+    (``robot_meetings``: also by detections between robots, :mod:`services.mcl.meeting`). ``should_stop`` is
+    asked between events (a signal handler's flag): when it says so, or on KeyboardInterrupt, the run ends there
+    and what was computed is returned (``extra["interrupted"]``).
     """
     from services.estimators import make_estimator
     from services.evaluation.metrics import Trajectory, timing_stats

@@ -225,7 +225,6 @@ class AlignedMap:
         self.pool_mean = np.concatenate([self.pool_mean, np.zeros((size - old, self.block, 2))])
         self.pool_cov = np.concatenate([self.pool_cov, np.zeros((size - old, self.block, 2, 2))])
         self.refs = np.concatenate([self.refs, np.zeros(size - old, np.int64)])
-        self._position = np.concatenate([self._position, np.full(size - old, -1, np.int64)])
         free = np.concatenate([self.free_blocks[: int(self.free_count[0])], np.arange(old, size, dtype=np.int64)])
         self.free_blocks = np.zeros(size, np.int64)
         self.free_blocks[: free.size] = free

@@ -308,9 +308,9 @@ def refile_kernel(table, pool_mean, valid, blocks, block, cell, filed_state, fil
     """File again the slots of ``blocks`` in the map's spatial index, a hashed grid (:meth:`AlignedMap.near`): a
     valid slot goes to the grid cell of its anchor, the centre of the box holding every particle's mean
     (``IN_CELL`` = 1), unless half the box's diagonal (its spread: no particle's mean lies farther from the
-    anchor) exceeds ``cell`` (``WIDE`` = 2: every search checks it); an invalid slot is unfiled (0). A cell's slots are a list threaded through ``following`` from ``bucket`` (cells
-    sharing a bucket share the list; ``filed_cell`` tells them apart). Returns (slots, states) of the slots that
-    entered or left ``WIDE``."""
+    anchor) exceeds ``cell`` (``WIDE`` = 2: every search checks it); an invalid slot is unfiled (0). A cell's
+    slots are a list threaded through ``following`` from ``bucket`` (cells sharing a bucket share the list;
+    ``filed_cell`` tells them apart). Returns (slots, states) of the slots that entered or left ``WIDE``."""
     particles, mask = table.shape[0], bucket.shape[0] - 1
     wide_slots = np.empty(blocks.shape[0] * block, np.int64)
     wide_states = np.empty(blocks.shape[0] * block, np.int8)
@@ -429,15 +429,13 @@ def marginal_map_kernel(w, pool_mean, pool_cov, table, rows, block, slots, point
                 k = slots[i] % block
                 means[i, 0] += wj * pool_mean[held, k, 0]
                 means[i, 1] += wj * pool_mean[held, k, 1]
-    inside = np.zeros(count, np.bool_)
-    row_of = np.full(count, -1, np.int64)  # the output row of each kept slot
+    row_of = np.full(count, -1, np.int64)  # the output row of each kept slot, −1 for the others
     kept = 0
     for i in range(count):
         if math.hypot(means[i, 0] - point[0], means[i, 1] - point[1]) < radius:
-            inside[i] = True
             row_of[i] = kept
             kept += 1
-    keep = np.flatnonzero(inside)
+    keep = np.flatnonzero(row_of >= 0)
     out_mean = np.empty((kept, 2))
     out_cov = np.zeros((kept, 2, 2))
     for n in range(kept):
@@ -447,9 +445,9 @@ def marginal_map_kernel(w, pool_mean, pool_cov, table, rows, block, slots, point
             wj, held = weight[b, j], phys[b, j]
             for q in range(start[b], start[b + 1]):
                 i = order[q]
-                if not inside[i]:
-                    continue
                 n, k = row_of[i], slots[i] % block
+                if n < 0:
+                    continue
                 r0, r1 = pool_mean[held, k, 0] - out_mean[n, 0], pool_mean[held, k, 1] - out_mean[n, 1]
                 out_cov[n, 0, 0] += wj * (pool_cov[held, k, 0, 0] + r0 * r0)
                 out_cov[n, 0, 1] += wj * (pool_cov[held, k, 0, 1] + r0 * r1)

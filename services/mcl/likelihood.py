@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from robots.models import RangeBearingSensor, transform_points, wrap_angle
+from robots.models import RangeBearingSensor, transform_points
 from schemas.messages import SensorSpec
 from services.mcl import kernels
 
@@ -347,8 +347,4 @@ def poses_from_signatures(observations: np.ndarray, targets: np.ndarray, model: 
     r = np.maximum(z[pick, 0] + rng.normal(0.0, sigma[0], count), 1e-3)
     bearing = z[pick, 1] + rng.normal(0.0, sigma[1], count)
     direction = rng.uniform(-math.pi, math.pi, count)  # world direction from the sensor to the landmark
-    sensor = targets[pick] - r[:, None] * np.stack([np.cos(direction), np.sin(direction)], -1)
-    theta = wrap_angle(direction - bearing)
-    a, b = model.sensor.offset
-    c, s = np.cos(theta), np.sin(theta)
-    return np.stack([sensor[:, 0] - (a * c - b * s), sensor[:, 1] - (a * s + b * c), theta], -1)
+    return model.sensor.pose_seeing(targets[pick], np.stack([r, bearing], -1), direction)

@@ -30,7 +30,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from robots.gaussian import chi2_quantile
-from robots.models import RangeBearingSensor, se2_between, se2_compose, wrap_angle
+from robots.models import RangeBearingSensor, compose_start_jacobian, se2_between, se2_compose, wrap_angle
 
 GATE = chi2_quantile(0.999, 2)  # a particle farther than this (d²) from the meeting disagrees with it
 
@@ -86,11 +86,7 @@ def draw(meeting: Meeting, sensor: RangeBearingSensor, count: int, rng: np.rando
     r = np.maximum(meeting.z[0] + rng.normal(0.0, sigma[0], count), 1e-3)
     bearing = meeting.z[1] + rng.normal(0.0, sigma[1], count)
     direction = rng.uniform(-math.pi, math.pi, count)  # world direction from this robot's sensor to the other robot
-    at = other - r[:, None] * np.stack([np.cos(direction), np.sin(direction)], -1)
-    theta = wrap_angle(direction - bearing)
-    a, b = sensor.offset
-    c, s = np.cos(theta), np.sin(theta)
-    return np.stack([at[:, 0] - (a * c - b * s), at[:, 1] - (a * s + b * c), theta], -1)
+    return sensor.pose_seeing(other, np.stack([r, bearing], -1), direction)
 
 
 @dataclass(frozen=True)
@@ -176,7 +172,7 @@ class MeetingLog:
         information = jacobian.T @ jacobian
         if np.linalg.cond(information) > 1e12:
             return None
-        lever = _compose_jacobian(frame, self.odometry)
+        lever = compose_start_jacobian(frame, self.odometry)
         pose = se2_compose(frame, self.odometry)
         cov = lever @ np.linalg.inv(information) @ lever.T
         if math.sqrt(cov[0, 0] + cov[1, 1]) > self.max_std_xy or math.sqrt(cov[2, 2]) > self.max_std_theta:
@@ -223,16 +219,8 @@ def _start(entry: _Logged, odometry: np.ndarray, heading: float, sensor: RangeBe
     if meeting.by_other:
         position = meeting.position()[0]
     else:  # the sensor at the measured range from the other robot, looking at it with the measured bearing
-        direction = theta + meeting.z[1]
-        at = np.asarray(meeting.other_pose[:2], float) - meeting.z[0] * np.array([math.cos(direction), math.sin(direction)])
-        a, b = sensor.offset
-        position = at - np.array([a * math.cos(theta) - b * math.sin(theta), a * math.sin(theta) + b * math.cos(theta)])
+        position = sensor.pose_seeing(meeting.other_pose[:2], meeting.z, theta + meeting.z[1])[:2]
     c, s = math.cos(heading), math.sin(heading)
     return np.array([position[0] - (c * odometry[0] - s * odometry[1]),
                      position[1] - (s * odometry[0] + c * odometry[1]), heading])
 
-
-def _compose_jacobian(frame: np.ndarray, local: np.ndarray) -> np.ndarray:
-    """∂(frame ⊕ local)/∂frame ``(3, 3)``."""
-    c, s = math.cos(frame[2]), math.sin(frame[2])
-    return np.array([[1.0, 0.0, -s * local[0] - c * local[1]], [0.0, 1.0, c * local[0] - s * local[1]], [0.0, 0.0, 1.0]])

@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pytest
 
-from robots.models import RangeBearingSensor, se2_compose, wrap_angle
+from robots.models import RangeBearingSensor, se2_accumulate, se2_compose, wrap_angle
 from services.mcl.config import MclConfig
 from services.mcl.core import MonteCarloLocalizer
 from services.mcl.meeting import GATE, Meeting, MeetingLog, draw, log_likelihood
@@ -50,12 +50,9 @@ def test_a_meeting_at_the_true_pose_is_chi_square_and_its_draws_are_where_it_say
     assert loglik[0] > loglik[1] and d2_robot[1] > GATE  # capped, yet below the pose that explains it
 
 
-def robot_path(rng: np.random.Generator, frame: np.ndarray, steps: int, step: np.ndarray):
+def robot_path(frame: np.ndarray, steps: int, step: np.ndarray):
     """A robot driving ``step`` per reading from its odometry origin, ``frame`` in the world: (odometry, world) poses."""
-    odometry = [np.zeros(3)]
-    for _ in range(steps):
-        odometry.append(se2_compose(odometry[-1], step))
-    odometry = np.array(odometry[1:])
+    odometry = se2_accumulate(np.tile(step, (steps, 1)))[1:]
     return odometry, se2_compose(frame, odometry)
 
 
@@ -65,7 +62,7 @@ def test_a_robots_meetings_fix_its_pose_once_they_are_enough(seed):
     the robot's present pose within a few centimetres, with a covariance that covers the error."""
     rng = np.random.default_rng(seed)
     frame = np.array([rng.uniform(-5, 5), rng.uniform(-5, 5), rng.uniform(-math.pi, math.pi)])
-    odometry, world = robot_path(rng, frame, 8, np.array([0.25, 0.0, 0.08]))
+    odometry, world = robot_path(frame, 8, np.array([0.25, 0.0, 0.08]))
     log = MeetingLog()
     fixes = []
     for k in range(8):
@@ -91,7 +88,7 @@ def test_meetings_that_do_not_fix_the_heading_or_disagree_fix_nothing():
         other = robot + np.array([rng.uniform(-3, 3), rng.uniform(-3, 3), 0.0])
         still.add(simulated_meeting(rng, robot, other, by_other=True))
     assert len(still) == 10 and still.solve(OWN_SENSOR) is None
-    odometry, world = robot_path(rng, np.zeros(3), 6, np.array([0.3, 0.0, 0.1]))
+    odometry, world = robot_path(np.zeros(3), 6, np.array([0.3, 0.0, 0.1]))
     liar = MeetingLog()
     for k in range(6):
         liar.move(odometry[k])

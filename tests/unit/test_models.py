@@ -9,6 +9,7 @@ from robots.models import (
     AckermannModel,
     RangeBearingSensor,
     UnicycleModel,
+    compose_start_jacobian,
     in_field_of_view,
     se2_between,
     se2_compose,
@@ -76,6 +77,26 @@ def test_sensor_jacobians_match_finite_differences(offset):
     g_pose, g_z = sensor.inverse_jacobians(pose, z)
     np.testing.assert_allclose(g_pose, numerical_jacobian(lambda p: sensor.inverse(p, z), pose), atol=1e-6)
     np.testing.assert_allclose(g_z, numerical_jacobian(lambda zz: sensor.inverse(pose, zz), z), atol=1e-6)
+
+
+def test_compose_start_jacobian_matches_finite_differences():
+    start, delta = np.array([1.0, -2.0, 2.6]), np.array([0.7, -1.3, 0.4])
+    np.testing.assert_allclose(compose_start_jacobian(start, delta),
+                               numerical_jacobian(lambda x: se2_compose(x, delta), start, angle_rows=(2,)), atol=1e-6)
+
+
+@pytest.mark.parametrize("offset", [(0.0, 0.0), (0.3, -0.1)])
+def test_pose_seeing_a_point_sees_it_as_observed(offset):
+    """Every pose around a point at the given world directions sees the point at the observation, and its sensor
+    lies in that direction from it."""
+    sensor = RangeBearingSensor(offset)
+    point, observation = np.array([2.0, -1.0]), np.array([3.0, 0.4])
+    directions = np.linspace(-3.0, 3.0, 7)
+    poses = sensor.pose_seeing(np.broadcast_to(point, (7, 2)), np.broadcast_to(observation, (7, 2)), directions)
+    np.testing.assert_allclose(sensor.observe(poses[:, None, :], point[None])[:, 0], np.broadcast_to(observation, (7, 2)),
+                               atol=1e-12)
+    at = point - sensor.sensor_position(poses)[0]
+    np.testing.assert_allclose(wrap_angle(np.arctan2(at[:, 1], at[:, 0]) - directions), 0.0, atol=1e-12)
 
 
 def test_sensor_inverse_recovers_landmarks_vectorised():
