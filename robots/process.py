@@ -39,6 +39,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_settings_arguments(parser, RobotSettings)
 
 
+def fleet_ids(rid: str, fleet: str) -> list[str]:
+    """The simulated robots' ids in the fleet's order, this robot's added if missing: it is simulated among them and
+    detects them. Each robot's motion and detections come from streams of its own (seeded by its number in
+    ``rN``, else by its place in this list, the same in every robot's process), so they do not change with the
+    fleet."""
+    return list(dict.fromkeys([*(other for other in fleet.split(",") if other), rid]))
+
+
 def load_robot(settings: RobotSettings) -> tuple[RobotLog, Dataset]:
     """The log this robot publishes: a simulation, or one robot of a data set."""
     if settings.replay:
@@ -54,7 +62,7 @@ def load_robot(settings: RobotSettings) -> tuple[RobotLog, Dataset]:
             settings.world, seed=settings.seed, duration=settings.duration, rate=settings.rate,
             odom_factor=settings.odom_factor, trajectory=settings.trajectory,
             detection_probability=settings.detection_probability, clutter_rate=settings.clutter_rate,
-            unknown_start=settings.unknown_start, robot_ids=[rid],
+            unknown_start=settings.unknown_start, robot_ids=fleet_ids(rid, settings.fleet),
         )
         robot = dataset.robots[rid]
     updates = {}

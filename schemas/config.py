@@ -145,6 +145,10 @@ class RobotSettings(FleetSettings):
     duration: float = Field(60.0, gt=0, description="seconds of robot time to run (sim), or of data (replay)")
     start_delay: float = Field(0.5, ge=0, description="wall seconds to wait after declaring, so subscribers can match")
     unknown_start: bool = Field(False, description="announce no start pose (to be found by MCL)")
+    fleet: str = Field("", pattern=r"^([A-Za-z0-9_-]{1,64}(,[A-Za-z0-9_-]{1,64})*)?$",
+                       description="comma-separated ids of the simulated robots this robot drives among (each started "
+                       "with the same world and seed): it detects them, as they detect it, and MCL uses those "
+                       "detections to place robots without a start pose (default: none, it sees no robot)")
     publish_ids: bool = Field(True, description="publish true landmark ids with each scan")
     publish_truth: bool = Field(True, description="publish ground truth (and the world map)")
     publish_world: bool = Field(True, description="with publish_truth: publish the world's true map on "
@@ -343,6 +347,10 @@ class MclSettings(FleetSettings, MclConfig, CheckpointSettings):
         "benchmarks); or file:PATH (a fleetslam-map .json saved by --map-out, or an (L,2) array in .npy/.txt/.csv)",
     )
     all_robots: bool = Field(False, description="localize every robot, not only those that announce no start pose")
+    robot_meetings: bool = Field(True, description="use the robots' detections of each other: a robot being localized "
+                                 "that detects, or is detected by, a robot the central estimate holds (one MCL does not "
+                                 "localize) is placed once those meetings fix its pose, and localized again when they "
+                                 "contradict MCL's hypotheses (the poses come from {prefix}/central/estimate)")
     publish_every: int = Field(1, ge=1, description="publish a robot's MclPose every this many scans")
     map_period_s: float = Field(1.0, ge=0, description="take a new map from the source at most this often (s)")
     localize_particles: int = Field(2000, ge=10, description="sample size of a one-shot localization query")

@@ -219,6 +219,7 @@ def run_demo(settings: DemoSettings, shutdown: Shutdown, console: Console) -> di
             fleet.start(rid, "robot", "--id", rid, "--world", settings.world, "--seed", str(settings.seed),
                         "--rate", str(settings.rate), "--speedup", str(settings.speedup),
                         "--duration", f"{robot_duration:g}", "--start-delay", "1.0", "--no-publish-world",
+                        "--fleet", ",".join(robot_ids),
                         *(["--unknown-start"] if i >= settings.robots else []), user=rid)
             for i, rid in enumerate(robot_ids)
         ]

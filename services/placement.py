@@ -34,12 +34,11 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from robots.models import robot_models
 from schemas.contract import Event, OdomEvent, ScanEvent
 from schemas.messages import RobotInfo
 from services.mcl.config import MclConfig
 from services.mcl.fleet import MclFleet
-from services.mcl.meeting import Meeting, MeetingLog
+from services.mcl.meeting import MeetingDesk
 
 START_POSES = ("known", "first", "none")
 
@@ -136,8 +135,9 @@ class FleetPlacer:
         self.map_ready = False
         self.prior_map = len(estimator.landmark_map().means) > 0  # a saved map: its frame, no anchor
         self.placements = {info.robot_id: Placement(info.robot_id) for info in infos}
-        self.meeting_logs = {info.robot_id: MeetingLog() for info in infos}
-        self.models = {info.robot_id: robot_models(info) for info in infos}
+        self.desk = MeetingDesk()
+        for info in infos:
+            self.desk.add_robot(info)
         for info in infos:
             if not estimator.is_waiting(info.robot_id):
                 self.placements[info.robot_id].how = "start pose"
@@ -153,8 +153,7 @@ class FleetPlacer:
         if isinstance(event, OdomEvent):
             record.odometry_before += 1
             self.localizers.on_odometry(event)
-            log = self.meeting_logs[rid]
-            log.move(self.models[rid][0].step(log.odometry[None], np.asarray(event.control, float)[None], event.dt)[0])
+            self.desk.move(event)
             return True
         if not isinstance(event, ScanEvent):
             return True
@@ -174,10 +173,9 @@ class FleetPlacer:
             return self._hold(record, "not localized against the map yet")
         mcl = self.localizers.robots[rid].mcl
         pose, cov = mcl.best()
-        log = self.meeting_logs[rid]
-        if self.meetings and log.contradicts(pose, self.models[rid][1]):  # e.g. the twin of a symmetric map
+        if self.meetings and self.desk.contradicts(rid, pose):  # e.g. the twin of a symmetric map
             record.meeting_restarts += 1
-            mcl.restart_from(log.latest())
+            mcl.restart_from(self.desk.latest(rid))
             return self._hold(record, "MCL's pose contradicts the robot's meetings")
         return self._place(record, pose, cov, event.stamp, "mcl")
 
@@ -191,31 +189,20 @@ class FleetPlacer:
         """Keep the scan's detections between a robot being localized and a placed robot (the placed robot's pose
         now, from the estimator) for the robot being localized, check its localizer against them, and place it
         when its meetings fix its pose."""
-        observer = event.robot_id
-        pairs = []  # (robot being localized, placed robot, detected by the placed robot, (range, bearing))
-        for rid, r, b in zip(event.robot_ids, np.asarray(event.robot_ranges).tolist(),
-                             np.asarray(event.robot_bearings).tolist()):
-            if self._placed(observer) and self._localizing(rid):
-                pairs.append((rid, observer, True, (r, b)))
-            elif self._localizing(observer) and self._placed(rid):
-                pairs.append((observer, rid, False, (r, b)))
-        if not pairs:
+        sightings = self.desk.sightings(event, self._localizing, self._placed)
+        if not sightings:
             return
         poses = self.estimator.poses()
-        for subject, other, by_other, z in pairs:
+        for sighting in sightings:
+            subject = sighting.subject
             if not self.estimator.is_waiting(subject):
-                continue  # placed by an earlier pair of this scan
-            pose, cov = poses[other]
-            meeting = Meeting(np.asarray(pose, float), np.asarray(cov, float), np.array(z), event.noise_cov, by_other,
-                              self.models[other][1])
+                continue  # placed by an earlier sighting of this scan
+            meeting = self.desk.meeting(sighting, *poses[sighting.other], event.noise_cov)
             record = self.placements[subject]
             record.meetings += 1
             state = self.localizers.robots.get(subject)
-            if state is not None and state.mcl is not None:
-                record.meeting_restarts += int(state.mcl.meet(meeting))
-            log = self.meeting_logs[subject]
-            log.add(meeting)
-            fix = log.solve(self.models[subject][1])
+            restarted, fix = self.desk.meet(subject, meeting, state.mcl if state is not None else None)
+            record.meeting_restarts += int(restarted)
             if fix is not None:
                 self._place(record, fix.pose, fix.cov, event.stamp, "meetings")
 

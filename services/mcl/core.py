@@ -220,6 +220,13 @@ class MonteCarloLocalizer:
         self.weights = np.full(count, 1.0 / count)
         self._recluster(np.ones(count))
 
+    def place(self, pose: np.ndarray, cov: np.ndarray) -> None:
+        """Track from a pose found another way (the robot's meetings with placed robots), localized at once."""
+        self.initialize_at(pose, cov)
+        self._localized_run = self.config.localized_scans
+        self._lost_run = 0
+        self._met_afresh = False
+
     def initialize_global(self, observations: np.ndarray | None = None, count: int | None = None,
                           meeting: meetings.Meeting | None = None) -> None:
         """Global localization: ``count`` × ``reset_oversample`` poses from the scan and the map, or from a
@@ -373,7 +380,9 @@ class MonteCarloLocalizer:
         weighed by the scan history; the next scan's update weighs, clusters and resamples them. True when it
         started again.
 
-        A meeting that some particle agrees with does not weigh the particles: the detections of one meeting
+        A meeting the main hypothesis explains keeps the filter from declaring itself lost (kidnapped) on the scans
+        alone: early on, a partial map explains the true pose's scans poorly. A meeting that some particle agrees
+        with does not weigh the particles: the detections of one meeting
         come ten a second with the same error in the other robot's pose, and weighing by each as if
         independent collapsed the particles onto the least wrong of them before the scans could speak (a
         robot placed 1.9 m off in the simulated arena)."""
@@ -381,6 +390,10 @@ class MonteCarloLocalizer:
         if self.initialized:
             _, d2 = meetings.log_likelihood(self.particles, meeting, self.model.sensor)
             if d2.min() <= meetings.GATE:
+                best = self.best()
+                if best is not None and meetings.log_likelihood(best[0][None], meeting, self.model.sensor)[1][0] <= meetings.GATE:
+                    self._lost_run = 0  # the main hypothesis explains the meeting: the robot is not lost, whatever
+                    # a partial map makes of its scans
                 return False
         self.restart_from(meeting)
         return True

@@ -30,7 +30,9 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from robots.gaussian import chi2_quantile
-from robots.models import RangeBearingSensor, compose_start_jacobian, se2_between, se2_compose, wrap_angle
+from robots.models import (RangeBearingSensor, compose_start_jacobian, robot_models, se2_between, se2_compose,
+                           se2_inverse, wrap_angle)
+from schemas.contract import OdomEvent, ScanEvent
 
 GATE = chi2_quantile(0.999, 2)  # a particle farther than this (d²) from the meeting disagrees with it
 
@@ -224,3 +226,144 @@ def _start(entry: _Logged, odometry: np.ndarray, heading: float, sensor: RangeBe
     return np.array([position[0] - (c * odometry[0] - s * odometry[1]),
                      position[1] - (s * odometry[0] + c * odometry[1]), heading])
 
+
+
+@dataclass(frozen=True)
+class Sighting:
+    """A detection in a scan between ``subject`` (being localized) and ``other`` (placed): ``by_other``, the other
+    robot's sensor made it; ``z`` (range, bearing)."""
+
+    subject: str
+    other: str
+    by_other: bool
+    z: np.ndarray
+
+
+class MeetingDesk:
+    """The meetings of a fleet, offline (:class:`services.placement.FleetPlacer`) and live (the MCL service) alike:
+    each robot's models and :class:`MeetingLog` (its dead reckoning fed by :meth:`move`), which detections of a
+    scan are meetings (:meth:`sightings`), and what a meeting does to the robot (:meth:`meet`). A solve takes
+    tens of milliseconds with a full log: live, where meetings keep coming at the scan rate of every robot that
+    sees the robot, it runs every ``solve_every`` meetings."""
+
+    def __init__(self, solve_every: int = 1):
+        self.solve_every = solve_every
+        self.logs: dict[str, MeetingLog] = {}
+        self.models: dict[str, tuple] = {}
+        self.unsolved: dict[str, int] = {}  # meetings added since the robot's last solve
+
+    def add_robot(self, info) -> None:
+        """Know a robot (its RobotInfo): its models, and a meeting log that starts from here."""
+        self.models[info.robot_id] = robot_models(info)
+        self.logs[info.robot_id] = MeetingLog()
+
+    def move(self, event: OdomEvent) -> None:
+        """One odometry reading of a known robot moves its dead-reckoned pose."""
+        log = self.logs.get(event.robot_id)
+        if log is not None:
+            motion = self.models[event.robot_id][0]
+            log.move(motion.step(log.odometry[None], np.asarray(event.control, float)[None], event.dt)[0])
+
+    @staticmethod
+    def sightings(event: ScanEvent, localizing, placed) -> list[Sighting]:
+        """The scan's detections between a robot ``localizing(rid)`` and a robot ``placed(rid)``, either way."""
+        observer = event.robot_id
+        found = []
+        for rid, r, b in zip(event.robot_ids, np.asarray(event.robot_ranges, float).tolist(),
+                             np.asarray(event.robot_bearings, float).tolist()):
+            if placed(observer) and localizing(rid):
+                found.append(Sighting(rid, observer, True, np.array([r, b])))
+            elif localizing(observer) and placed(rid):
+                found.append(Sighting(observer, rid, False, np.array([r, b])))
+        return found
+
+    def meeting(self, sighting: Sighting, other_pose, other_cov, noise_cov) -> Meeting:
+        """The :class:`Meeting` of a sighting, the placed robot at ``other_pose`` (``other_cov``)."""
+        return Meeting(np.asarray(other_pose, float), np.asarray(other_cov, float), sighting.z,
+                       np.asarray(noise_cov, float), sighting.by_other, self.models[sighting.other][1])
+
+    def meet(self, subject: str, meeting: Meeting, mcl=None, solve: bool = True) -> tuple[bool, MeetingFix | None]:
+        """Keep a meeting for ``subject``, check its localizer ``mcl`` (if any) against it: (whether the
+        localization started again from the meeting, the pose its meetings now fix — None while they do not, or
+        without ``solve``, or before ``solve_every`` meetings were added since the last solve)."""
+        restarted = bool(mcl is not None and mcl.meet(meeting))
+        log = self.logs[subject]
+        log.add(meeting)
+        self.unsolved[subject] = self.unsolved.get(subject, 0) + 1
+        if not solve or self.unsolved[subject] < self.solve_every:
+            return restarted, None
+        self.unsolved[subject] = 0
+        return restarted, log.solve(self.models[subject][1])
+
+    def contradicts(self, rid: str, pose) -> bool:
+        """Whether ``pose`` (the robot's now) lies outside the gate of one of its recent meetings."""
+        return rid in self.logs and self.logs[rid].contradicts(np.asarray(pose, float), self.models[rid][1])
+
+    def latest(self, rid: str) -> Meeting | None:
+        return self.logs[rid].latest() if rid in self.logs else None
+
+
+class PlacedPoses:
+    """Live: where the placed robots are at the moment a scan is handled, from estimates that lag behind it.
+
+    An estimate gives a robot's pose at its own stamp; the robot's dead-reckoned poses (:attr:`MeetingDesk.logs`,
+    kept here for ``trail`` readings) carry it to the scan's instant: the world pose of the odometry's origin is
+    taken at the estimate's stamp, and the robot is that frame composed with its dead-reckoned pose then. The estimate's
+    covariance is kept as it is (the odometry between the two instants, under a second, adds little)."""
+
+    def __init__(self, trail: int = 600, ahead_s: float = 0.25):
+        self.trail = trail
+        self.ahead_s = ahead_s
+        self.stamps: dict[str, deque] = {}
+        self.odometry: dict[str, deque] = {}
+        self.frames: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+        self.pending: dict[str, deque] = {}  # estimates ahead of the robot's dead reckoning, oldest first
+
+    def move(self, rid: str, stamp: float, odometry: np.ndarray) -> None:
+        """The robot's dead-reckoned pose after its reading at ``stamp``; an estimate that waited for it is taken."""
+        if rid not in self.stamps:
+            self.stamps[rid], self.odometry[rid] = deque(maxlen=self.trail), deque(maxlen=self.trail)
+        self.stamps[rid].append(float(stamp))
+        self.odometry[rid].append(np.asarray(odometry, float).copy())
+        waiting = self.pending.get(rid)
+        while waiting and waiting[0][0] <= stamp + 1e-9:
+            self._take(rid, *waiting.popleft())
+
+    def estimate(self, rid: str, stamp: float, pose, cov) -> None:
+        """The robot's estimated pose at ``stamp``: taken now if its dead reckoning reaches that stamp, kept until
+        it does if the estimate is ahead of it (up to ``trail`` estimates), dropped if it is older than the trail."""
+        stamps = self.stamps.get(rid)
+        if stamps and stamp <= stamps[-1] + 1e-9:
+            self._take(rid, stamp, pose, cov)
+        else:
+            self.pending.setdefault(rid, deque(maxlen=self.trail)).append((float(stamp), pose, cov))
+
+    def _take(self, rid: str, stamp: float, pose, cov) -> None:
+        stamps = self.stamps[rid]
+        if stamp < stamps[0] - 1e-9:
+            return
+        k = int(np.searchsorted(np.asarray(stamps), stamp + 1e-9, side="right")) - 1
+        frame = se2_compose(np.asarray(pose, float), se2_inverse(self.odometry[rid][k]))
+        self.frames[rid] = (frame, np.asarray(cov, float))
+
+    def __contains__(self, rid: str) -> bool:
+        return rid in self.frames
+
+    def pose_at(self, rid: str, stamp: float) -> tuple[np.ndarray, np.ndarray] | None:
+        """(pose, covariance) of a robot with an estimate at ``stamp`` (its last reading at or before it: a robot's
+        held scans can be handled after the others' later readings); None when its readings do not span that
+        instant (older than the trail, or later than its last reading by more than ``ahead_s``)."""
+        if rid not in self.frames:
+            return None
+        stamps = self.stamps[rid]
+        if stamp < stamps[0] - 1e-9 or stamp > stamps[-1] + self.ahead_s:
+            return None
+        frame, cov = self.frames[rid]
+        k = int(np.searchsorted(np.asarray(stamps), stamp + 1e-9, side="right")) - 1
+        pose = se2_compose(frame, self.odometry[rid][max(k, 0)])
+        pose[2] = wrap_angle(pose[2])
+        return pose, cov
+
+    def forget(self, rid: str) -> None:
+        for table in (self.stamps, self.odometry, self.frames, self.pending):
+            table.pop(rid, None)

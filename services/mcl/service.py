@@ -17,6 +17,14 @@ update, and an :class:`MclPose` (every significant hypothesis, the best pose,
 service takes a robot with an unknown start pose in on its first
 ``localized`` message.
 
+Robots that detect each other (``robot_meetings``, on by default): every robot's odometry is dead-reckoned,
+the central estimate's poses of the robots MCL does not localize are carried along it to each scan's instant
+(:class:`~services.mcl.meeting.PlacedPoses`), and a detection between such a placed robot and a robot being
+localized, either way, is a meeting (:class:`~services.mcl.meeting.MeetingDesk`, as offline): one that no
+particle agrees with starts the localization again from where it puts the robot, a localization that
+contradicts the robot's meetings is refused, and once its meetings fix its pose on their own the robot is placed
+there and its MclPose says ``localized`` — on a symmetric map, MCL alone can settle on the twin.
+
 The queryable ``{prefix}/mcl/localize`` answers a :class:`LocalizeRequest`
 (one scan and its sensor) with the hypotheses of a one-shot global
 localization, or a tracked robot's belief. A scan is checked on Zenoh's
@@ -55,6 +63,7 @@ from schemas.transport import StreamPublisher
 from services.mcl.config import MclConfig
 from services.mcl.core import MonteCarloLocalizer
 from services.mcl.fleet import MclFleet, RobotState
+from services.mcl.meeting import MeetingDesk, PlacedPoses
 from services.query_pool import QueryPool, QueryRefused, Solve, decode_query
 from services.runtime import ServiceShell
 
@@ -148,6 +157,8 @@ class MclService(ServiceShell):
         self.fleet = MclFleet(settings.core(MclConfig), landmarks, landmark_ids=ids)
         self.pose_pubs: dict[str, StreamPublisher] = {}
         self.pose_seq: dict[str, int] = {}  # kept when a robot leaves: its MclPose stream goes on where it stopped
+        self.desk = MeetingDesk(solve_every=5)  # every robot's dead reckoning and, for the robots MCL localizes, their meetings
+        self.placed = PlacedPoses()  # where the robots MCL does not localize are, from the central estimate
         self.pool = QueryPool(self, settings.query_workers, settings.query_queue, settings.query_deadline_s,
                               settings.query_nice)
 
@@ -160,6 +171,8 @@ class MclService(ServiceShell):
         if map_key is not None:
             self.subscribe(map_key, "map")
             session.get(map_key, self._on_map_reply)
+        if self.settings.robot_meetings and self.source != "central":
+            self.subscribe(keys.central_estimate, "poses", recover=False)
         self._declared.append(session.declare_queryable(keys.mcl_localize, self._on_query))
 
     def _on_map_reply(self, reply: zenoh.Reply) -> None:
@@ -172,16 +185,20 @@ class MclService(ServiceShell):
     # ---------------------------------------------------------------- handling
 
     async def handle(self, tag: str, key: str, payload) -> None:
-        if tag == "map":
+        if tag == "poses":
+            self._take_poses(decode(payload, Estimate))
+        elif tag == "map":
             had_map = self.fleet.landmarks is not None
-            self._on_map(payload)
+            message = decode(payload, MAP_MESSAGES[self.source])
+            if self.source == "central":
+                self._take_poses(message)
+            self._on_map(message)
             if not had_map and self.fleet.landmarks is not None:
                 waited = sorted(rid for rid in self.fleet.robots if not self.roster.is_admitted(rid))
                 await self.admit_all(waited)  # the robots that waited for the map, with what they sent meanwhile
         self._refresh_extra()
 
-    def _on_map(self, payload: bytes) -> None:
-        message = decode(payload, MAP_MESSAGES[self.source])
+    def _on_map(self, message) -> None:
         if self.source == "central":
             self._release_anchored({robot.robot_id for robot in message.robots})
         landmarks = np.asarray(message.landmarks, float).reshape(-1, 2)
@@ -204,7 +221,7 @@ class MclService(ServiceShell):
         for rid in sorted(placed & set(self.fleet.robots)):
             if self.fleet.robots[rid].localized_s is None:
                 self.fleet.remove_robot(rid)
-                self.extra["robots_released"] = self.extra.get("robots_released", 0.0) + 1.0
+                self._count("robots_released")
                 log.info("robot %s is in the central map without MCL (it anchors the frame): not localized further", rid)
 
     # ------------------------------------------------------------------ robots
@@ -213,6 +230,7 @@ class MclService(ServiceShell):
         """Localize a robot that announces no start pose (every robot with ``all_robots``); the others' events
         flow past untouched."""
         rid = info.robot_id
+        self.desk.add_robot(info)
         if info.start_pose is None or self.settings.all_robots:
             log.info("localizing robot %s (%s start pose)", rid, "unknown" if info.start_pose is None else "known")
             self.fleet.add_robot(info)
@@ -227,6 +245,7 @@ class MclService(ServiceShell):
     def robot_new_run(self, robot_id: str) -> None:
         """Localized from scratch once its new run announces itself (its MclPose stream goes on)."""
         self.fleet.remove_robot(robot_id)
+        self.placed.forget(robot_id)
 
     def robot_lost_odometry(self, robot_id: str) -> None:
         """Its odometry was lost for good: localized globally afresh, whatever its start pose (the central service
@@ -237,22 +256,27 @@ class MclService(ServiceShell):
         log.info("robot %s lost odometry: global localization again", robot_id)
         self.fleet.remove_robot(robot_id)
         self.fleet.add_robot(info.model_copy(update={"start_pose": None, "start_pose_cov": None}))
-        self.extra["robots_relocalized"] = self.extra.get("robots_relocalized", 0.0) + 1.0
+        self._count("robots_relocalized")
 
     # ------------------------------------------------------------ checkpoints
     def checkpoint_state(self) -> dict:
-        return {"fleet": self.fleet, "pose_seq": self.pose_seq}
+        return {"fleet": self.fleet, "pose_seq": self.pose_seq, "desk": self.desk, "placed": self.placed}
 
     def restore_state(self, state: dict) -> None:
-        """The filters (particles, random generators) and the map; each tracked robot gets its publisher back."""
+        """The filters (particles, random generators), the map and the robots' meetings; each tracked robot gets
+        its publisher back. A checkpoint written before meetings restores without them."""
         self.fleet = state["fleet"]
         self.pose_seq = dict(state["pose_seq"])
+        self.desk = state.get("desk", MeetingDesk(solve_every=5))
+        self.placed = state.get("placed", PlacedPoses())
         self._refresh_extra()
 
     def checkpoint_summary(self) -> dict:
         return {"robots": len(self.fleet.robots), "localized": self.fleet.localized_count()}
 
     async def robot_event(self, event) -> None:
+        if self.settings.robot_meetings:
+            self._meet(event)
         state = self.fleet.robots.get(event.robot_id)
         if state is None:
             return
@@ -266,13 +290,73 @@ class MclService(ServiceShell):
         report = self.fleet.on_scan(event)
         if report.kidnapped:
             log.warning("robot %s: no hypothesis explains its scans; global localization again", event.robot_id)
-        changed = report.localized != was_localized
-        if report.localized and changed:
+        localized = report.localized
+        if localized and not was_localized and self.desk.contradicts(event.robot_id, state.mcl.best()[0]):
+            log.info("robot %s: MCL's pose %s contradicts its meetings with placed robots; localized again from the "
+                     "latest", event.robot_id, np.round(state.mcl.best()[0], 2))
+            state.mcl.restart_from(self.desk.latest(event.robot_id))
+            state.localized = localized = False
+            self._count("meeting_refusals")
+        changed = localized != was_localized
+        if localized and changed:
             log.info("robot %s localized at %s after %d scans", event.robot_id, np.round(state.mcl.best()[0], 2),
                      state.scans)
         if changed or state.scans % self.settings.publish_every == 0:
             self._publish(event.robot_id, state, event.stamp)
         self._refresh_extra()
+
+    # ---------------------------------------------------------------- meetings
+
+    def _take_poses(self, estimate: Estimate) -> None:
+        """The central estimate's poses of the robots MCL does not localize: they place the others at meetings."""
+        for robot in estimate.robots:
+            if robot.robot_id not in self.fleet.robots:
+                self.placed.estimate(robot.robot_id, robot.stamp, robot.pose, robot.cov)
+
+    def _localizing(self, rid: str) -> bool:
+        state = self.fleet.robots.get(rid)
+        return state is not None and state.mcl is not None and rid in self.desk.logs
+
+    def _placed(self, rid: str) -> bool:
+        return rid not in self.fleet.robots and rid in self.placed and rid in self.desk.models
+
+    def _meet(self, event) -> None:
+        """Every robot's odometry moves its dead reckoning; a scan's detections between a robot MCL localizes and a
+        placed robot are meetings (:mod:`services.mcl.meeting`): one that no particle agrees with starts the
+        localization again from where it puts the robot, and once a robot's meetings fix its pose on their own it
+        is placed there, localized (as the offline placer does)."""
+        rid = event.robot_id
+        if isinstance(event, OdomEvent):
+            self.desk.move(event)
+            if rid not in self.fleet.robots and rid in self.desk.logs:
+                self.placed.move(rid, event.stamp, self.desk.logs[rid].odometry)
+            return
+        if not len(event.robot_ids):
+            return
+        for sighting in self.desk.sightings(event, self._localizing, self._placed):
+            subject = sighting.subject
+            state = self.fleet.robots[subject]
+            other = self.placed.pose_at(sighting.other, event.stamp)
+            if other is None:
+                self._count("meetings_unaligned")
+                continue
+            meeting = self.desk.meeting(sighting, *other, event.noise_cov)
+            restarted, fix = self.desk.meet(subject, meeting, state.mcl, solve=not state.mcl.localized)
+            self._count("meetings")
+            if restarted:
+                self._count("meeting_restarts")
+                log.info("robot %s: no hypothesis agrees with its meeting with %s; localized again from it", subject,
+                         sighting.other)
+            if fix is not None:
+                state.mcl.place(fix.pose, fix.cov)
+                state.localized = True
+                self._count("meeting_placements")
+                log.info("robot %s placed at %s by %d meetings with placed robots", subject, np.round(fix.pose, 2),
+                         fix.meetings)
+                self._publish(subject, state, event.stamp)
+
+    def _count(self, name: str) -> None:
+        self.extra[name] = self.extra.get(name, 0.0) + 1.0
 
     def _pose_pub(self, rid: str) -> StreamPublisher:
         """The publisher of a robot's MclPose, declared on first use."""

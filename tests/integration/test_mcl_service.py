@@ -134,3 +134,39 @@ def test_a_robot_that_leaves_and_runs_again_is_localized_again(processes, zsessi
                         what="r4 localized in its second run")
     actual = nearest_truth(truth.decoded(GroundTruth), second[-1].stamp)
     assert np.hypot(*(second[-1].best_pose[:2] - actual[:2])) < 0.5
+
+
+def test_robots_that_detect_each_other_place_the_one_without_a_start_pose(processes, zsession, prefix):
+    """The symmetric arena: MCL alone puts r4 on the map's half-turn twin (the demo's r4 was 4 m off); r1 and r2,
+    placed from their start poses, detect r4 and r4 detects them, so MCL places r4 from those meetings, with the
+    central estimate's poses of r1 and r2 carried to each detection's instant, and the central filter takes it in
+    where it is."""
+    keys = Keys(prefix)
+    estimates = Collector(zsession, keys.central_estimate)
+    poses = Collector(zsession, keys.mcl_pose("r4"))
+    truth = Collector(zsession, keys.truth("r4"))
+    stats = Collector(zsession, keys.stats("mcl"))
+    processes.start("central", "central", "--particles", "30")
+    processes.start("mcl", "mcl", "--source", "central", "--map-period-s", "0.5", "--stats-period-s", "0.5")
+    wait_until(lambda: stats.count() > 0, 60, what="the mcl service's stats")
+    fleet = ("--world", "arena", "--seed", "0", "--speedup", "2", "--duration", "16", "--fleet", "r1,r2,r4")
+    for rid in ("r1", "r2"):
+        processes.start(rid, "robot", "--id", rid, *fleet)
+    processes.start("r4", "robot", "--id", "r4", "--unknown-start", *fleet)
+
+    fix = wait_until(lambda: [p for p in poses.decoded(MclPose) if p.localized], 40, what="r4 localized")[0]
+    placed = wait_until(lambda: [s for s in stats.decoded(ServiceStats) if s.extra.get("meeting_placements")], 10,
+                        what="a placement by meetings in the stats")[-1]
+    assert placed.extra["meetings"] >= 5
+    wait_until(lambda: max(t.stamp for t in truth.decoded(GroundTruth)) >= fix.stamp, 10, what="truth up to the fix")
+    actual = nearest_truth(truth.decoded(GroundTruth), fix.stamp)
+    assert np.hypot(*(fix.best_pose[:2] - actual[:2])) < 0.3, (fix.best_pose, actual)
+    assert abs(wrap_angle(fix.best_pose[2] - actual[2])) < 0.15
+
+    def r4_late():
+        found = [r for e in estimates.decoded(Estimate) for r in e.robots if r.robot_id == "r4" and r.stamp > fix.stamp + 5]
+        return found and found[-1]
+
+    r4 = wait_until(r4_late, 40, what="r4 in the central estimate 5 s after its placement")
+    wait_until(lambda: max(t.stamp for t in truth.decoded(GroundTruth)) >= r4.stamp, 10, what="truth up to the estimate")
+    assert np.hypot(*(r4.pose[:2] - nearest_truth(truth.decoded(GroundTruth), r4.stamp)[:2])) < 0.3

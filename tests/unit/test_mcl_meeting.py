@@ -12,7 +12,8 @@ import pytest
 from robots.models import RangeBearingSensor, se2_accumulate, se2_compose, wrap_angle
 from services.mcl.config import MclConfig
 from services.mcl.core import MonteCarloLocalizer
-from services.mcl.meeting import GATE, Meeting, MeetingLog, draw, log_likelihood
+from schemas.contract import OdomEvent, ScanEvent
+from services.mcl.meeting import GATE, Meeting, MeetingDesk, MeetingLog, PlacedPoses, draw, log_likelihood
 from robots.simulator import simulate
 
 OTHER_SENSOR, OWN_SENSOR = RangeBearingSensor((0.1, 0.0)), RangeBearingSensor((0.2, 0.05))
@@ -145,3 +146,75 @@ def test_two_mirror_poses_that_explain_the_meetings_alike_fix_nothing(bearing_st
     assert (fix is not None) == fixed
     if fixed:
         assert np.hypot(*(fix.pose[:2] - robot[:2])) < 0.1
+
+
+def test_placed_poses_carry_a_lagging_or_early_estimate_to_the_scans_instant():
+    """A placed robot's dead reckoning (odometry frame turned and shifted from the world) and estimates of its true
+    pose that come late, or ahead of its readings: its pose at any instant of the trail is the truth then; an
+    estimate ahead waits for the reading it belongs to; instants outside the trail have no pose."""
+    frame = np.array([2.0, -1.0, 0.7])
+    odometry, world = robot_path(frame, 50, np.array([0.1, 0.0, 0.05]))
+    stamps = 0.1 * np.arange(1, 51)
+    placed = PlacedPoses(trail=40, ahead_s=0.25)
+    cov = np.diag([0.01, 0.01, 0.001])
+    for k in range(30):
+        placed.move("r1", stamps[k], odometry[k])
+    assert "r1" not in placed and placed.pose_at("r1", stamps[20]) is None
+    placed.estimate("r1", stamps[40], world[40], cov)  # ahead of the readings: kept until they reach it
+    assert "r1" not in placed
+    placed.estimate("r1", stamps[12], world[12], cov)  # late: taken at once
+    for k in (5, 20, 29):
+        pose, got_cov = placed.pose_at("r1", stamps[k])
+        np.testing.assert_allclose(pose, world[k], atol=1e-9)
+        np.testing.assert_array_equal(got_cov, cov)
+    assert placed.pose_at("r1", stamps[29] + 0.2) is not None and placed.pose_at("r1", stamps[29] + 0.3) is None
+    wrong = se2_compose(world[40], [0.5, 0.0, 0.0])
+    placed.estimate("r1", stamps[45], wrong, cov)  # waits behind the one at stamps[40]
+    for k in range(30, 42):
+        placed.move("r1", stamps[k], odometry[k])
+    np.testing.assert_allclose(placed.pose_at("r1", stamps[41])[0], world[41], atol=1e-9)
+    for k in range(42, 50):
+        placed.move("r1", stamps[k], odometry[k])
+    np.testing.assert_allclose(placed.pose_at("r1", stamps[45])[0], wrong, atol=1e-9)  # the later estimate took over
+    assert placed.pose_at("r1", stamps[5]) is None  # older than the trail of 40 readings
+    placed.forget("r1")
+    assert "r1" not in placed and placed.pose_at("r1", stamps[49]) is None
+
+
+def test_the_desk_finds_meetings_either_way_and_solves_every_few():
+    """A scan's detections are meetings only between a robot being localized and a placed one, in either
+    direction; the desk keeps them on the robot's dead reckoning and solves its pose every ``solve_every``
+    meetings, and a localizer that agrees with the meeting is not started again."""
+    data = simulate("arena", robots=2, seed=0, duration=2.0)
+    infos = {rid: log.info for rid, log in data.robots.items()}
+    desk = MeetingDesk(solve_every=3)
+    for info in infos.values():
+        desk.add_robot(info)
+    scan = ScanEvent("r1", 0, 0.0, np.zeros(0), np.zeros(0), None, np.diag([0.01, 0.001]), ["r2", "r3"],
+                     np.array([2.0, 3.0]), np.array([0.1, -0.2]))
+    localizing, placed = {"r2"}.__contains__, {"r1", "r3"}.__contains__
+    found = desk.sightings(scan, localizing, placed)
+    assert [(s.subject, s.other, s.by_other) for s in found] == [("r2", "r1", True)]
+    np.testing.assert_array_equal(found[0].z, [2.0, 0.1])
+    back = ScanEvent("r2", 0, 0.0, np.zeros(0), np.zeros(0), None, np.diag([0.01, 0.001]), ["r1"], np.array([2.0]),
+                     np.array([-0.1]))
+    assert [(s.subject, s.other, s.by_other) for s in desk.sightings(back, localizing, placed)] == [("r2", "r1", False)]
+    assert desk.sightings(scan, set().__contains__, placed) == []  # between placed robots: no meeting
+
+    truth = data.robots["r2"].truth_pose[0]
+    desk.move(OdomEvent("r2", 0, 0.1, 0.1, np.zeros(2), np.eye(2) * 1e-6))
+    rng = np.random.default_rng(3)
+    mcl = MonteCarloLocalizer(data.landmarks, infos["r2"].model_copy(update={"start_pose": None}), MclConfig(seed=0),
+                              np.random.default_rng(0))
+    mcl.place(truth, np.diag([0.01, 0.01, 0.001]))
+    assert mcl.localized
+    fixes = []
+    for k in range(6):
+        other = truth + np.array([rng.uniform(-3, 3), rng.uniform(-3, 3), rng.uniform(-3, 3)])
+        restarted, fix = desk.meet("r2", simulated_meeting(rng, truth, other, by_other=k % 2 == 0), mcl)
+        assert not restarted
+        fixes.append(fix)
+    assert [f is not None for f in fixes] == [False, False, True, False, False, True]
+    assert np.hypot(*(fixes[-1].pose[:2] - truth[:2])) < 0.5  # the meetings were simulated with other sensor offsets
+    assert desk.meet("r2", simulated_meeting(rng, truth, truth + [2.0, 0, 0], True), mcl, solve=False)[1] is None
+    assert not desk.contradicts("r2", truth) and desk.contradicts("r2", truth + np.array([1.0, 0.0, 0.0]))
