@@ -52,6 +52,9 @@ def load_robot(settings: RobotSettings) -> tuple[RobotLog, Dataset]:
     if settings.replay:
         from robots.loaders import load_dataset
 
+        if settings.fleet:
+            raise ValueError("--fleet is for simulated robots: a replayed robot detects whom its data set says")
+
         dataset = load_dataset(settings.replay)
         if len(dataset.robots) != 1:
             raise ValueError(f"--replay {settings.replay!r} holds {len(dataset.robots)} robots; name one (mrclam:PATH:N)")

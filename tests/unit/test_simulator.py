@@ -103,3 +103,28 @@ def test_a_robot_announces_motion_limits_that_its_own_odometry_keeps():
     assert info.max_speed is not None and info.max_turn_rate is not None and info.max_steering is None
     assert np.abs(robot.odom_control[:, 0]).max() <= info.max_speed < 2 * np.abs(robot.odom_control[:, 0]).max()
     assert np.abs(robot.odom_control[:, 1]).max() <= info.max_turn_rate
+
+
+def test_a_robot_in_a_fleet_keeps_its_own_path_and_detects_the_others_as_they_detect_it():
+    """``--fleet``: each robot's process simulates the fleet and publishes its own log; the robot's motion and
+    landmark detections are those it has alone, and two processes agree on where each robot is (r2 detects r1
+    where r1's own truth is)."""
+    from robots.process import load_robot
+    from schemas.config import RobotSettings
+
+    alone, _ = load_robot(RobotSettings(robot_id="r2", world="arena", duration=10.0, seed=0))
+    r2, _ = load_robot(RobotSettings(robot_id="r2", world="arena", duration=10.0, seed=0, fleet="r1,r2"))
+    r1, _ = load_robot(RobotSettings(robot_id="r1", world="arena", duration=10.0, seed=0, fleet="r1,r2"))
+    np.testing.assert_array_equal(alone.odom_control, r2.odom_control)
+    np.testing.assert_array_equal(alone.det_range, r2.det_range)
+    assert alone.robot_det_ids == [] and set(r2.robot_det_ids) == {"r1"}
+    sensor = RangeBearingSensor(tuple(r2.info.sensor.offset))
+    for k in range(len(r2.scan_stamp)):
+        lo, hi = r2.robot_det_offsets[k], r2.robot_det_offsets[k + 1]
+        for j in range(lo, hi):
+            truth = r1.truth_pose[np.argmin(np.abs(r1.truth_stamp - r2.scan_stamp[k]))]
+            pose = r2.truth_pose[np.argmin(np.abs(r2.truth_stamp - r2.scan_stamp[k]))]
+            z = sensor.observe(pose, truth[None, :2])[0]
+            assert abs(r2.robot_det_range[j] - z[0]) < 0.5 and abs(wrap_angle(r2.robot_det_bearing[j] - z[1])) < 0.2
+    with pytest.raises(ValueError, match="--fleet"):
+        load_robot(RobotSettings(robot_id="r1", replay="mrclam:/nonexistent:1", fleet="r1,r2"))
