@@ -236,7 +236,7 @@ class CentralService(ServiceShell):
         log.warning("robot %s: MCL has put it %.1f m from the filter's pose for %d localized poses in a row: it is "
                     "placed again", rid, float(np.hypot(*(poses[rid][0][:2] - np.asarray(message.best_pose)[:2]))),
                     self.settings.replace_after)
-        self.extra["replaced"] = self.extra.get("replaced", 0.0) + 1.0
+        self.count_extra("replaced")
         info = self.slam.remove_robot(rid)
         self.slam.add_robot(info.model_copy(update={"start_pose": None, "start_pose_cov": None}))
         self._wait_for_mcl(rid)

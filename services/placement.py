@@ -138,7 +138,6 @@ class FleetPlacer:
         self.desk = MeetingDesk()
         for info in infos:
             self.desk.add_robot(info)
-        for info in infos:
             if not estimator.is_waiting(info.robot_id):
                 self.placements[info.robot_id].how = "start pose"
 

@@ -155,7 +155,7 @@ class ServiceShell:
         await asyncio.to_thread(self.checkpoints.save, data)
         self.extra["checkpoint_write_ms"] = (time.perf_counter() - started) * 1e3
         self.extra["checkpoint_bytes"] = float(len(data))
-        self.extra["checkpoints"] = self.extra.get("checkpoints", 0.0) + 1.0
+        self.count_extra("checkpoints")
 
     def resume(self) -> None:
         """Take the newest valid checkpoint of ``state_dir`` back, if there is one (files refused on the way are
@@ -472,6 +472,10 @@ class ServiceShell:
         self._declared.append(pub)
         return pub
 
+    def count_extra(self, name: str) -> None:
+        """One more of an event the stats' ``extra`` counts (a checkpoint written, a robot placed again...)."""
+        self.extra[name] = self.extra.get(name, 0.0) + 1.0
+
     def reject(self, reason: str, detail: str = "", count: int = 1) -> None:
         """Count ``count`` rejected messages by reason (and log the first few of each)."""
         self.rejected[reason] += count
@@ -586,7 +590,7 @@ class ServiceShell:
         if self._backlog_bytes >= TRIM_AFTER_BYTES and len(self.intake) == 0:
             self._backlog_bytes = 0
             if release_free_memory():
-                self.extra["memory_trims"] = self.extra.get("memory_trims", 0.0) + 1.0
+                self.count_extra("memory_trims")
         if self.roster is not None:
             dropped = self.roster.expire_pending()
             if dropped:

@@ -339,12 +339,15 @@ class PlacedPoses:
             self.pending.setdefault(rid, deque(maxlen=self.trail)).append((float(stamp), pose, cov))
 
     def _take(self, rid: str, stamp: float, pose, cov) -> None:
-        stamps = self.stamps[rid]
-        if stamp < stamps[0] - 1e-9:
+        if stamp < self.stamps[rid][0] - 1e-9:
             return
-        k = int(np.searchsorted(np.asarray(stamps), stamp + 1e-9, side="right")) - 1
-        frame = se2_compose(np.asarray(pose, float), se2_inverse(self.odometry[rid][k]))
+        frame = se2_compose(np.asarray(pose, float), se2_inverse(self._odometry_at(rid, stamp)))
         self.frames[rid] = (frame, np.asarray(cov, float))
+
+    def _odometry_at(self, rid: str, stamp: float) -> np.ndarray:
+        """The robot's dead-reckoned pose after its last reading at or before ``stamp`` (not before the first)."""
+        k = int(np.searchsorted(np.asarray(self.stamps[rid]), stamp + 1e-9, side="right")) - 1
+        return self.odometry[rid][max(k, 0)]
 
     def __contains__(self, rid: str) -> bool:
         return rid in self.frames
@@ -359,8 +362,7 @@ class PlacedPoses:
         if stamp < stamps[0] - 1e-9 or stamp > stamps[-1] + self.ahead_s:
             return None
         frame, cov = self.frames[rid]
-        k = int(np.searchsorted(np.asarray(stamps), stamp + 1e-9, side="right")) - 1
-        pose = se2_compose(frame, self.odometry[rid][max(k, 0)])
+        pose = se2_compose(frame, self._odometry_at(rid, stamp))
         pose[2] = wrap_angle(pose[2])
         return pose, cov
 

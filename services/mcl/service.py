@@ -221,7 +221,7 @@ class MclService(ServiceShell):
         for rid in sorted(placed & set(self.fleet.robots)):
             if self.fleet.robots[rid].localized_s is None:
                 self.fleet.remove_robot(rid)
-                self._count("robots_released")
+                self.count_extra("robots_released")
                 log.info("robot %s is in the central map without MCL (it anchors the frame): not localized further", rid)
 
     # ------------------------------------------------------------------ robots
@@ -256,7 +256,7 @@ class MclService(ServiceShell):
         log.info("robot %s lost odometry: global localization again", robot_id)
         self.fleet.remove_robot(robot_id)
         self.fleet.add_robot(info.model_copy(update={"start_pose": None, "start_pose_cov": None}))
-        self._count("robots_relocalized")
+        self.count_extra("robots_relocalized")
 
     # ------------------------------------------------------------ checkpoints
     def checkpoint_state(self) -> dict:
@@ -296,7 +296,7 @@ class MclService(ServiceShell):
                      "latest", event.robot_id, np.round(state.mcl.best()[0], 2))
             state.mcl.restart_from(self.desk.latest(event.robot_id))
             state.localized = localized = False
-            self._count("meeting_refusals")
+            self.count_extra("meeting_refusals")
         changed = localized != was_localized
         if localized and changed:
             log.info("robot %s localized at %s after %d scans", event.robot_id, np.round(state.mcl.best()[0], 2),
@@ -318,7 +318,7 @@ class MclService(ServiceShell):
         return state is not None and state.mcl is not None and rid in self.desk.logs
 
     def _placed(self, rid: str) -> bool:
-        return rid not in self.fleet.robots and rid in self.placed and rid in self.desk.models
+        return rid not in self.fleet.robots and rid in self.placed and rid in self.desk.logs
 
     def _meet(self, event) -> None:
         """Every robot's odometry moves its dead reckoning; a scan's detections between a robot MCL localizes and a
@@ -338,25 +338,22 @@ class MclService(ServiceShell):
             state = self.fleet.robots[subject]
             other = self.placed.pose_at(sighting.other, event.stamp)
             if other is None:
-                self._count("meetings_unaligned")
+                self.count_extra("meetings_unaligned")
                 continue
             meeting = self.desk.meeting(sighting, *other, event.noise_cov)
             restarted, fix = self.desk.meet(subject, meeting, state.mcl, solve=not state.mcl.localized)
-            self._count("meetings")
+            self.count_extra("meetings")
             if restarted:
-                self._count("meeting_restarts")
+                self.count_extra("meeting_restarts")
                 log.info("robot %s: no hypothesis agrees with its meeting with %s; localized again from it", subject,
                          sighting.other)
             if fix is not None:
                 state.mcl.place(fix.pose, fix.cov)
                 state.localized = True
-                self._count("meeting_placements")
+                self.count_extra("meeting_placements")
                 log.info("robot %s placed at %s by %d meetings with placed robots", subject, np.round(fix.pose, 2),
                          fix.meetings)
                 self._publish(subject, state, event.stamp)
-
-    def _count(self, name: str) -> None:
-        self.extra[name] = self.extra.get(name, 0.0) + 1.0
 
     def _pose_pub(self, rid: str) -> StreamPublisher:
         """The publisher of a robot's MclPose, declared on first use."""
