@@ -41,7 +41,9 @@ GATE = chi2_quantile(0.999, 2)  # a particle farther than this (d²) from the me
 class Meeting:
     """One detection between the robot being localized and another robot: ``other_pose`` ``(3,)`` with
     ``other_cov`` ``(3, 3)``; ``z`` (range, bearing) with ``noise_cov`` ``(2, 2)``; ``by_other``: the other robot's
-    sensor (``other_sensor``) made the detection, else this robot's did."""
+    sensor (``other_sensor``) made the detection, else this robot's did. ``other_id`` names the other robot: the
+    meetings with one robot share its pose error, which a fix counts once (:meth:`MeetingLog.solve`); None
+    (meetings logged before it was kept): each meeting's error counted as its own."""
 
     other_pose: np.ndarray
     other_cov: np.ndarray
@@ -49,6 +51,12 @@ class Meeting:
     noise_cov: np.ndarray
     by_other: bool
     other_sensor: RangeBearingSensor = RangeBearingSensor()
+    other_id: str | None = None
+
+    def position_jacobians(self) -> tuple[np.ndarray, np.ndarray]:
+        """``by_other``: d(position)/d(other's pose) ``(2, 3)`` and the detection's covariance there ``(2, 2)``."""
+        g_pose, g_z = self.other_sensor.inverse_jacobians(np.asarray(self.other_pose, float), np.asarray(self.z, float))
+        return g_pose, g_z @ self.noise_cov @ g_z.T
 
     def position(self) -> tuple[np.ndarray, np.ndarray]:
         """``by_other``: where the detection puts this robot (mean ``(2,)``, covariance ``(2, 2)``)."""
@@ -155,33 +163,36 @@ class MeetingLog:
         """The robot's pose now from its usable meetings (``sensor``: its own), or None while they do not fix it:
         too few, inconsistent (χ² beyond its 99.9 % quantile), imprecise (``max_std_xy``, ``max_std_theta``) or
         ambiguous (a second minimum, found from another of ``headings`` starting headings, within the χ²(3) 99 %
-        quantile of the best and elsewhere)."""
+        quantile of the best and elsewhere). The unknowns are the odometry frame's pose in the world and, per
+        placed robot met, the error of its estimated pose (with its covariance as a prior): ten meetings with one
+        robot do not know its pose ten times better than one does."""
         entries = self.usable()
         if len(entries) < self.min_meetings:
             return None
         odometry = np.array([e.odometry for e in entries])
-        residuals = _residual_function(entries, odometry, sensor)
+        residuals, others = _residual_function(entries, odometry, sensor)
         solutions = []
         for heading in np.linspace(-math.pi, math.pi, self.headings, endpoint=False):
-            start = _start(entries[0], odometry[0], heading, sensor)
-            fit = least_squares(residuals, start, method="lm", x_scale=[1.0, 1.0, 0.1])
+            start = np.concatenate([_start(entries[0], odometry[0], heading, sensor), np.zeros(3 * others)])
+            fit = least_squares(residuals, start, method="lm", x_scale=[1.0, 1.0, 0.1] + [0.1, 0.1, 0.01] * others)
             solutions.append((2.0 * fit.cost, fit.x, fit.jac))
         solutions.sort(key=lambda item: item[0])
-        chi2, frame, jacobian = solutions[0]
-        dof = residuals(frame).size - 3
+        chi2, unknowns, jacobian = solutions[0]
+        dof = residuals(unknowns).size - unknowns.size  # the priors' residuals balance their unknowns
         if dof <= 0 or chi2 > chi2_quantile(0.999, dof):
             return None
         information = jacobian.T @ jacobian
         if np.linalg.cond(information) > 1e12:
             return None
+        frame = unknowns[:3]
         lever = compose_start_jacobian(frame, self.odometry)
         pose = se2_compose(frame, self.odometry)
-        cov = lever @ np.linalg.inv(information) @ lever.T
+        cov = lever @ np.linalg.inv(information)[:3, :3] @ lever.T
         if math.sqrt(cov[0, 0] + cov[1, 1]) > self.max_std_xy or math.sqrt(cov[2, 2]) > self.max_std_theta:
             return None
         margin = chi2_quantile(0.99, 3)
-        for other_chi2, other_frame, _ in solutions[1:]:
-            other = se2_compose(other_frame, self.odometry)
+        for other_chi2, other_unknowns, _ in solutions[1:]:
+            other = se2_compose(other_unknowns[:3], self.odometry)
             apart = math.hypot(*(other[:2] - pose[:2])) > 0.5 or abs(wrap_angle(other[2] - pose[2])) > 0.3
             if apart and other_chi2 <= chi2 + margin:
                 return None
@@ -190,28 +201,55 @@ class MeetingLog:
 
 
 def _residual_function(entries: list[_Logged], odometry: np.ndarray, sensor: RangeBearingSensor):
-    """Whitened residuals of every meeting for a frame (the world pose of the odometry's origin)."""
+    """(whitened residuals of every meeting for the unknowns, how many placed robots' pose errors are unknowns).
+
+    The unknowns are the frame (the world pose of the odometry's origin) and, per placed robot named by the
+    meetings, an error δ ``(3,)`` added to every pose of it the meetings hold, with its covariance as a prior
+    (one residual block per robot). A meeting with a named robot is weighed by the detection's noise alone, its
+    prediction moved by δ to first order; a meeting with an unnamed one carries that robot's covariance itself."""
+    names = sorted({e.meeting.other_id for e in entries if e.meeting.other_id is not None})
+    group = np.array([names.index(e.meeting.other_id) if e.meeting.other_id is not None else len(names)
+                      for e in entries], np.int64)  # len(names): the row of zeros (no shared error)
+    prior_whiten = []
+    for name in names:
+        covs = [e.meeting.other_cov for e in entries if e.meeting.other_id == name]
+        prior_whiten.append(np.linalg.inv(np.linalg.cholesky(np.mean(covs, 0) + 1e-12 * np.eye(3))))
+    prior_whiten = np.array(prior_whiten).reshape(-1, 3, 3)
+    named = group < len(names)
+
     seen = [k for k, e in enumerate(entries) if e.meeting.by_other]
     saw = [k for k, e in enumerate(entries) if not e.meeting.by_other]
-    positions = [entries[k].meeting.position() for k in seen]
-    means = np.array([m for m, _ in positions]).reshape(-1, 2)
-    whiten = np.array([np.linalg.inv(np.linalg.cholesky(c)) for _, c in positions]).reshape(-1, 2, 2)
+    means, whiten, shift = [], [], []
+    for k in seen:
+        meeting = entries[k].meeting
+        mean, cov = meeting.position()
+        g_pose, detection_cov = meeting.position_jacobians()
+        means.append(mean)
+        whiten.append(np.linalg.inv(np.linalg.cholesky(detection_cov if named[k] else cov)))
+        shift.append(g_pose)
+    means, whiten = np.array(means).reshape(-1, 2), np.array(whiten).reshape(-1, 2, 2)
+    shift = np.array(shift).reshape(-1, 2, 3)
     others = np.array([entries[k].meeting.other_pose[:2] for k in saw], float).reshape(-1, 2)
-    other_covs = np.array([entries[k].meeting.other_cov[:2, :2] for k in saw], float).reshape(-1, 2, 2)
+    other_covs = np.array([entries[k].meeting.other_cov[:2, :2] if not named[k] else np.zeros((2, 2))
+                           for k in saw], float).reshape(-1, 2, 2)
     z = np.array([entries[k].meeting.z for k in saw], float).reshape(-1, 2)
     noise = np.array([entries[k].meeting.noise_cov for k in saw], float).reshape(-1, 2, 2)
 
-    def residuals(frame: np.ndarray) -> np.ndarray:
-        poses = se2_compose(frame, odometry)
-        out = [np.einsum("kij,kj->ki", whiten, poses[seen, :2] - means).ravel()]
+    def residuals(unknowns: np.ndarray) -> np.ndarray:
+        errors = np.vstack([unknowns[3:].reshape(-1, 3), np.zeros((1, 3))])[group]  # δ of each meeting's robot
+        poses = se2_compose(unknowns[:3], odometry)
+        moved = means + np.einsum("kij,kj->ki", shift, errors[seen])
+        out = [np.einsum("kij,kj->ki", whiten, poses[seen, :2] - moved).ravel()]
         if saw:
             predicted, h_other = sensor.observe_with_jacobian(poses[saw][:, None, :], others[:, None, :])
-            nu = sensor.innovation(z, predicted[:, 0])
-            cov = noise + h_other[:, 0] @ other_covs @ np.swapaxes(h_other[:, 0], -1, -2)
+            h_other = h_other[:, 0]
+            nu = sensor.innovation(z, predicted[:, 0]) - np.einsum("kij,kj->ki", h_other, errors[saw, :2])
+            cov = noise + h_other @ other_covs @ np.swapaxes(h_other, -1, -2)
             out.append(np.einsum("kij,kj->ki", np.linalg.inv(np.linalg.cholesky(cov)), nu).ravel())
+        out.append(np.einsum("gij,gj->gi", prior_whiten, unknowns[3:].reshape(-1, 3)).ravel())
         return np.concatenate(out)
 
-    return residuals
+    return residuals, len(names)
 
 
 def _start(entry: _Logged, odometry: np.ndarray, heading: float, sensor: RangeBearingSensor) -> np.ndarray:
@@ -280,7 +318,7 @@ class MeetingDesk:
     def meeting(self, sighting: Sighting, other_pose, other_cov, noise_cov) -> Meeting:
         """The :class:`Meeting` of a sighting, the placed robot at ``other_pose`` (``other_cov``)."""
         return Meeting(np.asarray(other_pose, float), np.asarray(other_cov, float), sighting.z,
-                       np.asarray(noise_cov, float), sighting.by_other, self.models[sighting.other][1])
+                       np.asarray(noise_cov, float), sighting.by_other, self.models[sighting.other][1], sighting.other)
 
     def meet(self, subject: str, meeting: Meeting, mcl=None, solve: bool = True) -> tuple[bool, MeetingFix | None]:
         """Keep a meeting for ``subject``, check its localizer ``mcl`` (if any) against it: (whether the

@@ -79,6 +79,33 @@ def test_a_robots_meetings_fix_its_pose_once_they_are_enough(seed):
     assert error @ np.linalg.solve(fix.cov, error) < 16.3  # χ²(3) 99.9 %
 
 
+def test_meetings_with_one_robot_count_its_pose_error_once():
+    """Twelve meetings with one placed robot whose estimate is off by one error, drawn from its covariance: the
+    fix's covariance covers the fix's error (d² of χ²(3) on average, 3). Counted as twelve independent errors it
+    was about four times too small (d² 12 on average over these draws)."""
+    cov = np.diag([0.01, 0.01, 0.003])
+    d2 = []
+    for seed in range(60):
+        rng = np.random.default_rng(seed)
+        frame = np.array([rng.uniform(-5, 5), rng.uniform(-5, 5), rng.uniform(-math.pi, math.pi)])
+        odometry, world = robot_path(frame, 12, np.array([0.25, 0.0, 0.06]))
+        error = rng.multivariate_normal(np.zeros(3), cov)  # the placed robot's, in all its meetings
+        log = MeetingLog(max_std_xy=10.0, max_std_theta=10.0)
+        for k in range(12):
+            log.move(odometry[k])
+            other = world[0] + np.array([2.0 + 0.1 * k, 1.0, 0.5])
+            by_other = k % 2 == 0
+            z = (OTHER_SENSOR.observe(other, world[k][None, :2]) if by_other
+                 else OWN_SENSOR.observe(world[k], other[None, :2]))[0] + rng.multivariate_normal(np.zeros(2), NOISE)
+            log.add(Meeting(other + error, cov, z, NOISE, by_other, OTHER_SENSOR, "r2"))
+        fix = log.solve(OWN_SENSOR)
+        if fix is not None:
+            miss = np.append(fix.pose[:2] - world[-1][:2], wrap_angle(fix.pose[2] - world[-1][2]))
+            d2.append(miss @ np.linalg.solve(fix.cov, miss))
+    assert len(d2) >= 50
+    assert 2.2 < np.mean(d2) < 4.5
+
+
 def test_meetings_that_do_not_fix_the_heading_or_disagree_fix_nothing():
     """A robot standing still seen by placed robots: its position is known, its heading not — no fix. A meeting
     from a placed robot whose pose is 3 m wrong: inconsistent — no fix either."""
