@@ -22,8 +22,8 @@ filter (:class:`central.fastslam.FastSlam`):
 - A robot whose first odometry message arrives with seq > 0 (the service
   started after it) has lost its start pose: counted, and with ``late_join``
   = ``wait`` it waits for MCL like a robot without a start pose.
-- Robot-to-robot detections in scans are ignored unless ``robot_detections``
-  is on (they then weight particles; they never update the map).
+- Robot-to-robot detections in scans weight the particles (``robot_detections``, on by default; with the scan's
+  noise covariance times ``robot_detection_noise_scale``); they never update the map.
 
 The estimate (every placed robot's weighted mean pose and covariance, the
 map) is published on ``{prefix}/central/estimate`` at ``estimate_rate_hz``;

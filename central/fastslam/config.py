@@ -78,7 +78,15 @@ class FastSlamConfig(CoreConfig):
     detection_probability: float | None = Field(None, gt=0.0, le=1.0, description="P_D of a landmark in view; None: the sensor's")
     max_detection_probability: float = Field(0.95, gt=0.0, lt=1.0, description="P_D is capped here (a miss never costs log 0)")
     max_obs_range: float | None = Field(None, gt=0.0, description="ignore detections farther than this (m); None: the sensor's range")
-    robot_detections: bool = Field(False, description="weight particles by robot-to-robot detections (relative pose likelihood)")
+    robot_detections: bool = Field(
+        True, description="weight particles by robot-to-robot detections (relative pose likelihood): a robot out of "
+        "sight of landmarks stays tied to the ones it sees (MR.CLAM without barcodes, 40 seeds: worst robot median "
+        "2.57 -> 1.37 m, worst 4.46 -> 2.33 m; with barcodes better too; README)")
+    robot_detection_noise_scale: float = Field(
+        4.0, gt=0.0, description="multiplies the scan's noise covariance for robot-to-robot detections: on MR.CLAM "
+        "their innovations against the true poses are heavy-tailed (bearing std 3.6x the scan's, median d² 0.4), and "
+        "the scan's covariance let a few of them collapse the fleet's particles (1: MR.CLAM worst robot 1.66/2.50 m "
+        "over 10 seeds; 2, 4, 8, 16 all 1.3-1.6 m median, 4 the best worst case)")
     compiled: bool = Field(True, description="EKF updates with known ids, control integration, pose and map mixtures by the "
                            "numba kernels (False: the numpy references)")
     robot_detection_max_dt: float = Field(0.1, ge=0.0, description="... only when the other robot's pose is this recent (s)")

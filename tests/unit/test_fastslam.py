@@ -257,9 +257,11 @@ def test_clutter_born_landmarks_die_in_per_particle_association(association):
 
 def test_shared_association_keeps_clutter_out_of_the_map_and_the_weights():
     """Clutter starts tentative landmarks that never weigh particles, never reach the map and are dropped when
-    missed; the map holds the true landmarks and at most a few spurious ones."""
+    missed; the map holds the true landmarks and at most a few spurious ones. (Robot-to-robot detections are
+    left out: this is about clutter alone.)"""
     data = simulate("arena", robots=2, seed=3, duration=25.0, clutter_rate=1.5)
-    slam = FastSlam(FastSlamConfig(particles=20, association="shared", seed=0), [log.info for log in data.robots.values()])
+    slam = FastSlam(FastSlamConfig(particles=20, association="shared", seed=0, robot_detections=False),
+                    [log.info for log in data.robots.values()])
     feed(slam, data)
     clutter = sum(int((log.det_id < 0).sum()) for log in data.robots.values())
     assert clutter > 500
@@ -537,3 +539,48 @@ def test_turn_slip_widens_the_drawn_heading_only_when_set():
     np.testing.assert_allclose(np.delete(slipped.ravel(), 8), np.delete(plain.ravel(), 8))
     _, unannounced = pending(FastSlamConfig(particles=4, seed=0, turn_slip=True), data.robots["r1"].info)
     np.testing.assert_allclose(unannounced, plain)
+
+
+def robot_sighting_filter(**settings):
+    """Two robots at their start poses in one filter of 400 particles; r2's particles spread 0.5 m around its true
+    pose, r1's exactly at its own. Returns (filter, r1's detection of r2 at its true pose, scan noise)."""
+    data = simulate("arena", robots=2, seed=0, duration=1.0)
+    infos = [log.info for log in data.robots.values()]
+    slam = FastSlam(FastSlamConfig(particles=400, association="shared", seed=0, **settings), infos)
+    rng = np.random.default_rng(5)
+    r1, r2 = slam.robots["r1"], slam.robots["r2"]
+    truth1, truth2 = infos[0].start_pose, infos[1].start_pose
+    slam.pose[:, r2.index] = truth2 + rng.normal(0.0, [0.5, 0.5, 0.05], (400, 3))
+    noise = np.diag([0.01, 0.001])
+    z = r1.sensor.observe(np.asarray(truth1, float), np.asarray(truth2, float)[None, :2])[0]
+    r1.pose_time = r2.pose_time = 0.0
+    event = ScanEvent("r1", 0, 0.0, np.zeros(0), np.zeros(0), None, noise, ["r2"], np.array([z[0]]), np.array([z[1]]))
+    return slam, event, noise, np.asarray(truth2, float)
+
+
+def test_a_robot_detection_pulls_the_detected_robot_toward_where_it_was_seen():
+    """r1 sees r2 (no landmark in the scan): the particles whose r2 explains the detection gain weight, so r2's
+    estimate moves to within a fraction of its spread of the truth; with robot detections off nothing moves."""
+    from central.fastslam import robot_detections
+    slam, event, noise, truth2 = robot_sighting_filter()
+    before = np.hypot(*(slam.poses()["r2"][0][:2] - truth2[:2]))
+    spread = math.sqrt(np.trace(slam.poses()["r2"][1][:2, :2]))
+    robot_detections.weigh(slam, slam.robots["r1"], event, noise)
+    after = np.hypot(*(slam.poses()["r2"][0][:2] - truth2[:2]))
+    assert slam.counts["robot_detections_used"] == 1
+    assert after < 0.35 * spread and after < 0.5 * before
+    assert 1.0 < slam.effective_particles() < 400.0  # informative, not a single survivor
+    off, event, noise, _ = robot_sighting_filter(robot_detections=False)
+    off.on_scan(event)
+    assert off.counts["robot_detections_used"] == 0 and np.ptp(off.logw) == 0.0
+
+
+def test_robot_detection_noise_scale_widens_their_likelihood():
+    """With no motion pending, the log-weight differences a detection makes shrink by the noise scale."""
+    from central.fastslam import robot_detections
+    spreads = {}
+    for scale in (1.0, 4.0):
+        slam, event, noise, _ = robot_sighting_filter(robot_detection_noise_scale=scale)
+        robot_detections.weigh(slam, slam.robots["r1"], event, noise)
+        spreads[scale] = slam.logw - slam.logw.max()
+    np.testing.assert_allclose(spreads[4.0], spreads[1.0] / 4.0, rtol=1e-9, atol=1e-9)
