@@ -170,11 +170,20 @@ class MeetingLog:
         if len(entries) < self.min_meetings:
             return None
         odometry = np.array([e.odometry for e in entries])
+        # the minima, found from every starting heading with the frame alone (each meeting's error its own: three
+        # unknowns, cheap), then refined with the placed robots' shared errors (tens of milliseconds each)
+        free, _ = _residual_function(entries, odometry, sensor, shared=False)
+        minima: list[np.ndarray] = []
+        for heading in np.linspace(-math.pi, math.pi, self.headings, endpoint=False):
+            frame = least_squares(free, _start(entries[0], odometry[0], heading, sensor), method="lm",
+                                  x_scale=[1.0, 1.0, 0.1]).x
+            if not any(_same_frame(frame, other) for other in minima):
+                minima.append(frame)
         residuals, others = _residual_function(entries, odometry, sensor)
         solutions = []
-        for heading in np.linspace(-math.pi, math.pi, self.headings, endpoint=False):
-            start = np.concatenate([_start(entries[0], odometry[0], heading, sensor), np.zeros(3 * others)])
-            fit = least_squares(residuals, start, method="lm", x_scale=[1.0, 1.0, 0.1] + [0.1, 0.1, 0.01] * others)
+        for frame in minima:
+            fit = least_squares(residuals, np.concatenate([frame, np.zeros(3 * others)]), method="lm",
+                                x_scale=[1.0, 1.0, 0.1] + [0.1, 0.1, 0.01] * others)
             solutions.append((2.0 * fit.cost, fit.x, fit.jac))
         solutions.sort(key=lambda item: item[0])
         chi2, unknowns, jacobian = solutions[0]
@@ -200,15 +209,22 @@ class MeetingLog:
         return MeetingFix(pose, 0.5 * (cov + cov.T), len(entries), float(chi2))
 
 
-def _residual_function(entries: list[_Logged], odometry: np.ndarray, sensor: RangeBearingSensor):
+def _same_frame(a: np.ndarray, b: np.ndarray) -> bool:
+    """Whether two frames are one minimum (within 1 cm and 0.01 rad)."""
+    return math.hypot(*(a[:2] - b[:2])) < 0.01 and abs(wrap_angle(a[2] - b[2])) < 0.01
+
+
+def _residual_function(entries: list[_Logged], odometry: np.ndarray, sensor: RangeBearingSensor,
+                       shared: bool = True):
     """(whitened residuals of every meeting for the unknowns, how many placed robots' pose errors are unknowns).
 
     The unknowns are the frame (the world pose of the odometry's origin) and, per placed robot named by the
-    meetings, an error δ ``(3,)`` added to every pose of it the meetings hold, with its covariance as a prior
-    (one residual block per robot). A meeting with a named robot is weighed by the detection's noise alone, its
-    prediction moved by δ to first order; a meeting with an unnamed one carries that robot's covariance itself."""
-    names = sorted({e.meeting.other_id for e in entries if e.meeting.other_id is not None})
-    group = np.array([names.index(e.meeting.other_id) if e.meeting.other_id is not None else len(names)
+    meetings (``shared``), an error δ ``(3,)`` added to every pose of it the meetings hold, with its covariance
+    as a prior (one residual block per robot). A meeting with a named robot is weighed by the detection's noise
+    alone, its prediction moved by δ to first order; a meeting with an unnamed one (or without ``shared``)
+    carries that robot's covariance itself."""
+    names = sorted({e.meeting.other_id for e in entries if shared and e.meeting.other_id is not None})
+    group = np.array([names.index(e.meeting.other_id) if e.meeting.other_id in names else len(names)
                       for e in entries], np.int64)  # len(names): the row of zeros (no shared error)
     prior_whiten = []
     for name in names:
