@@ -7,7 +7,9 @@ Steps (FastSLAM, 100 particles, scans' ids ignored):
   every particle, new landmarks weigh at once (``confirm_hits=1``);
 - ``shared-exact``: ... and new landmarks stay tentative (no weight, not mapped) until seen 3 times;
 - ``shared-jcbb-fastslam1``: ... with joint compatibility (JCBB) instead, poses drawn from the motion model alone;
-- ``shared-jcbb``: ... and each scan folded into the proposal (FastSLAM 2.0): ``--association unknown``, the default;
+- ``shared-jcbb-no-robots``: ... and each scan folded into the proposal (FastSLAM 2.0), the robots' detections of
+  each other ignored (the default before they weighed the particles);
+- ``shared-jcbb``: ... and those detections weighing the particles: ``--association unknown``, the default;
 - ``shared-jcbb-ess-0.05``: ... resampling only when the effective sample size falls below 5 % (not 50 %);
 - ``shared-jcbb-unique``: ``shared-jcbb`` keeping only the pairings no other jointly compatible hypothesis with as
   many pairings does without (``unique_pairs``);
@@ -51,6 +53,7 @@ STEPS: dict[str, tuple[str, str, dict]] = {
                                                          "proposal": "fastslam1"}),
     "shared-exact": ("fastslam", "shared", {"shared_solver": "exact", "proposal": "fastslam1"}),
     "shared-jcbb-fastslam1": ("fastslam", "unknown", {"proposal": "fastslam1"}),
+    "shared-jcbb-no-robots": ("fastslam", "unknown", {"robot_detections": False}),
     "shared-jcbb": ("fastslam", "unknown", {}),
     "shared-jcbb-ess-0.05": ("fastslam", "unknown", {"resample_ess": 0.05}),
     "dslam-per-scan": ("dslam", "unknown", {"local_map_max_std": 0.0, "gate_pose_floor": (0.0, 0.0, 0.0),
