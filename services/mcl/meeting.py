@@ -55,14 +55,16 @@ class Meeting:
 
     def position_jacobians(self) -> tuple[np.ndarray, np.ndarray]:
         """``by_other``: d(position)/d(other's pose) ``(2, 3)`` and the detection's covariance there ``(2, 2)``."""
-        g_pose, g_z = self.other_sensor.inverse_jacobians(np.asarray(self.other_pose, float), np.asarray(self.z, float))
+        pose, z = np.asarray(self.other_pose, float), np.asarray(self.z, float)
+        g_pose, g_z = self.other_sensor.inverse_jacobians(pose, z)
         return g_pose, g_z @ self.noise_cov @ g_z.T
 
     def position(self) -> tuple[np.ndarray, np.ndarray]:
-        """``by_other``: where the detection puts this robot (mean ``(2,)``, covariance ``(2, 2)``)."""
-        pose, z = np.asarray(self.other_pose, float), np.asarray(self.z, float)
-        g_pose, g_z = self.other_sensor.inverse_jacobians(pose, z)
-        return self.other_sensor.inverse(pose, z), g_pose @ self.other_cov @ g_pose.T + g_z @ self.noise_cov @ g_z.T
+        """``by_other``: where the detection puts this robot (mean ``(2,)``, covariance ``(2, 2)``: the other's pose
+        and the detection's noise carried through)."""
+        g_pose, detection_cov = self.position_jacobians()
+        mean = self.other_sensor.inverse(np.asarray(self.other_pose, float), np.asarray(self.z, float))
+        return mean, g_pose @ self.other_cov @ g_pose.T + detection_cov
 
 
 def log_likelihood(poses: np.ndarray, meeting: Meeting, sensor: RangeBearingSensor) -> tuple[np.ndarray, np.ndarray]:
@@ -242,7 +244,7 @@ def _residual_function(entries: list[_Logged], odometry: np.ndarray, sensor: Ran
         g_pose, detection_cov = meeting.position_jacobians()
         means.append(mean)
         whiten.append(np.linalg.inv(np.linalg.cholesky(detection_cov if named[k] else cov)))
-        shift.append(g_pose)
+        shift.append(g_pose)  # how the placed robot's error δ moves the position
     means, whiten = np.array(means).reshape(-1, 2), np.array(whiten).reshape(-1, 2, 2)
     shift = np.array(shift).reshape(-1, 2, 3)
     others = np.array([entries[k].meeting.other_pose[:2] for k in saw], float).reshape(-1, 2)
