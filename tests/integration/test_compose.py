@@ -116,7 +116,8 @@ def test_compose_services_as_processes_in_their_own_namespaces_produce_estimates
     """The default file, secured: the router makes every password in the volume "secrets" (a folder here) and each
     service logs in with its own, so the same run shows that every service does its work under the router's access
     control, the world map's own publisher included (the evaluator scores the map against it); a client without
-    credentials is refused. The link faults of the same file are in test_link_faults.py."""
+    credentials is refused. The simulated robots detect each other, and central weighs those detections. The link
+    faults of the same file are in test_link_faults.py."""
     project = compose_config(compose_bin)
     fleet = ComposeFleet(netns_lab, project, tmp_path)
     names = list(project["services"])
@@ -147,6 +148,12 @@ def test_compose_services_as_processes_in_their_own_namespaces_produce_estimates
                    if r["kind"] == "stats" and r["key"] == f"{prefix}/eval/stats")
 
     wait_until(map_scored, 30, 0.5, "the evaluator's map RMSE against the world service's true map")
+
+    def robots_weighed() -> bool:  # the simulated robots are one fleet (FLEETSLAM_FLEET): they detect each other
+        return any(r["stats"].get("extra", {}).get("robot_detections_used", 0) > 0 for r in read_rows(observed)
+                   if r["kind"] == "stats" and r["key"] == f"{prefix}/central/stats")
+
+    wait_until(robots_weighed, 30, 0.5, "central weighing the robots' detections of each other")
     secrets = fleet.mounts["/secrets"]
     users = {fleet.service(n)["environment"]["FLEETSLAM_ZENOH_USER"] for n in names if n != "router"}
     assert {p.name for p in secrets.glob("*.password")} >= {f"{u}.password" for u in users}
