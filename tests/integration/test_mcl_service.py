@@ -31,6 +31,18 @@ def nearest_truth(truths: list[GroundTruth], stamp: float) -> np.ndarray:
     return best.pose
 
 
+def central_and_mcl(processes, zsession: zenoh.Session, prefix: str, rid: str, *mcl_args: str):
+    """Central and MCL (on central's map) started and ready, with collectors of central's estimates and of robot
+    ``rid``'s MclPose and truth, and of MCL's stats: (estimates, poses, truth, stats)."""
+    keys = Keys(prefix)
+    collectors = (Collector(zsession, keys.central_estimate), Collector(zsession, keys.mcl_pose(rid)),
+                  Collector(zsession, keys.truth(rid)), Collector(zsession, keys.stats("mcl")))
+    processes.start("central", "central", "--particles", "30")
+    processes.start("mcl", "mcl", "--source", "central", "--map-period-s", "0.5", *mcl_args)
+    wait_until(lambda: collectors[3].count() > 0, 60, what="the mcl service's stats")
+    return collectors
+
+
 def test_robot_with_unknown_start_pose_is_localized(processes, zsession, prefix):
     keys = Keys(prefix)
     poses = Collector(zsession, keys.mcl_pose("r4"))
@@ -88,14 +100,7 @@ def test_unknown_robot_is_localized_in_the_central_map_and_merged(processes, zse
 
     In the office world robot 7 starts where robot 1 does (its own random walk), so r1's first scans already map
     what r7 sees."""
-    keys = Keys(prefix)
-    estimates = Collector(zsession, keys.central_estimate)
-    poses = Collector(zsession, keys.mcl_pose("r7"))
-    truth = Collector(zsession, keys.truth("r7"))
-    stats = Collector(zsession, keys.stats("mcl"))
-    processes.start("central", "central", "--particles", "30")
-    processes.start("mcl", "mcl", "--source", "central", "--map-period-s", "0.5")
-    wait_until(lambda: stats.count() > 0, 60, what="the mcl service's stats")
+    estimates, poses, truth, stats = central_and_mcl(processes, zsession, prefix, "r7")
     processes.start("r1", "robot", "--id", "r1", "--world", "office", "--seed", "5", "--speedup", "3", "--duration", "30")
     processes.start("r7", "robot", "--id", "r7", "--world", "office", "--seed", "5", "--unknown-start", "--speedup", "3",
                     "--duration", "30", "--start-delay", "2")
@@ -141,14 +146,7 @@ def test_robots_that_detect_each_other_place_the_one_without_a_start_pose(proces
     placed from their start poses, detect r4 and r4 detects them, so MCL places r4 from those meetings, with the
     central estimate's poses of r1 and r2 carried to each detection's instant, and the central filter takes it in
     where it is."""
-    keys = Keys(prefix)
-    estimates = Collector(zsession, keys.central_estimate)
-    poses = Collector(zsession, keys.mcl_pose("r4"))
-    truth = Collector(zsession, keys.truth("r4"))
-    stats = Collector(zsession, keys.stats("mcl"))
-    processes.start("central", "central", "--particles", "30")
-    processes.start("mcl", "mcl", "--source", "central", "--map-period-s", "0.5", "--stats-period-s", "0.5")
-    wait_until(lambda: stats.count() > 0, 60, what="the mcl service's stats")
+    estimates, poses, truth, stats = central_and_mcl(processes, zsession, prefix, "r4", "--stats-period-s", "0.5")
     fleet = ("--world", "arena", "--seed", "0", "--speedup", "2", "--duration", "16", "--fleet", "r1,r2,r4")
     for rid in ("r1", "r2"):
         processes.start(rid, "robot", "--id", rid, *fleet)
