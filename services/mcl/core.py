@@ -391,9 +391,10 @@ class MonteCarloLocalizer:
             _, d2 = meetings.log_likelihood(self.particles, meeting, self.model.sensor)
             if d2.min() <= meetings.GATE:
                 best = self.best()
-                if best is not None and meetings.log_likelihood(best[0][None], meeting, self.model.sensor)[1][0] <= meetings.GATE:
-                    self._lost_run = 0  # the main hypothesis explains the meeting: the robot is not lost, whatever
-                    # a partial map makes of its scans
+                explained = best is not None and meetings.log_likelihood(
+                    best[0][None], meeting, self.model.sensor)[1][0] <= meetings.GATE
+                if explained:  # the robot is not lost, whatever a partial map makes of its scans
+                    self._lost_run = 0
                 return False
         self.restart_from(meeting)
         return True

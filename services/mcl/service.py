@@ -70,6 +70,9 @@ from services.runtime import ServiceShell
 log = logging.getLogger(__name__)
 
 MAP_MESSAGES = {"central": Estimate, "dslam": MapEstimate, "truth": WorldTruth}
+# meetings between two solves of a robot's pose: they come at the scan rate of every robot that sees it, and a solve
+# over a full log takes tens of milliseconds
+LIVE_SOLVE_EVERY = 5
 
 
 def load_map_file(path: str) -> np.ndarray:
@@ -157,7 +160,7 @@ class MclService(ServiceShell):
         self.fleet = MclFleet(settings.core(MclConfig), landmarks, landmark_ids=ids)
         self.pose_pubs: dict[str, StreamPublisher] = {}
         self.pose_seq: dict[str, int] = {}  # kept when a robot leaves: its MclPose stream goes on where it stopped
-        self.desk = MeetingDesk(solve_every=5)  # every robot's dead reckoning and, for the robots MCL localizes, their meetings
+        self.desk = MeetingDesk(LIVE_SOLVE_EVERY)  # every robot's dead reckoning and, for the robots MCL localizes, their meetings
         self.placed = PlacedPoses()  # where the robots MCL does not localize are, from the central estimate
         self.pool = QueryPool(self, settings.query_workers, settings.query_queue, settings.query_deadline_s,
                               settings.query_nice)
@@ -267,7 +270,7 @@ class MclService(ServiceShell):
         its publisher back. A checkpoint written before meetings restores without them."""
         self.fleet = state["fleet"]
         self.pose_seq = dict(state["pose_seq"])
-        self.desk = state.get("desk", MeetingDesk(solve_every=5))
+        self.desk = state.get("desk", MeetingDesk(LIVE_SOLVE_EVERY))
         self.placed = state.get("placed", PlacedPoses())
         self._refresh_extra()
 
