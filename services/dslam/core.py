@@ -11,9 +11,10 @@ Per scan of a robot:
    the mapped landmarks seen, combined by covariance intersection
    (:mod:`services.dslam.localization`). A robot whose start pose is unknown
    is placed once it sees two mapped landmarks (ids needed then).
-3. Mapping. Phase I (robot still at its known start pose; or, to start a map,
-   moved but not yet localized against it, with a small dead-reckoning error
-   and fewer than two mapped features in view): the raw observations give
+3. Mapping. Phase I (robot still at its known start pose, or the pose the
+   fleet placement gave it; or, to start a map, moved but not yet localized
+   against it, with a small dead-reckoning error and fewer than two mapped
+   features in view): the raw observations give
    absolute positions with the joint covariance of the pose and the noise.
    Phase II: the scan joins the robot's local map (:mod:`services.dslam.local_map`,
    several scans in the robot's own frame); once that holds at least two mapped
@@ -197,7 +198,10 @@ class DSlam:
     def place_robot(self, rid: str, pose, cov, stamp: float | None = None) -> bool:
         """Give a waiting robot ``pose`` ``(3,)`` with covariance ``cov`` ``(3, 3)`` at ``stamp`` (the hook of
         :class:`services.placement.FleetPlacer`). A robot placed while the map is empty starts it, as from a known
-        start pose (phase I); one placed against a map is localized on it. False (counted) if refused."""
+        start pose (phase I); so does one placed against a map with ``placement_bootstrap`` (the default: it maps
+        its raw observations while it is not localized and its dead reckoning is tight, as a robot from a start pose
+        does; otherwise it is taken as localized, its covariance widened by ``placement_floor``). False (counted)
+        if refused."""
         robot = self.robots.get(rid)
         pose, cov = np.asarray(pose, float), np.asarray(cov, float)
         if robot is None or robot.pose is not None:
@@ -207,7 +211,7 @@ class DSlam:
             self.counts["bad_placement"] += 1
             return False
         cov = 0.5 * (cov + cov.T) + np.diag([1e-9, 1e-9, 1e-12])
-        if self.map_is_empty():
+        if self.map_is_empty() or self.config.placement_bootstrap:
             robot.info = robot.info.model_copy(update={"start_pose": pose.copy(), "start_pose_cov": cov})
         else:
             cov = cov + np.diag(np.square(self.config.placement_floor))

@@ -193,3 +193,37 @@ def test_a_robot_placed_at_a_stamp_skips_its_older_events_and_the_first_placed_s
     np.testing.assert_allclose(estimator.poses()["r2"][0], truth)
     estimator.on_odometry(r2.odom(11))
     assert not np.allclose(estimator.poses()["r2"][0], truth) and estimator.counts["before_placement_pose"] == 1
+
+
+
+def test_a_robot_placed_against_the_map_maps_from_its_placed_pose_until_localized():
+    """``placement_bootstrap``: r2, placed while r1's map holds A and B, sees only C and D: it maps them from its
+    placed pose (phase I, as from a start pose), where they are; placed as localized instead (the former behaviour),
+    a scan without two mapped features maps nothing."""
+    data = simulate("arena", robots=2, seed=0, duration=1.0, unknown_start=[False, True])
+    r1 = data.robots["r1"].info.model_copy(update={"start_pose": np.zeros(3), "start_pose_cov": None})
+    r2 = data.robots["r2"].info
+    landmarks = {1: (2.0, 0.0), 2: (2.0, 1.0), 3: (10.0, 0.0), 4: (10.0, 1.0)}
+    placed = np.array([8.0, 0.5, 0.1])
+    noise = np.diag([1e-4, 1e-6])
+
+    def scan(rid: str, pose: np.ndarray, ids: list[int], seq: int) -> ScanEvent:
+        offset = np.array([landmarks[i] for i in ids]) - pose[:2]
+        bearings = np.arctan2(offset[:, 1], offset[:, 0]) - pose[2]
+        return ScanEvent(rid, seq, float(seq), np.hypot(*offset.T), bearings, np.array(ids), noise)
+
+    for bootstrap in (True, False):
+        estimator = DSlam(DslamConfig(association="known", placement_bootstrap=bootstrap))
+        estimator.add_robot(r1)
+        estimator.add_robot(r2)
+        estimator.on_scan(scan("r1", np.zeros(3), [1, 2], 0))
+        assert sorted(estimator.ids) == [1, 2]
+        assert estimator.place_robot("r2", placed, np.diag([1e-4, 1e-4, 1e-6]), stamp=1.0)
+        estimator.on_scan(scan("r2", placed, [3, 4], 1))
+        if bootstrap:
+            assert sorted(estimator.ids) == [1, 2, 3, 4] and not estimator.robots["r2"].localized
+            means = dict(zip(estimator.ids, estimator.landmark_map().means))
+            for i in (3, 4):
+                np.testing.assert_allclose(means[i], landmarks[i], atol=0.05)
+        else:
+            assert sorted(estimator.ids) == [1, 2] and estimator.robots["r2"].localized

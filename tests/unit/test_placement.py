@@ -59,13 +59,16 @@ def test_dslam_takes_robots_without_start_poses_through_the_same_placement(assoc
     assert max(fleet["ate_rmse_m"].values()) < 0.5, fleet
 
 
-def test_dslam_placement_refuses_bad_poses_and_placed_robots_and_widens_a_pose_placed_against_a_map():
+@pytest.mark.parametrize("bootstrap", [True, False])
+def test_dslam_placement_refuses_bad_poses_and_placed_robots_and_starts_a_pose_placed_against_a_map(bootstrap):
+    """A pose placed against a map starts the robot as from a start pose with that covariance
+    (``placement_bootstrap``, the default), or as localized with the covariance widened by ``placement_floor``."""
     from services.dslam.config import DslamConfig
     from services.dslam.core import DSlam
 
     infos = withhold_start_poses([log.info for log in simulate("arena", robots=2, seed=0, duration=1.0).robots.values()],
                                  "none")
-    slam = DSlam(DslamConfig(placement_floor=(0.3, 0.3, 0.1)))
+    slam = DSlam(DslamConfig(placement_floor=(0.3, 0.3, 0.1), placement_bootstrap=bootstrap))
     for info in infos:
         slam.add_robot(info)
     assert slam.is_waiting("r1") and slam.robot_count == 0
@@ -79,8 +82,9 @@ def test_dslam_placement_refuses_bad_poses_and_placed_robots_and_widens_a_pose_p
     slam.load_landmarks(np.array([7]), np.array([[1.0, 2.0]]), np.eye(2)[None] * 0.01)
     assert slam.place_robot("r2", np.ones(3), np.eye(3) * 0.01)
     robot = slam.robots["r2"]
-    assert robot.localized and not robot.known_start
-    np.testing.assert_allclose(np.diag(robot.cov), 0.01 + np.square([0.3, 0.3, 0.1]), rtol=1e-6)
+    assert robot.localized is not bootstrap and robot.known_start is bootstrap
+    widened = 0.0 if bootstrap else np.square([0.3, 0.3, 0.1])
+    np.testing.assert_allclose(np.diag(robot.cov), 0.01 + widened, rtol=1e-6)
 
 
 def test_a_robot_that_is_never_placed_is_reported_with_the_reason():
