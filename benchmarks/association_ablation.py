@@ -14,7 +14,9 @@ Steps (FastSLAM, 100 particles, scans' ids ignored):
 - ``shared-jcbb-unique``: ``shared-jcbb`` keeping only the pairings no other jointly compatible hypothesis with as
   many pairings does without (``unique_pairs``);
 - ``shared-jcbb-turn-slip``: ``shared-jcbb`` with the heading variance per radian turned the robots announce
-  (``turn_slip``: MR.CLAM's 0.015; the other data sets announce none).
+  (``turn_slip``: MR.CLAM's 0.015; the other data sets announce none);
+- ``shared-jcbb-turn-gain``: ``shared-jcbb`` with a turn gain per particle and robot (``turn_gain_std=0.04``,
+  ``turn_gain_walk=0.002``): particles carry hypotheses of how much each robot's odometry over-counts its turns.
 
 Steps (D-SLAM, ``--association unknown``: the association service's ``auto``; deterministic, so one run):
 
@@ -63,6 +65,7 @@ STEPS: dict[str, tuple[str, str, dict]] = {
     "dslam-turn-slip": ("dslam", "unknown", {}),
     "shared-jcbb-unique": ("fastslam", "unknown", {"unique_pairs": True}),
     "shared-jcbb-turn-slip": ("fastslam", "unknown", {"turn_slip": True}),
+    "shared-jcbb-turn-gain": ("fastslam", "unknown", {"turn_gain_std": 0.04, "turn_gain_walk": 0.002}),
     "dslam-unique": ("dslam", "unknown", {"unique_pairs": True}),
 }
 DETERMINISTIC = {"dslam"}  # estimators without random draws: one seed is every seed

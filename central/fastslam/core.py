@@ -41,7 +41,8 @@ from schemas.messages import RobotInfo
 class FastSlam:
     """The central filter: robots in and out, ``on_odometry``, ``on_scan``, ``poses``, ``landmark_map``.
 
-    State: ``pose`` ``(P, R, 3)`` (every particle's pose of every placed robot), ``logw`` ``(P,)``
+    State: ``pose`` ``(P, R, 3)`` (every particle's pose of every placed robot), ``turn_gain`` ``(P, R)`` (each
+    particle's turn gain of each robot: 1 unless ``turn_gain_std`` or ``turn_gain_walk`` is set), ``logw`` ``(P,)``
     (log-weights), ``map`` (:class:`AlignedMap` with known or shared association, else :class:`LandmarkMap`),
     ``robots`` (placed, by id) and ``waiting`` (known, no
     pose yet), ``known_slots`` (known association: landmark id → map slot), and the counters ``counts`` and
@@ -54,6 +55,7 @@ class FastSlam:
         self.rng = np.random.default_rng(config.seed)
         n = config.particles
         self.pose = np.zeros((n, 0, 3))
+        self.turn_gain = np.ones((n, 0))
         self.logw = np.zeros(n)
         self.map = AlignedMap(n) if config.association in ("known", "shared") else LandmarkMap(n)
         self.robots: dict[str, RobotState] = {}
@@ -190,6 +192,8 @@ class FastSlam:
         if "logw" in state:
             state["_logw"] = state.pop("logw")
         state["_weights"] = None
+        if "turn_gain" not in state:  # a checkpoint from before the turn gains: every particle's gain 1
+            state["turn_gain"] = np.ones(state["pose"].shape[:2])
         if not isinstance(state.get("known_slots"), SlotTable):
             state["known_slots"] = SlotTable(state.get("known_slots", {}))
         self.__dict__.update(state)

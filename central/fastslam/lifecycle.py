@@ -100,6 +100,7 @@ def remove(slam: FastSlam, robot_id: str) -> RobotInfo | None:
         return None
     keep = [i for i in range(slam.pose.shape[1]) if i != robot.index]
     slam.pose = slam.pose[:, keep]
+    slam.turn_gain = slam.turn_gain[:, keep]
     for other in slam.robots.values():
         other.index = keep.index(other.index)
     return robot.info
@@ -111,6 +112,10 @@ def take_in(slam: FastSlam, info: RobotInfo, pose: np.ndarray, cov: np.ndarray) 
     start = pose + slam.rng.standard_normal((n, 3)) @ sqrt_psd(cov).T
     start[:, 2] = wrap_angle(start[:, 2])
     slam.pose = np.concatenate([slam.pose, start[:, None, :]], 1)
+    gain = np.ones(n)
+    if slam.config.turn_gain_std > 0.0:
+        gain += slam.config.turn_gain_std * slam.rng.standard_normal(n)
+    slam.turn_gain = np.concatenate([slam.turn_gain, gain[:, None]], 1)
     model, sensor = robot_models(info)
     slam.robots[info.robot_id] = RobotState(index=slam.pose.shape[1] - 1, info=info, model=model, sensor=sensor)
 

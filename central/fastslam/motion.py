@@ -18,7 +18,7 @@ from central.fastslam import kernels
 from central.fastslam.config import FastSlamConfig
 from central.fastslam.lifecycle import RobotState
 from robots.gaussian import diagonal_variances, sqrt_psd, turn_slip, valid_cov2
-from robots.models import integrate_controls, se2_compose
+from robots.models import integrate_controls, se2_compose, wrap_angle
 from schemas.contract import OdomEvent
 
 if TYPE_CHECKING:
@@ -94,10 +94,28 @@ def clear(robot: RobotState) -> None:
     robot.controls, robot.dts, robot.covs, robot.pending_s, robot.pending_memo = [], [], [], 0.0, None
 
 
+def take_pending(slam: FastSlam, robot: RobotState) -> tuple[np.ndarray, np.ndarray] | None:
+    """The buffered motion (:func:`pending_motion`), cleared from the buffer for the caller to apply.
+
+    With turn gains on, each particle first turns by (gain − 1)·Δθ̄ (its own hypothesis of the robot's turn gain;
+    composing Δ̄ after that turn rotates Δ̄'s few centimetres with it, well inside its noise), and the gains walk
+    by ``turn_gain_walk``·√(time buffered)."""
+    motion = pending_motion(robot, slam.config)
+    span = robot.pending_s
+    clear(robot)
+    config = slam.config
+    if motion is not None and (config.turn_gain_std > 0.0 or config.turn_gain_walk > 0.0):
+        col = robot.index
+        slam.pose[:, col, 2] = wrap_angle(slam.pose[:, col, 2] + (slam.turn_gain[:, col] - 1.0) * motion[0][2])
+        if config.turn_gain_walk > 0.0:
+            step = config.turn_gain_walk * math.sqrt(span) * slam.rng.standard_normal(slam.pose.shape[0])
+            slam.turn_gain[:, col] = np.clip(slam.turn_gain[:, col] + step, 0.5, 1.5)
+    return motion
+
+
 def flush(slam: FastSlam, robot: RobotState) -> None:
     """Apply the buffered controls: one draw per particle from N(Δ̄, Σ_Δ), composed onto its pose."""
-    motion = pending_motion(robot, slam.config)
-    clear(robot)
+    motion = take_pending(slam, robot)
     if motion is None:
         return
     delta, cov = motion

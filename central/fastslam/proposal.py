@@ -37,8 +37,7 @@ def propose(slam: FastSlam, robot: RobotState, z, r, ids) -> tuple[bool, np.ndar
     kernel (:func:`central.fastslam.kernels.propose`); the numpy code below, with
     :func:`central.fastslam.association.update_known` after it, is its reference.
     """
-    pending = motion.pending_motion(robot, slam.config)
-    motion.clear(robot)
+    pending = motion.take_pending(slam, robot)
     col = robot.index
     n = slam.pose.shape[0]
     if slam.config.compiled and slam.config.association in ("known", "shared"):

@@ -48,6 +48,7 @@ def effective_particles(slam: FastSlam) -> float:
 def select(slam: FastSlam, index: np.ndarray, scan: ScanState | None = None) -> None:
     """Keep particles ``index`` (with repetition), and the scan's bookkeeping with them."""
     slam.pose = slam.pose[index]
+    slam.turn_gain = slam.turn_gain[index]
     slam.logw = slam.logw[index]
     slam.map.select(index)
     if scan is not None:

@@ -102,9 +102,11 @@ def test_fastslam_carries_on_bitwise_after_a_checkpoint(two_robots, association,
 
 def test_a_fastslam_checkpoint_from_before_the_weight_cache_carries_on_bitwise(two_robots):
     """A checkpoint pickled before the filter cached its weights and its known-landmark arrays (``logw`` in the
-    state, ``known_slots`` a plain dict) is restored as one of today's and carries on exactly."""
+    state, ``known_slots`` a plain dict) and before the turn gains (none in the state: every gain 1, as with
+    them off) is restored as one of today's and carries on exactly."""
     dataset, events = two_robots
-    make = lambda: FastSlam(FastSlamConfig(particles=30, association="shared", seed=5))  # noqa: E731
+    make = lambda: FastSlam(FastSlamConfig(particles=30, association="shared", seed=5,  # noqa: E731
+                                           turn_gain_std=0.0, turn_gain_walk=0.0))
     straight, interrupted = make(), make()
     for core in (straight, interrupted):
         [core.add_robot(r.info) for r in dataset.robots.values()]
@@ -115,6 +117,7 @@ def test_a_fastslam_checkpoint_from_before_the_weight_cache_carries_on_bitwise(t
     old["logw"] = old.pop("_logw")
     old.pop("_weights")
     old["known_slots"] = dict(old["known_slots"])
+    old.pop("turn_gain")
     restored = FastSlam.__new__(FastSlam)
     restored.__setstate__(pickle.loads(pickle.dumps(old)))
     assert restored.known_slots.arrays()[0].size > 3
