@@ -20,9 +20,9 @@ Robots without a start pose (as ``fleetslam central`` does): when no robot has b
 after the first of them was announced, it anchors the world frame at the origin (``anchor_first``; its map starts
 as from a known start pose, phase I). The others are placed by ``{prefix}/mcl/{rid}/pose`` (MclPose) once it
 says ``localized`` (the MCL service localizes against this map by default), each starting as from a known start
-pose with that covariance (``placement_bootstrap``; off: widened by ``placement_floor``); without landmark ids their events wait in the roster until then, and those older than the
-MCL pose are dropped (counted). With landmark ids a robot also places itself, from a scan that sees two mapped
-landmarks, whichever comes first.
+pose with that covariance (``placement_bootstrap``; off: widened by ``placement_floor``); without landmark ids
+their events wait in the roster until then, and those older than the MCL pose are dropped (counted). With
+landmark ids a robot also places itself, from a scan that sees two mapped landmarks, whichever comes first.
 
 With ``map`` (``--map FILE``, :mod:`schemas.mapfile`) the map starts from a saved one, its landmarks entered
 as prior information (:meth:`DSlam.load_landmarks`) and published from the first tick; no robot anchors a frame,
