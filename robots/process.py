@@ -1,6 +1,7 @@
 """``fleetslam robot``: one robot process, simulated or replaying a data set.
 
-It declares the liveliness token ``{prefix}/robots/{rid}/alive``, publishes
+It declares its queryables, then the liveliness token ``{prefix}/robots/{rid}/alive`` (so a process that sees
+the token can query it at once), publishes
 its RobotInfo (again every second, and to late joiners through a queryable),
 the world's true map once on ``{prefix}/world/truth`` (and to late joiners;
 not with ``--no-publish-world``, where ``fleetslam world`` publishes it under
@@ -92,7 +93,6 @@ def run(settings: RobotSettings, shutdown: Shutdown) -> dict[str, int]:
                                           landmark_ids=dataset.landmark_ids))
     counts = {"odom": 0, "scan": 0, "truth": 0}
     with session_scope(settings) as session:
-        tokens = declare_robot_tokens(session, keys, rid)
         rates = {**robot.stream_rates(), "info": 1.0 / settings.info_period_s}
         caches = {name: cache_samples(settings, rates[name] * settings.speedup) for name in rates}
         pubs = {name: StreamPublisher(session, keys.robot(rid, name), cache=caches[name],
@@ -105,6 +105,7 @@ def run(settings: RobotSettings, shutdown: Shutdown) -> dict[str, int]:
         if world_payload is not None:
             answer_world = answer_with(session, keys.world_truth, world_payload)
             world_pub = StreamPublisher(session, keys.world_truth)
+        tokens = declare_robot_tokens(session, keys, rid)  # last: alive means its queryables already answer
         try:
             shutdown.wait(settings.start_delay)
             pubs["info"].put(info_payload)
