@@ -53,17 +53,17 @@ class Meeting:
     other_sensor: RangeBearingSensor = RangeBearingSensor()
     other_id: str | None = None
 
-    def position_jacobians(self) -> tuple[np.ndarray, np.ndarray]:
-        """``by_other``: d(position)/d(other's pose) ``(2, 3)`` and the detection's covariance there ``(2, 2)``."""
+    def position_terms(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``by_other``: where the detection puts this robot (mean ``(2,)``), d(position)/d(other's pose) ``(2, 3)``
+        and the detection's own covariance there ``(2, 2)``."""
         pose, z = np.asarray(self.other_pose, float), np.asarray(self.z, float)
         g_pose, g_z = self.other_sensor.inverse_jacobians(pose, z)
-        return g_pose, g_z @ self.noise_cov @ g_z.T
+        return self.other_sensor.inverse(pose, z), g_pose, g_z @ self.noise_cov @ g_z.T
 
     def position(self) -> tuple[np.ndarray, np.ndarray]:
         """``by_other``: where the detection puts this robot (mean ``(2,)``, covariance ``(2, 2)``: the other's pose
         and the detection's noise carried through)."""
-        g_pose, detection_cov = self.position_jacobians()
-        mean = self.other_sensor.inverse(np.asarray(self.other_pose, float), np.asarray(self.z, float))
+        mean, g_pose, detection_cov = self.position_terms()
         return mean, g_pose @ self.other_cov @ g_pose.T + detection_cov
 
 
@@ -240,10 +240,10 @@ def _residual_function(entries: list[_Logged], odometry: np.ndarray, sensor: Ran
     means, whiten, shift = [], [], []
     for k in seen:
         meeting = entries[k].meeting
-        mean, cov = meeting.position()
-        g_pose, detection_cov = meeting.position_jacobians()
+        mean, g_pose, detection_cov = meeting.position_terms()  # one inverse and its Jacobians per meeting
+        cov = detection_cov if named[k] else g_pose @ meeting.other_cov @ g_pose.T + detection_cov
         means.append(mean)
-        whiten.append(np.linalg.inv(np.linalg.cholesky(detection_cov if named[k] else cov)))
+        whiten.append(np.linalg.inv(np.linalg.cholesky(cov)))
         shift.append(g_pose)  # how the placed robot's error δ moves the position
     means, whiten = np.array(means).reshape(-1, 2), np.array(whiten).reshape(-1, 2, 2)
     shift = np.array(shift).reshape(-1, 2, 3)
