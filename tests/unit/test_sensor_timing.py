@@ -1,5 +1,7 @@
 """The timing analysis of ``benchmarks/sensor_timing.py``: it finds a delay put into a simulated robot's stamps."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -24,15 +26,14 @@ def test_best_shift_refines_the_grid_minimum_by_a_parabola():
 @pytest.mark.parametrize("delay", [0.0, 0.1, -0.15])
 def test_detections_stamped_late_are_found_early_against_odometry(log, delay):
     _, robot = log
-    late = robot.__class__(**{**robot.__dict__, "scan_stamp": robot.scan_stamp + delay})
+    late = replace(robot, scan_stamp=robot.scan_stamp + delay)
     assert best_shift(SHIFTS, detection_scatter(late, SHIFTS, window=2.0, gate=1.0)) == pytest.approx(-delay, abs=0.03)
 
 
 @pytest.mark.parametrize("delay", [0.0, 0.2])
 def test_delays_against_the_truth(log, delay):
     dataset, robot = log
-    late = robot.__class__(**{**robot.__dict__, "scan_stamp": robot.scan_stamp + delay,
-                              "odom_stamp": robot.odom_stamp + delay})
+    late = replace(robot, scan_stamp=robot.scan_stamp + delay, odom_stamp=robot.odom_stamp + delay)
     error = detection_truth_error(late, dataset.landmarks, np.asarray(dataset.landmark_ids), SHIFTS)
     assert best_shift(SHIFTS, error) == pytest.approx(-delay, abs=0.03)
     assert best_shift(SHIFTS, odometry_truth_lag(late, SHIFTS)) == pytest.approx(-delay, abs=0.03)
