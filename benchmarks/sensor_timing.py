@@ -1,5 +1,6 @@
-"""Timing offsets in the real data sets, measured without any filter: how far in time each robot's detections
-sit from its odometry, and (where there is truth) both from the truth.
+"""Timing offsets between detections, odometry and truth in the real data sets, measured without any filter.
+
+How far in time each robot's detections sit from its odometry, and (where there is truth) both from the truth:
 
 - **detections against odometry** (every data set; no truth, no ids): each detection is placed in the world
   from the dead-reckoned pose at its stamp + δ. Landmarks stand still, so the detections of scans a few seconds
