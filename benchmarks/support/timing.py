@@ -26,6 +26,7 @@ def dead_reckoning(log: RobotLog) -> tuple[np.ndarray, np.ndarray]:
     model, _ = robot_models(log.info)
     controls, _ = model.to_unicycle(log.odom_control)
     poses = se2_accumulate(unicycle_step(np.zeros(3), controls, log.odom_dt))
+    poses[:, 2] = np.unwrap(poses[:, 2])  # interpolated: a wrap from π to −π would sweep through 0
     return np.append(log.odom_stamp[0] - log.odom_dt[0], log.odom_stamp), poses
 
 

@@ -5,7 +5,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from benchmarks.support.timing import best_shift, detection_scatter, detection_truth_error, odometry_truth_lag
+from benchmarks.support.timing import (best_shift, dead_reckoning, detection_scatter, detection_truth_error,
+                                      odometry_truth_lag)
 from robots.loaders import load_dataset
 
 SHIFTS = np.round(np.arange(-0.3, 0.3001, 0.025), 4)
@@ -21,6 +22,14 @@ def test_best_shift_refines_the_grid_minimum_by_a_parabola():
     shifts = np.arange(-0.2, 0.21, 0.05)
     assert best_shift(shifts, (shifts - 0.07) ** 2) == pytest.approx(0.07)
     assert best_shift(shifts, shifts) == pytest.approx(-0.2)  # at the edge: the grid point
+
+
+def test_dead_reckoning_keeps_the_heading_continuous_for_interpolation(log):
+    _, robot = log
+    stamps, poses = dead_reckoning(robot)
+    assert np.ptp(poses[:, 2]) > 2 * np.pi  # the robot turns more than once around: a wrapped heading would jump
+    assert np.abs(np.diff(poses[:, 2])).max() < 0.5
+    assert stamps.shape == (poses.shape[0],)
 
 
 @pytest.mark.parametrize("delay", [0.0, 0.1, -0.15])
