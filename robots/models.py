@@ -201,6 +201,13 @@ def robot_models(info) -> tuple[MotionModel, "RangeBearingSensor"]:
     return model, sensor
 
 
+def dead_reckon(model: MotionModel, controls: np.ndarray, dts: np.ndarray) -> np.ndarray:
+    """Poses ``(K+1, 3)`` from the origin after each of the controls ``(K, 2)`` applied for ``dts`` ``(K,)``, without
+    noise (exact arcs; headings wrapped)."""
+    unicycle, _ = model.to_unicycle(controls)
+    return se2_accumulate(unicycle_step(np.zeros(3), unicycle, dts))
+
+
 def integrate_controls(model: MotionModel, controls: np.ndarray, dts: np.ndarray, covs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(Δ̄ ``(3,)``, Σ_Δ ``(3, 3)``) of controls ``(K, 2)`` applied for ``dts`` ``(K,)`` with covariances ``(K, 2, 2)``.
 

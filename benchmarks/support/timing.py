@@ -7,7 +7,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from robots.dataset import RobotLog
-from robots.models import robot_models, se2_accumulate, unicycle_step
+from robots.models import dead_reckon, robot_models
 
 
 def best_shift(shifts: np.ndarray, scores: np.ndarray) -> float:
@@ -24,16 +24,18 @@ def best_shift(shifts: np.ndarray, scores: np.ndarray) -> float:
 def dead_reckoning(log: RobotLog) -> tuple[np.ndarray, np.ndarray]:
     """(stamps, poses with unwrapped heading) of the odometry integrated from the origin."""
     model, _ = robot_models(log.info)
-    controls, _ = model.to_unicycle(log.odom_control)
-    poses = se2_accumulate(unicycle_step(np.zeros(3), controls, log.odom_dt))
+    poses = dead_reckon(model, log.odom_control, log.odom_dt)
     poses[:, 2] = np.unwrap(poses[:, 2])  # interpolated: a wrap from π to −π would sweep through 0
     return np.append(log.odom_stamp[0] - log.odom_dt[0], log.odom_stamp), poses
 
 
-def detections_at(log: RobotLog, stamps: np.ndarray, poses: np.ndarray, shift: float) -> np.ndarray:
-    """World positions (D, 2) of every detection from the poses (x, y, unwrapped θ) interpolated at stamp + shift."""
-    scan_of = np.repeat(np.arange(log.scan_stamp.size), np.diff(log.scan_offsets))
-    t = log.scan_stamp[scan_of] + shift
+def scan_of_detection(log: RobotLog) -> np.ndarray:
+    """The scan index (D,) of every detection."""
+    return np.repeat(np.arange(log.scan_stamp.size), np.diff(log.scan_offsets))
+
+
+def detections_at(log: RobotLog, stamps: np.ndarray, poses: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """World positions (D, 2) of every detection from the poses (x, y, unwrapped θ) interpolated at its time ``t``."""
     x, y, heading = (np.interp(t, stamps, poses[:, j]) for j in range(3))
     ox, oy = np.asarray(log.info.sensor.offset, float)
     sx = x + np.cos(heading) * ox - np.sin(heading) * oy
@@ -45,10 +47,11 @@ def detections_at(log: RobotLog, stamps: np.ndarray, poses: np.ndarray, shift: f
 def detection_scatter(log: RobotLog, shifts: np.ndarray, window: float, gate: float) -> np.ndarray:
     """Per δ, the mean distance of detection pairs from different scans within ``window`` s and ``gate`` m."""
     stamps, poses = dead_reckoning(log)
-    scan_of = np.repeat(np.arange(log.scan_stamp.size), np.diff(log.scan_offsets))
+    scan_of = scan_of_detection(log)
+    stamped = log.scan_stamp[scan_of]
     scores = []
     for shift in shifts:
-        points = detections_at(log, stamps, poses, shift)
+        points = detections_at(log, stamps, poses, stamped + shift)
         pairs = cKDTree(points).query_pairs(gate, output_type="ndarray")
         a, b = scan_of[pairs[:, 0]], scan_of[pairs[:, 1]]
         keep = (a != b) & (np.abs(log.scan_stamp[a] - log.scan_stamp[b]) <= window)
@@ -64,7 +67,8 @@ def detection_truth_error(log: RobotLog, landmarks: np.ndarray, ids: np.ndarray,
     where = landmarks[[slot.get(int(i), 0) for i in log.det_id.tolist()]]
     poses = log.truth_pose.copy()
     poses[:, 2] = np.unwrap(poses[:, 2])
-    return np.array([float(np.median(np.linalg.norm(detections_at(log, log.truth_stamp, poses, s) - where,
+    stamped = log.scan_stamp[scan_of_detection(log)]
+    return np.array([float(np.median(np.linalg.norm(detections_at(log, log.truth_stamp, poses, stamped + s) - where,
                                                     axis=1)[known])) for s in shifts])
 
 

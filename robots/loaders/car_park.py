@@ -29,7 +29,7 @@ import numpy as np
 from robots.dataset import Dataset, RobotLog
 from robots.loaders.common import find_file, median_rate, odometry_intervals, read_table, without_gps_spikes
 from robots.loaders.victoria_park import ackermann_info
-from robots.models import AckermannModel, fit_se2, se2_accumulate, transform_points, unicycle_step, wrap_angle
+from robots.models import AckermannModel, dead_reckon, fit_se2, transform_points, wrap_angle
 from schemas.messages import SensorSpec
 
 
@@ -82,8 +82,7 @@ def fit_start_pose(stamps: np.ndarray, dt: np.ndarray, controls: np.ndarray, mod
     SE(2) fit of that track onto the fixes (:func:`robots.models.fit_se2`) is the
     start pose itself.
     """
-    unicycle, _ = model.to_unicycle(controls)
-    path = se2_accumulate(unicycle_step(np.zeros(3), unicycle, dt))
+    path = dead_reckon(model, controls, dt)
     path_stamps = np.append(stamps[0] - dt[0], stamps)
     track = transform_points(path, antenna)
     inside = (fix_stamps >= path_stamps[0]) & (fix_stamps <= path_stamps[-1])
