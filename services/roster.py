@@ -422,8 +422,17 @@ class ReorderBuffer:
     - a robot with messages received and not yet handled (``queued`` in :meth:`release`), up to
       ``recovery_window_s``: a service working off a backlog has not heard what waits in its intake.
 
+    Silence is counted only while the service listens: the service calls :meth:`listening` every few tens of
+    milliseconds, and a longer gap between two calls (its process descheduled on a loaded machine, its loop held)
+    is a stall of the service itself, during which no stream could be heard; every stream's silence, the join
+    waits and the recovery window are moved on by the stall. Without this a stall longer than ``window_s`` would let
+    the first robot heard after it run ahead of the others, whose messages were waiting in the network buffers.
+
     :meth:`release` with ``flush`` releases everything.
     """
+
+    stall_s = 0.2  # a gap between two :meth:`listening` calls longer than this is a stall of the service
+    _listened: float | None = None  # the clock at the last :meth:`listening` call (None: not listening yet)
 
     def __init__(self, window_s: float, clock: Callable[[], float] = time.perf_counter,
                  recovery_window_s: float = 5.0, join_wait_s: float = 1.0):
@@ -452,6 +461,19 @@ class ReorderBuffer:
         self._order += 1
         heapq.heappush(self._heap, _Held(event.stamp, 0 if is_odom else 1, event.robot_id, self._order, arrived, event))
 
+    def listening(self) -> float:
+        """The service's loop is running now; returns the stall (s) since the previous call, 0 if none: a gap longer
+        than ``stall_s`` is not counted as any stream's silence."""
+        now = self.clock()
+        gap = 0.0 if self._listened is None else now - self._listened
+        self._listened = now
+        if gap <= self.stall_s:
+            return 0.0
+        self.heard = {stream: at + gap for stream, at in self.heard.items()}
+        self.expected = {stream: at + gap for stream, at in self.expected.items()}
+        self.resuming_until += gap
+        return gap
+
     def announce(self, robot_id: str) -> None:
         """A robot declared its session token: until it sends (at most ``join_wait_s``), the other robots' later
         events wait for its streams."""
@@ -466,6 +488,7 @@ class ReorderBuffer:
         now = self.clock()
         for held in self._heap:
             held.arrived = now
+        self._listened = None
         self.link_changed()
         self.expected = {stream: now for stream in self.expected}
 

@@ -61,6 +61,7 @@ from services.roster import ReorderBuffer, Roster, StreamEvent, Takeover
 ROBOT_TAGS = frozenset({"alive", "gone", "info", "odom", "scan", "refilled", "router_link"})
 FIRST_RUN_S = 0.1  # the first stats and tick this soon after setup (s), then every period
 ROUTER_LINK_GRACE_S = 2.0  # tokens that go this soon after the router link changed went with the link (s)
+LISTENING_TICK_S = 0.05  # the loop tells the reorder buffer it runs this often: a longer gap is a stall (s)
 TRIM_AFTER_BYTES = 8 << 20  # a backlog that held this much: once worked off, its freed heap goes back to the system
 
 log = logging.getLogger(__name__)
@@ -173,7 +174,6 @@ class ServiceShell:
         self.reorder = state["reorder"]
         self.reorder.window_s = self.settings.reorder_window_s
         self.reorder.join_wait_s = self.settings.join_wait_s
-        self.reorder.restart_clock()
         self.messages_in.update(state["messages_in"])
         self.rejected.update(state["rejected"])
         self.published = state["published"]
@@ -211,7 +211,8 @@ class ServiceShell:
                 self.enqueue("router_link", "open" if event.kind == zenoh.SampleKind.PUT else "closed", b"")
 
         self._declared.append(self.session.info.declare_transport_events_listener(on_transport))
-        if self.roster.resumed:
+        if self.roster.resumed:  # the recovery window counts from now, when the caches can start sending
+            self.reorder.restart_clock()
             self.refill_from_robots()
 
     def _router_link_lost(self) -> bool:
@@ -264,6 +265,14 @@ class ServiceShell:
             for event, arrived in self.reorder.release(live, flush, announced=alive, queued=queued):
                 self.hold_ms.append((time.perf_counter() - arrived) * 1e3)
                 await self.robot_event(event)
+
+    async def _listening(self) -> None:
+        """Tell the reorder buffer the loop runs; a stall of this service (``stalls``, the longest in
+        ``stall_ms_max``) is not counted as silence of the robots' streams."""
+        stall = self.reorder.listening()
+        if stall:
+            self.count_extra("stalls")
+            self.extra["stall_ms_max"] = max(self.extra.get("stall_ms_max", 0.0), stall * 1e3)
 
     async def robot_announced(self, info: RobotInfo) -> None:
         """A robot announced itself (first RobotInfo of its run): take it in (:meth:`admit`) now or later."""
@@ -658,6 +667,7 @@ class ServiceShell:
             if self.roster is not None:  # events whose wait ran out while no message came
                 tasks.append(asyncio.create_task(self._every(max(self.settings.reorder_window_s, 0.02),
                                                              self.release_events)))
+                tasks.append(asyncio.create_task(self._every(LISTENING_TICK_S, self._listening)))
             if duration is not None:
                 self._loop.call_later(duration, self._stop.set)
             await self._stop.wait()

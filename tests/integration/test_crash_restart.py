@@ -139,11 +139,18 @@ def test_killed_services_and_router_resume_and_lose_nothing(router, processes, z
     def final_stats(copy: str, name: str) -> ServiceStats:
         return stats[(copy, name)].decoded(ServiceStats)[-1]
 
+    def central_logs(copy: str) -> str:
+        return processes.log(f"central-{copy}") + processes.log(f"central-{copy}-restarted")
+
     expected = sum(sum(sent[("A", rid)]) for rid in ROBOTS)
     for copy in prefixes:
-        wait_until(lambda: final_stats(copy, "central").extra.get("processed", 0) >= expected
-                   and final_stats(copy, "central").extra.get("buffered", 1) == 0, 60,
-                   what=f"central {copy} to process all {expected} messages")
+        try:
+            wait_until(lambda: final_stats(copy, "central").extra.get("processed", 0) >= expected
+                       and final_stats(copy, "central").extra.get("buffered", 1) == 0, 60,
+                       what=f"central {copy} to process all {expected} messages")
+        except AssertionError as exc:  # say where the messages went: its counters and the end of its log
+            raise AssertionError(f"{exc}; its last stats: {final_stats(copy, 'central').extra}; its log ends: "
+                                 f"{central_logs(copy)[-3000:]}") from None
 
     def last_by_robot(collector: Collector, model) -> dict:
         return {message.robot_id: message for message in collector.decoded(model)}

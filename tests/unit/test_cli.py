@@ -88,7 +88,7 @@ def test_help_lists_the_choices_of_every_choice_flag(command):
                for f in settings_cls.model_fields.values())
 
 
-def test_demo_problems_flag_lagging_services_lost_messages_and_unlocalized_robots():
+def test_demo_problems_flag_lagging_services_backlogs_lost_messages_and_unlocalized_robots():
     from services.launcher import problems
 
     def stats(median, p99, queue, odom, scan):
@@ -100,8 +100,8 @@ def test_demo_problems_flag_lagging_services_lost_messages_and_unlocalized_robot
         "monitor": {
             "robots": {"r1": {"odom": 100, "scan": 100, "truth": 100, "missing": 0},
                        "r2": {"odom": 100, "scan": 100, "truth": 100, "missing": 3}},
-            "services": {"central:a": stats(2.0, 20.0, 0, 200, 200), "dslam:b": stats(12000.0, 20000.0, 5, 150, 100),
-                         "mcl:c": stats(3.0, 40.0, 0, 195, 195), "assoc:d": stats(1.0, 2.0, 0, 0, 0)},
+            "services": {"central:a": stats(2.0, 20.0, 0, 200, 200), "dslam:b": stats(12000.0, 20000.0, 81, 150, 100),
+                         "mcl:c": stats(3.0, 40.0, 80, 195, 195), "assoc:d": stats(1.0, 2.0, 0, 0, 0)},
         },
         "metrics": {"mcl_never_localized": ["r6"]},
     }
@@ -109,13 +109,17 @@ def test_demo_problems_flag_lagging_services_lost_messages_and_unlocalized_robot
     assert found == [
         "robot r2: 3 messages lost on the way (seq gaps seen by the monitor)",
         "dslam lagged: latency median 12000 ms, p99 20000 ms",
-        "dslam had 5 messages queued at its last stats",
+        "dslam had 81 messages queued at its last stats",  # more than two seconds of the fleet's 40 messages/s
         "dslam never processed about 150 of the 400 robot messages",
         "MCL never localized robot r6: no error figure for it",
     ]
     healthy = {**summary, "metrics": {}, "monitor": {**summary["monitor"], "services": {"central:a": stats(2.0, 20.0, 0, 200, 200)},
                                                       "robots": {"r1": summary["monitor"]["robots"]["r1"]}}}
     assert problems(healthy) == []
+    mid_burst = {**healthy, "monitor": {**healthy["monitor"], "services": {"mcl:c": stats(3.0, 40.0, 40, 200, 200)}}}
+    assert problems(mid_burst) == []  # 40 queued at 20 messages/s: two seconds' worth, not a backlog
+    mid_burst["monitor"]["services"]["mcl:c"]["queue_depth"] = 41
+    assert problems(mid_burst) == ["mcl had 41 messages queued at its last stats"]
 
 
 def test_the_router_gives_a_user_to_every_default_robot_and_service_and_refuses_bad_ones(capsys, tmp_path):

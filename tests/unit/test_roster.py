@@ -2,6 +2,7 @@
 late join, refusals; and the cross-robot reorder buffer."""
 
 import numpy as np
+import pytest
 
 from schemas.contract import OdomEvent, ScanEvent, event_nbytes, stream_event
 from schemas.messages import Odometry, RobotInfo, Scan, SensorSpec
@@ -234,6 +235,31 @@ def test_after_the_router_link_changes_every_stream_is_waited_for_until_it_is_re
     assert buffer.release(live=["r1"]) == []
     clock.now = 6.5  # r2 silent for the recovery window since the link changed
     assert [e.stamp for e, _ in buffer.release(live=["r1"])] == [1.2, 1.3]
+
+
+def test_a_stall_of_the_service_itself_is_not_silence_of_the_streams():
+    """The service's process was descheduled for 0.6 s (longer than the window): r2's next message still waits in
+    the network buffers when r1's is pushed. r1's event waits for r2 as if the stall had not happened; a stream
+    silent while the service listens is still given up after the window."""
+    clock = Clock()
+    buffer = ReorderBuffer(window_s=0.5, clock=clock)
+    buffer.listening()
+    for rid in ("r1", "r2"):
+        buffer.push(event(rid, 1.0))
+    assert len(buffer.release(live=["r1", "r2"])) == 2
+    clock.now = 0.05
+    assert buffer.listening() == 0.0  # a tick on time
+    clock.now = 0.65
+    assert buffer.listening() == pytest.approx(0.6)  # the stall
+    buffer.push(event("r1", 1.1))
+    assert buffer.release(live=["r1", "r2"]) == []  # r2 heard 0.05 s of listening ago
+    buffer.push(event("r2", 1.1))
+    assert [e.robot_id for e, _ in buffer.release(live=["r1", "r2"])] == ["r1", "r2"]
+    buffer.push(event("r1", 1.2))
+    for tick in range(1, 12):  # 0.55 s of listening: r2 silent longer than the window
+        clock.now = 0.65 + 0.05 * tick
+        assert buffer.listening() == 0.0
+    assert [e.stamp for e, _ in buffer.release(live=["r1", "r2"])] == [1.2]
 
 
 def test_a_robot_with_messages_still_queued_is_not_silent():
