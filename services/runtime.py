@@ -336,7 +336,17 @@ class ServiceShell:
             self.reject("bad_key", key)
             return
         rid = parsed[0]
-        if tag == "refilled":
+        if tag == "refilled":  # the robot's kept messages first, then the gaps still left are counted as lost
+            replies, dropped = payload
+            if dropped:
+                self.reject("history_overflow", f"{rid}: {dropped} kept message(s) past {self.intake.lane_bytes} bytes",
+                            dropped)
+            for stream, reply_key, reply, replier in replies:
+                self.messages_in[stream] += 1
+                try:
+                    await self._robot_item(stream, reply_key, reply, replier)
+                except DecodeError as error:
+                    self.reject_decode(error)
             for arrival, stream in roster.refilled(rid):
                 await self._take(rid, stream, arrival)
             return
@@ -403,22 +413,37 @@ class ServiceShell:
     def refill_from_robots(self) -> None:
         """Restored from a checkpoint: ask every robot the roster knows for the odometry and scans it kept, so that
         what came after the checkpoint arrives whole even when the caches' history misses some of it at
-        subscription; messages past a gap wait (:meth:`Roster.refill`) until the answer is in."""
-        def on_payload(reply_key: str, payload: bytes, replier: str | None) -> None:
-            parsed = self.keys.parse_robot_key(reply_key)
-            if parsed is not None and parsed[1] in ("odom", "scan"):
-                self.enqueue(parsed[1], reply_key, payload, replier)
+        subscription; messages past a gap wait (:meth:`Roster.refill`) until the answer is in.
 
+        The replies are gathered and queued as one ``refilled`` item when the query is over, handled before the gaps
+        left are counted: queued one by one, in the lane of the robot's session, they could still wait behind its
+        live messages when the end of the query, in another lane, was taken, and a gap the robot had filled was
+        counted as lost. What is gathered is bounded by a lane's bytes (past them counted ``history_overflow``)."""
         timeout_s = self.reorder.recovery_window_s
         for rid in sorted(self.roster.members):
             self.roster.refill(rid)
             key = self.keys.history(rid)
+            replies: list[tuple[str, str, bytes, str | None]] = []
+            budget = {"bytes": self.intake.lane_bytes, "dropped": 0}
+
+            def on_payload(reply_key: str, payload: bytes, replier: str | None, replies=replies, budget=budget) -> None:
+                parsed = self.keys.parse_robot_key(reply_key)
+                if parsed is None or parsed[1] not in ("odom", "scan"):
+                    return
+                if len(payload) > budget["bytes"]:
+                    budget["dropped"] += 1
+                    return
+                budget["bytes"] -= len(payload)
+                replies.append((parsed[1], reply_key, payload, replier))
+
+            def on_done(key=key, replies=replies, budget=budget) -> None:
+                self.enqueue("refilled", key, (replies, budget["dropped"]))
+
             try:
-                history_query(self.session, key, on_payload, lambda key=key: self.enqueue("refilled", key, b""),
-                              timeout_s)
+                history_query(self.session, key, on_payload, on_done, timeout_s)
             except zenoh.ZError as exc:
                 log.warning("%s: cannot ask %s for its history: %s", self.name, rid, exc)
-                self.enqueue("refilled", key, b"")
+                self.enqueue("refilled", key, ([], 0))
 
     def subscribe(self, key: str, tag: str, recover: bool = True) -> None:
         """Subscribe ``key``; each sample is queued as ``(tag, key, payload)``.

@@ -428,3 +428,43 @@ def test_plausibility_uses_the_announced_rate_start_and_limits():
     far = scan(0).model_copy(update={"seq": 10**6, "stamp": 1.0})  # its first scan, a million seqs after the start
     assert roster.on_stream("r1", "scan", far).refused[0] == "seq_jump"
     assert roster.on_stream("r1", "odom", odom(1)).event is not None and roster.missing() == 0
+
+
+def test_a_restarted_service_takes_the_robots_kept_messages_before_it_counts_a_gap():
+    """After a restart the service asks the robot for what it kept (``refill_from_robots``); a live message past the
+    gap waits. The answer comes as one ``refilled`` item, replies first: the gap is filled in order and nothing is
+    counted lost, whatever lane the live messages were queued in (shell ``ServiceShell._robot_item``, no router)."""
+    import asyncio
+
+    from schemas.codec import encode
+    from schemas.config import FleetSettings
+    from services.runtime import ServiceShell
+
+    class Recorder(ServiceShell):
+        def __init__(self):
+            super().__init__(FleetSettings(prefix="fleet", reorder_window_s=0.0))
+            self.roster = Roster()
+            self.events = []
+
+        def ask_info(self, robot_id):  # no router: its RobotInfo is handed in below
+            pass
+
+        async def robot_event(self, event):
+            self.events.append((type(event).__name__, event.seq))
+
+    async def scenario(shell: Recorder):
+        await shell._robot_item("alive", "fleet/robots/r1/alive/zA", b"")
+        await shell._robot_item("info", "fleet/robots/r1/info", encode(info()), "zA")
+        for seq in range(3):
+            await shell._robot_item("odom", "fleet/robots/r1/odom", encode(odom(seq)), "zA")
+        shell.roster.refill("r1")  # restarted from a checkpoint that held seq 2: the robot is asked for the rest
+        await shell._robot_item("odom", "fleet/robots/r1/odom", encode(odom(5)), "zA")  # live, past the gap: waits
+        assert shell.events == [("OdomEvent", seq) for seq in range(3)]
+        replies = [("odom", "fleet/robots/r1/odom", encode(odom(seq)), "zA") for seq in (3, 4)]
+        await shell._robot_item("refilled", "fleet/robots/r1/history", (replies, 0))
+
+    shell = Recorder()
+    asyncio.run(scenario(shell))
+    assert shell.events == [("OdomEvent", seq) for seq in range(6)]
+    assert shell.roster.tracker.missing("r1") == 0 and not shell.rejected
+    assert shell.messages_in["odom"] == 2  # the replies count as the odometry they are
