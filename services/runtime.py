@@ -347,6 +347,7 @@ class ServiceShell:
                     await self._robot_item(stream, reply_key, reply, replier)
                 except DecodeError as error:
                     self.reject_decode(error)
+                await asyncio.sleep(0)  # a long answer (a minute of a robot's stream) must not hold stats and ticks
             for arrival, stream in roster.refilled(rid):
                 await self._take(rid, stream, arrival)
             return

@@ -44,9 +44,11 @@ DURATION = 50.0  # robot time (s)
 SPEEDUP = 2.0
 TOLERANCE = (0.05, 0.005)  # B's error ≤ A's error × (1 + 5 %) + 5 mm
 START_DELAY_S = 2.0  # robots wait this long after declaring their token: each sees the other's before any data
-# services wait this long for a robot that announced itself to send, and for a silent stream (0.1 s by default:
-# on this loaded machine a robot's stream now and then stalls longer, and the other's events would go first)
-ORDERING = ("--join-wait-s", "4", "--reorder-window-s", "0.5")
+# services wait this long for a robot that announced itself to send, and for a silent stream (0.1 s by default: on
+# a loaded machine a robot's process now and then stalls longer, and the other's events would go first; with two
+# busy loops beside the fleets stalls of 0.5 s reordered one copy's events in 1 of 4 runs. A stall of the service
+# itself is not counted as silence)
+ORDERING = ("--join-wait-s", "4", "--reorder-window-s", "2")
 SERVICES = {
     "central": ("central", "--association", "known", "--particles", "50", "--estimate-rate-hz", "4", *ORDERING),
     "dslam": ("dslam", "--association", "known", *ORDERING),
