@@ -347,6 +347,9 @@ class ServiceShell:
                     await self._robot_item(stream, reply_key, reply, replier)
                 except DecodeError as error:
                     self.reject_decode(error)
+                except Exception:  # noqa: BLE001 - as in the loop: one bad reply must not keep the gaps parked
+                    self.reject("handler_error")
+                    log.exception("%s: handler failed on %s (history of %s)", self.name, reply_key, rid)
                 await asyncio.sleep(0)  # a long answer (a minute of a robot's stream) must not hold stats and ticks
             for arrival, stream in roster.refilled(rid):
                 await self._take(rid, stream, arrival)

@@ -468,3 +468,42 @@ def test_a_restarted_service_takes_the_robots_kept_messages_before_it_counts_a_g
     assert shell.events == [("OdomEvent", seq) for seq in range(6)]
     assert shell.roster.tracker.missing("r1") == 0 and not shell.rejected
     assert shell.messages_in["odom"] == 2  # the replies count as the odometry they are
+
+
+def test_a_reply_that_fails_in_the_handler_does_not_keep_the_robot_parked():
+    """One kept message that breaks the service's handler is counted (``handler_error``) and the rest of the answer,
+    then the parked live messages, are still taken."""
+    import asyncio
+
+    from schemas.codec import encode
+    from schemas.config import FleetSettings
+    from services.runtime import ServiceShell
+
+    class Fragile(ServiceShell):
+        def __init__(self):
+            super().__init__(FleetSettings(prefix="fleet", reorder_window_s=0.0))
+            self.roster = Roster()
+            self.events = []
+
+        def ask_info(self, robot_id):
+            pass
+
+        async def robot_event(self, event):
+            if event.seq == 3:
+                raise RuntimeError("a bug met by one message")
+            self.events.append(event.seq)
+
+    async def scenario(shell: Fragile):
+        await shell._robot_item("alive", "fleet/robots/r1/alive/zA", b"")
+        await shell._robot_item("info", "fleet/robots/r1/info", encode(info()), "zA")
+        await shell._robot_item("odom", "fleet/robots/r1/odom", encode(odom(0)), "zA")
+        shell.roster.refill("r1")
+        await shell._robot_item("odom", "fleet/robots/r1/odom", encode(odom(3)), "zA")  # past the gap: parked
+        replies = [("odom", "fleet/robots/r1/odom", encode(odom(seq)), "zA") for seq in (1, 2, 3, 4)]
+        await shell._robot_item("refilled", "fleet/robots/r1/history", (replies, 0))
+        await shell._robot_item("odom", "fleet/robots/r1/odom", encode(odom(5)), "zA")
+
+    shell = Fragile()
+    asyncio.run(scenario(shell))
+    assert shell.events == [0, 1, 2, 4, 5] and shell.rejected["handler_error"] == 1
+    assert not shell.roster.refilling and not shell.roster.parked
