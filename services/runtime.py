@@ -174,6 +174,7 @@ class ServiceShell:
         self.reorder = state["reorder"]
         self.reorder.window_s = self.settings.reorder_window_s
         self.reorder.join_wait_s = self.settings.join_wait_s
+        self.reorder.restart_clock()  # its times were the old process's clock (again when the streams are subscribed)
         self.messages_in.update(state["messages_in"])
         self.rejected.update(state["rejected"])
         self.published = state["published"]
