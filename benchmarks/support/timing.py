@@ -35,13 +35,11 @@ def scan_of_detection(log: RobotLog) -> np.ndarray:
 
 
 def detections_at(log: RobotLog, stamps: np.ndarray, poses: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """World positions (D, 2) of every detection from the poses (x, y, unwrapped θ) interpolated at its time ``t``."""
-    x, y, heading = (np.interp(t, stamps, poses[:, j]) for j in range(3))
-    ox, oy = np.asarray(log.info.sensor.offset, float)
-    sx = x + np.cos(heading) * ox - np.sin(heading) * oy
-    sy = y + np.sin(heading) * ox + np.cos(heading) * oy
-    angle = heading + log.det_bearing
-    return np.column_stack([sx + log.det_range * np.cos(angle), sy + log.det_range * np.sin(angle)])
+    """World positions (D, 2) of every detection from the poses (x, y, unwrapped θ) interpolated at its time ``t``
+    (the robot's sensor model, mounting offset included)."""
+    _, sensor = robot_models(log.info)
+    at = np.column_stack([np.interp(t, stamps, poses[:, j]) for j in range(3)])
+    return sensor.inverse(at, np.column_stack([log.det_range, log.det_bearing]))
 
 
 def detection_scatter(log: RobotLog, shifts: np.ndarray, window: float, gate: float) -> np.ndarray:
