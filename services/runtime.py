@@ -174,7 +174,6 @@ class ServiceShell:
         self.reorder = state["reorder"]
         self.reorder.window_s = self.settings.reorder_window_s
         self.reorder.join_wait_s = self.settings.join_wait_s
-        self.reorder.restart_clock()  # its times were the old process's clock (again when the streams are subscribed)
         self.messages_in.update(state["messages_in"])
         self.rejected.update(state["rejected"])
         self.published = state["published"]
@@ -212,8 +211,10 @@ class ServiceShell:
                 self.enqueue("router_link", "open" if event.kind == zenoh.SampleKind.PUT else "closed", b"")
 
         self._declared.append(self.session.info.declare_transport_events_listener(on_transport))
-        if self.roster.resumed:  # the recovery window counts from now, when the caches can start sending
-            self.reorder.restart_clock()
+        # the buffer's times count from now: a resumed one's were the old process's clock, and its recovery window
+        # starts when the caches can send (for a fresh buffer this changes nothing)
+        self.reorder.restart_clock()
+        if self.roster.resumed:
             self.refill_from_robots()
 
     def _router_link_lost(self) -> bool:
