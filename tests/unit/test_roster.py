@@ -1,12 +1,17 @@
 """Robot membership (services/roster.py) without a router: announcement, waiting, admission, new run vs link cut,
 late join, refusals; and the cross-robot reorder buffer."""
 
+import asyncio
+
 import numpy as np
 import pytest
 
+from schemas.codec import encode
+from schemas.config import FleetSettings
 from schemas.contract import OdomEvent, ScanEvent, event_nbytes, stream_event
 from schemas.messages import Odometry, RobotInfo, Scan, SensorSpec
 from services.roster import ReorderBuffer, Roster
+from services.runtime import ServiceShell
 
 
 class Clock:
@@ -430,42 +435,54 @@ def test_plausibility_uses_the_announced_rate_start_and_limits():
     assert roster.on_stream("r1", "odom", odom(1)).event is not None and roster.missing() == 0
 
 
+class ShellWithoutRouter(ServiceShell):
+    """A service shell fed by hand through ``_robot_item`` (no router): it records the seq of every event it hands
+    on, and raises on the event of seq ``fail_at`` (a bug met by one message)."""
+
+    def __init__(self, fail_at: int | None = None):
+        super().__init__(FleetSettings(prefix="fleet", reorder_window_s=0.0))
+        self.roster = Roster()
+        self.events = []
+        self.fail_at = fail_at
+
+    def ask_info(self, robot_id):  # no router: its RobotInfo is handed in by the test
+        pass
+
+    async def robot_event(self, event):
+        if event.seq == self.fail_at:
+            raise RuntimeError("a bug met by one message")
+        self.events.append(event.seq)
+
+    async def odometry(self, *seqs: int) -> None:
+        for seq in seqs:
+            await self._robot_item("odom", "fleet/robots/r1/odom", encode(odom(seq)), "zA")
+
+    async def join(self) -> None:
+        """r1's session token and RobotInfo, from session zA."""
+        await self._robot_item("alive", "fleet/robots/r1/alive/zA", b"")
+        await self._robot_item("info", "fleet/robots/r1/info", encode(info()), "zA")
+
+    async def refilled(self, *seqs: int) -> None:
+        """The end of r1's history query, with its kept odometry of ``seqs``."""
+        replies = [("odom", "fleet/robots/r1/odom", encode(odom(seq)), "zA") for seq in seqs]
+        await self._robot_item("refilled", "fleet/robots/r1/history", (replies, 0))
+
+
 def test_a_restarted_service_takes_the_robots_kept_messages_before_it_counts_a_gap():
     """After a restart the service asks the robot for what it kept (``refill_from_robots``); a live message past the
     gap waits. The answer comes as one ``refilled`` item, replies first: the gap is filled in order and nothing is
     counted lost, whatever lane the live messages were queued in (shell ``ServiceShell._robot_item``, no router)."""
-    import asyncio
-
-    from schemas.codec import encode
-    from schemas.config import FleetSettings
-    from services.runtime import ServiceShell
-
-    class Recorder(ServiceShell):
-        def __init__(self):
-            super().__init__(FleetSettings(prefix="fleet", reorder_window_s=0.0))
-            self.roster = Roster()
-            self.events = []
-
-        def ask_info(self, robot_id):  # no router: its RobotInfo is handed in below
-            pass
-
-        async def robot_event(self, event):
-            self.events.append((type(event).__name__, event.seq))
-
-    async def scenario(shell: Recorder):
-        await shell._robot_item("alive", "fleet/robots/r1/alive/zA", b"")
-        await shell._robot_item("info", "fleet/robots/r1/info", encode(info()), "zA")
-        for seq in range(3):
-            await shell._robot_item("odom", "fleet/robots/r1/odom", encode(odom(seq)), "zA")
+    async def scenario(shell: ShellWithoutRouter):
+        await shell.join()
+        await shell.odometry(0, 1, 2)
         shell.roster.refill("r1")  # restarted from a checkpoint that held seq 2: the robot is asked for the rest
-        await shell._robot_item("odom", "fleet/robots/r1/odom", encode(odom(5)), "zA")  # live, past the gap: waits
-        assert shell.events == [("OdomEvent", seq) for seq in range(3)]
-        replies = [("odom", "fleet/robots/r1/odom", encode(odom(seq)), "zA") for seq in (3, 4)]
-        await shell._robot_item("refilled", "fleet/robots/r1/history", (replies, 0))
+        await shell.odometry(5)  # live, past the gap: waits
+        assert shell.events == [0, 1, 2]
+        await shell.refilled(3, 4)
 
-    shell = Recorder()
+    shell = ShellWithoutRouter()
     asyncio.run(scenario(shell))
-    assert shell.events == [("OdomEvent", seq) for seq in range(6)]
+    assert shell.events == [0, 1, 2, 3, 4, 5]
     assert shell.roster.tracker.missing("r1") == 0 and not shell.rejected
     assert shell.messages_in["odom"] == 2  # the replies count as the odometry they are
 
@@ -473,37 +490,15 @@ def test_a_restarted_service_takes_the_robots_kept_messages_before_it_counts_a_g
 def test_a_reply_that_fails_in_the_handler_does_not_keep_the_robot_parked():
     """One kept message that breaks the service's handler is counted (``handler_error``) and the rest of the answer,
     then the parked live messages, are still taken."""
-    import asyncio
-
-    from schemas.codec import encode
-    from schemas.config import FleetSettings
-    from services.runtime import ServiceShell
-
-    class Fragile(ServiceShell):
-        def __init__(self):
-            super().__init__(FleetSettings(prefix="fleet", reorder_window_s=0.0))
-            self.roster = Roster()
-            self.events = []
-
-        def ask_info(self, robot_id):
-            pass
-
-        async def robot_event(self, event):
-            if event.seq == 3:
-                raise RuntimeError("a bug met by one message")
-            self.events.append(event.seq)
-
-    async def scenario(shell: Fragile):
-        await shell._robot_item("alive", "fleet/robots/r1/alive/zA", b"")
-        await shell._robot_item("info", "fleet/robots/r1/info", encode(info()), "zA")
-        await shell._robot_item("odom", "fleet/robots/r1/odom", encode(odom(0)), "zA")
+    async def scenario(shell: ShellWithoutRouter):
+        await shell.join()
+        await shell.odometry(0)
         shell.roster.refill("r1")
-        await shell._robot_item("odom", "fleet/robots/r1/odom", encode(odom(3)), "zA")  # past the gap: parked
-        replies = [("odom", "fleet/robots/r1/odom", encode(odom(seq)), "zA") for seq in (1, 2, 3, 4)]
-        await shell._robot_item("refilled", "fleet/robots/r1/history", (replies, 0))
-        await shell._robot_item("odom", "fleet/robots/r1/odom", encode(odom(5)), "zA")
+        await shell.odometry(3)  # past the gap: parked
+        await shell.refilled(1, 2, 3, 4)
+        await shell.odometry(5)
 
-    shell = Fragile()
+    shell = ShellWithoutRouter(fail_at=3)
     asyncio.run(scenario(shell))
     assert shell.events == [0, 1, 2, 4, 5] and shell.rejected["handler_error"] == 1
     assert not shell.roster.refilling and not shell.roster.parked
