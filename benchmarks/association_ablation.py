@@ -9,7 +9,11 @@ Steps (FastSLAM, 100 particles, scans' ids ignored):
 - ``shared-jcbb-fastslam1``: ... with joint compatibility (JCBB) instead, poses drawn from the motion model alone;
 - ``shared-jcbb-no-robots``: ... and each scan folded into the proposal (FastSLAM 2.0), the robots' detections of
   each other ignored (the default before they weighed the particles);
-- ``shared-jcbb``: ... and those detections weighing the particles: ``--association unknown``, the default;
+- ``shared-jcbb-no-reacquire``: ... and those detections weighing the particles (the default before robots blind
+  too long re-acquired the map);
+- ``shared-jcbb``: ... and a robot whose dead reckoning has drifted beyond what scan-by-scan association can trust
+  held until one rigid correction puts its recent detections back on the map (``reacquire``):
+  ``--association unknown``, the default;
 - ``shared-jcbb-ess-0.05``: ... resampling only when the effective sample size falls below 5 % (not 50 %);
 - ``shared-jcbb-unique``: ``shared-jcbb`` keeping only the pairings no other jointly compatible hypothesis with as
   many pairings does without (``unique_pairs``);
@@ -56,6 +60,7 @@ STEPS: dict[str, tuple[str, str, dict]] = {
     "shared-exact": ("fastslam", "shared", {"shared_solver": "exact", "proposal": "fastslam1"}),
     "shared-jcbb-fastslam1": ("fastslam", "unknown", {"proposal": "fastslam1"}),
     "shared-jcbb-no-robots": ("fastslam", "unknown", {"robot_detections": False}),
+    "shared-jcbb-no-reacquire": ("fastslam", "unknown", {"reacquire": False}),
     "shared-jcbb": ("fastslam", "unknown", {}),
     "shared-jcbb-ess-0.05": ("fastslam", "unknown", {"resample_ess": 0.05}),
     "dslam-per-scan": ("dslam", "unknown", {"local_map_max_std": 0.0, "gate_pose_floor": (0.0, 0.0, 0.0),

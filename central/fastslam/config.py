@@ -71,6 +71,22 @@ class FastSlamConfig(CoreConfig):
     turn_gain_walk: float = Field(
         0.0, ge=0.0, le=0.5, description="σ per √s of motion of the turn gain's random walk (lets it follow a robot "
         "whose wheels or floor change, and keeps the particles' gains diverse after resampling)")
+    reacquire: bool = Field(
+        True, description="shared: a robot whose dead reckoning since its last match has drifted beyond the "
+        "thresholds below stops associating scan by scan and is put back on the map by one rigid correction of its "
+        "recent detections (central/fastslam/reacquire.py). MR.CLAM without barcodes, 80 seeds: worst robot median "
+        "1.24 -> 0.64 m, seeds with a robot above 1.5 m 23 -> 2; Victoria Park and the car park unchanged (README)")
+    reacquire_heading_sd: float = Field(0.15, gt=0.0, description="... when the drift's heading σ exceeds this (rad)")
+    reacquire_position_sd: float = Field(0.4, gt=0.0, description="... or its position σ exceeds this (m)")
+    reacquire_window_s: float = Field(15.0, gt=0.0, description="... its detections of the last this many seconds count")
+    reacquire_every_s: float = Field(0.5, gt=0.0, description="... searched for a correction at most this often (s)")
+    reacquire_inlier_m: float = Field(0.25, gt=0.0, description="... a detection this close to a landmark is explained")
+    reacquire_min_detections: int = Field(5, ge=1, description="... a correction must explain this many detections")
+    reacquire_span_m: float = Field(1.0, ge=0.0, description="... reaching landmarks at least this far apart (m)")
+    reacquire_margin: float = Field(
+        3.0, ge=0.0, description="... and explain this many detections more than any distinct correction")
+    reacquire_max_turn: float = Field(0.785, ge=0.0, description="... turning it by at most this (rad)")
+    reacquire_max_shift_m: float = Field(2.0, ge=0.0, description="... and shifting it by at most this (m)")
     sensor_noise_scale: float = Field(1.0, gt=0.0, description="multiplies the scan's noise covariance")
     max_batch_s: float = Field(1.0, gt=0.0, description="integrate buffered controls at least this often (s)")
     max_extrapolation_s: float = Field(

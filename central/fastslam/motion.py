@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from central.fastslam import kernels
+from central.fastslam import kernels, reacquire
 from central.fastslam.config import FastSlamConfig
 from central.fastslam.lifecycle import RobotState
 from robots.gaussian import diagonal_variances, sqrt_psd, turn_slip, valid_cov2
@@ -95,7 +95,8 @@ def clear(robot: RobotState) -> None:
 
 
 def take_pending(slam: FastSlam, robot: RobotState) -> tuple[np.ndarray, np.ndarray] | None:
-    """The buffered motion (:func:`pending_motion`), cleared from the buffer for the caller to apply.
+    """The buffered motion (:func:`pending_motion`), cleared from the buffer for the caller to apply; with shared
+    association it is also added to the robot's drift since its last match (:mod:`central.fastslam.reacquire`).
 
     With turn gains on, each particle first turns by (gain − 1)·Δθ̄ (its own hypothesis of the robot's turn gain;
     composing Δ̄ after that turn rotates Δ̄'s few centimetres with it, well inside its noise), and the gains walk
@@ -104,6 +105,11 @@ def take_pending(slam: FastSlam, robot: RobotState) -> tuple[np.ndarray, np.ndar
     span = robot.pending_s
     clear(robot)
     config = slam.config
+    if motion is not None and config.reacquire and config.association == "shared":
+        w, heading = slam.weights(), slam.pose[:, robot.index, 2]
+        slip = 0.0 if config.turn_slip else robot.info.turn_slip_var  # turn_slip: already in the motion's covariance
+        robot.drift = reacquire.accumulate(robot.drift, math.atan2(w @ np.sin(heading), w @ np.cos(heading)),
+                                           motion[0], motion[1], slip)
     if motion is not None and (config.turn_gain_std > 0.0 or config.turn_gain_walk > 0.0):
         col = robot.index
         slam.pose[:, col, 2] = wrap_angle(slam.pose[:, col, 2] + (slam.turn_gain[:, col] - 1.0) * motion[0][2])

@@ -26,7 +26,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from central.fastslam import kernels, motion, resampling
+from central.fastslam import kernels, motion, reacquire, resampling
 from central.fastslam.lifecycle import RobotState
 from robots.gaussian import diagonal_variances, inv2, quad2, sandwich, sandwich2, systematic_resample
 from robots.models import compose_jacobian, se2_compose, wrap_angle
@@ -91,6 +91,12 @@ def associate(slam: FastSlam, robot: RobotState, z: np.ndarray, r: np.ndarray) -
     m = z.shape[0]
     ids = np.full(m, -1, np.int64)
     pose, spread, drift = pose_belief(slam, robot)
+    if slam.config.reacquire:
+        step = reacquire.step(slam, robot, pose, z, lambda point, radius: confirmed_near(slam, point, radius))
+        if step == "hold":
+            return ids
+        if step == "corrected":
+            pose, spread, drift = pose_belief(slam, robot)
     position, _ = robot.sensor.sensor_position(pose)
     reach = robot.info.sensor.max_range + 3.0 * math.sqrt(r[0, 0]) + 2.0
     known, slots, mean, cov = marginal_map(slam, (position, reach))
@@ -114,6 +120,7 @@ def associate(slam: FastSlam, robot: RobotState, z: np.ndarray, r: np.ndarray) -
         fresh, unmatched_count = np.ones(m, bool), m
     if rows_matched := m - unmatched_count:
         robot.last_match_stamp = robot.last_scan_stamp
+        robot.drift = None
         slam.counts["detections_matched"] += rows_matched
     created = int(np.count_nonzero(fresh))
     ids[fresh] = slam.next_landmark_id + np.arange(created)
@@ -198,6 +205,12 @@ def _age_tentative(slam: FastSlam, robot: RobotState, ids: np.ndarray, slots: np
         del slam.known_slots[lid]
         slam.map.release(np.array([slot]))
         slam.counts["landmarks_dropped_tentative"] += 1
+
+
+def confirmed_near(slam: FastSlam, point: np.ndarray, radius: float) -> np.ndarray:
+    """Means ``(K, 2)`` of the confirmed landmarks whose mixture mean lies within ``radius`` of ``point``."""
+    _, slots, mean, _ = marginal_map(slam, (point, radius))
+    return mean[slam.map.hits[slots] >= slam.config.confirm_hits]
 
 
 def confirmed(slam: FastSlam, ids: np.ndarray) -> np.ndarray:

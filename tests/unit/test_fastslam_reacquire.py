@@ -1,0 +1,154 @@
+"""Re-acquisition of a robot blind too long (central/fastslam/reacquire.py): its drift, the search for one rigid
+correction of its recent detections, and the filter that holds its scans until the correction is clear."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+from central.fastslam import reacquire
+from central.fastslam.config import FastSlamConfig
+from central.fastslam.core import FastSlam
+from robots.models import se2_compose, wrap_angle
+from robots.simulator import simulate
+from schemas.contract import OdomEvent, ScanEvent
+
+CONFIG = FastSlamConfig(association="shared")
+
+
+def test_drift_is_the_covariance_of_dead_reckoning():
+    """Monte Carlo: poses composed from noisy relative motions spread as the accumulated drift says, the heading's
+    error carried into position along the path; a turn adds the announced slip per radian."""
+    rng = np.random.default_rng(0)
+    delta, cov = np.array([0.1, 0.0, 0.06]), np.diag([1e-4, 4e-5, 2e-4])
+    start, steps, samples = np.array([1.0, -2.0, 0.4]), 25, 20000
+    drift, mean = None, start.copy()
+    for _ in range(steps):
+        drift = reacquire.accumulate(drift, mean[2], delta, cov, 0.0)
+        mean = se2_compose(mean, delta)
+    poses = np.broadcast_to(start, (samples, 3)).copy()
+    for _ in range(steps):
+        poses = se2_compose(poses, delta + rng.multivariate_normal(np.zeros(3), cov, samples))
+    empirical = np.cov((poses - mean).T)
+    np.testing.assert_allclose(empirical, drift, rtol=0.1, atol=2e-4)
+    slipped = reacquire.accumulate(None, 0.0, np.array([0.0, 0.0, -0.5]), np.zeros((3, 3)), 0.015)
+    assert slipped[2, 2] == pytest.approx(0.015 * 0.5) and not slipped[:2].any()
+
+
+def test_a_robot_is_lost_once_its_drift_passes_either_threshold():
+    assert not reacquire.lost(CONFIG, None)
+    assert not reacquire.lost(CONFIG, np.diag([0.3**2, 0.3**2, 0.1**2]))
+    assert reacquire.lost(CONFIG, np.diag([0.3**2, 0.3**2, 0.2**2]))
+    assert reacquire.lost(CONFIG, np.diag([0.1**2, 0.5**2, 0.01**2]))
+
+
+def arena(seed: int = 0) -> np.ndarray:
+    """15 landmarks in clusters over 6 m × 10 m, like MR.CLAM's."""
+    rng = np.random.default_rng(seed)
+    centres = rng.uniform([-1.0, -4.0], [5.0, 4.0], (6, 2))
+    return np.concatenate([c + rng.normal(0.0, 0.15, (k, 2)) for c, k in zip(centres, (3, 3, 3, 2, 2, 2))])
+
+
+def detections_from(truth_points: np.ndarray, correction: reacquire.Correction, seed: int = 1) -> np.ndarray:
+    """What a robot that is off by the inverse of ``correction`` would place: the true points moved away."""
+    noisy = truth_points + np.random.default_rng(seed).normal(0.0, 0.03, truth_points.shape)
+    return reacquire.turned(noisy - correction.shift, correction.centre, -correction.turn)
+
+
+@pytest.mark.parametrize("turn, shift", [(math.radians(25.0), (0.4, -0.3)), (math.radians(-12.0), (-0.8, 0.5)),
+                                         (0.0, (0.0, 0.0))])
+def test_search_finds_the_correction_that_puts_the_detections_back_on_the_map(turn, shift):
+    landmarks = arena()
+    centre = np.array([2.0, 0.0])
+    seen = landmarks[np.hypot(*(landmarks - centre).T) < 4.0]
+    assert len(seen) >= 4
+    truth = reacquire.Correction(turn, np.array(shift), centre, 0.0, 0)
+    points = detections_from(np.repeat(seen, 3, axis=0), truth)
+    found = reacquire.search(points, landmarks, centre, math.radians(45.0), 2.0, CONFIG)
+    assert found is not None
+    assert abs(found.turn - turn) < math.radians(2.0)
+    moved = found.apply(np.column_stack([points, np.zeros(len(points))]))[:, :2]
+    assert np.hypot(*(moved - np.repeat(seen, 3, axis=0)).T).max() < 0.2  # a cluster's neighbour may pull a little
+    assert found.detections == len(points) and found.landmarks >= 6
+
+
+def test_search_refuses_what_the_detections_cannot_decide():
+    landmarks = arena()
+    centre = np.array([2.0, 0.0])
+    one = np.repeat(landmarks[:1], 8, axis=0) + 0.01
+    assert reacquire.search(one, landmarks, centre, 0.5, 1.0, CONFIG) is None  # one landmark: the turn is free
+    few = landmarks[:2] + 0.01
+    assert reacquire.search(few, landmarks, centre, 0.5, 1.0, CONFIG) is None  # fewer than min_detections
+    pair = np.array([[0.0, 0.0], [0.5, 0.0], [3.0, 3.0]])  # only two landmarks 0.5 m apart seen: the turn is loose
+    points = np.repeat(pair[:2], 5, axis=0) + 0.1
+    assert reacquire.search(points, pair, np.zeros(2), 0.0, 0.3, CONFIG) is None
+    assert reacquire.search(points, pair, np.zeros(2), 0.0, 0.3, CONFIG.model_copy(update={"reacquire_span_m": 0.4}))
+    grid = np.array([(x, y) for x in range(6) for y in range(6)], float)  # a lattice 1 m apart: shifts by 1 m tie
+    points = np.repeat(grid[[7, 8, 13, 14]], 3, axis=0) + 0.3
+    assert reacquire.search(points, grid, np.array([1.5, 1.5]), 0.0, 2.0, CONFIG) is None
+    inside = reacquire.search(points, grid, np.array([1.5, 1.5]), 0.0, 0.5, CONFIG)  # a window of one cell decides
+    assert inside is not None and np.allclose(inside.shift, [-0.3, -0.3], atol=0.02)
+
+
+def lost_robot_run(seed: int, reacquire_on: bool) -> tuple[float, float, int, FastSlam]:
+    """One robot maps the MR.CLAM-like arena for 30 s; then its estimate is thrown off by 25° and 0.5 m, as a
+    blind turn on slipping wheels would, with a drift that says so; it drives on for 30 s. (final position error,
+    heading error, landmarks mapped, the filter)."""
+    data = simulate("arena", robots=1, seed=seed, duration=60.0)
+    log = data.robots["r1"]
+    slam = FastSlam(FastSlamConfig(particles=30, association="shared", seed=seed, reacquire=reacquire_on), [log.info])
+    thrown = False
+    for event in data.events():
+        if not thrown and event.stamp - log.scan_stamp[0] >= 30.0:
+            pose, _ = slam.poses()["r1"]
+            error = reacquire.Correction(math.radians(25.0), np.array([0.4, -0.3]), pose[:2], 0.0, 0)
+            slam.pose[:, 0] = error.apply(slam.pose[:, 0])
+            slam.robots["r1"].drift = np.diag([0.3**2, 0.3**2, math.radians(25.0) ** 2])
+            thrown = True
+        if isinstance(event, OdomEvent):
+            slam.on_odometry(event)
+        elif isinstance(event, ScanEvent):
+            slam.on_scan(event)
+    pose, _ = slam.poses()["r1"]
+    error = np.hypot(*(pose[:2] - log.truth_pose[-1, :2]))
+    return float(error), abs(wrap_angle(pose[2] - log.truth_pose[-1, 2])), len(slam.landmark_map().means), slam
+
+
+def test_a_lost_robot_is_put_back_on_the_map_instead_of_mapping_a_copy():
+    """Without re-acquisition the robot's next detections are paired from the wrong pose: it ends metres off and
+    maps spurious landmarks (seeds 0 and 2); with it, its scans are held until one correction explains them."""
+    for seed in (0, 2):
+        error, heading, landmarks, slam = lost_robot_run(seed, True)
+        assert slam.counts["reacquire_started"] == 1 and slam.counts["reacquired"] == 1
+        assert slam.counts["detections_blind"] > 0
+        assert error < 0.3 and heading < math.radians(4.0)
+        plain_error, _, plain_landmarks, plain = lost_robot_run(seed, False)
+        assert plain.counts["reacquired"] == 0 and plain_error > 1.0 and plain_landmarks > landmarks
+    assert slam.robots["r1"].blind is None
+
+
+def test_drift_grows_while_blind_and_restarts_at_a_match():
+    """A robot that sees nothing accumulates drift scan after scan; one that matches landmarks starts it again
+    at every match (then the proposal adds that scan's motion), so it never grows."""
+    data = simulate("arena", robots=1, seed=0, duration=8.0)
+    info = data.robots["r1"].info
+    drifts = {}
+    for blind in (True, False):
+        slam = FastSlam(FastSlamConfig(particles=10, association="shared", seed=0, confirm_hits=1), [info])
+        robot, seen = slam.robots["r1"], []
+        for event in data.events():
+            if isinstance(event, OdomEvent):
+                slam.on_odometry(event)
+            elif isinstance(event, ScanEvent):
+                if blind:
+                    event = dataclasses.replace(event, ranges=np.zeros(0), bearings=np.zeros(0), landmark_ids=None)
+                slam.on_scan(event)
+                seen.append(0.0 if robot.drift is None else robot.drift[2, 2])
+        drifts[blind] = np.array(seen)
+        assert (slam.counts["detections_matched"] > 0) != blind
+    grown = drifts[True][drifts[True] > 0]
+    assert len(grown) > 5 and np.all(np.diff(grown) > 0)
+    assert drifts[False].max() < 0.05 * drifts[True][-1]  # at most the motion since the last matched scan
