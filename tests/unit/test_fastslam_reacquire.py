@@ -72,6 +72,7 @@ def test_search_finds_the_correction_that_puts_the_detections_back_on_the_map(tu
     assert abs(found.turn - turn) < math.radians(2.0)
     moved = found.apply(np.column_stack([points, np.zeros(len(points))]))[:, :2]
     assert np.hypot(*(moved - np.repeat(seen, 3, axis=0)).T).max() < 0.2  # a cluster's neighbour may pull a little
+    assert np.hypot(*(moved - np.repeat(seen, 3, axis=0)).mean(0)) < 0.05  # the shift fitted, not the vote's cell
     assert found.detections == len(points) and found.landmarks >= 6
 
 
