@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from central.fastslam import kernels, reacquire
+from central.fastslam import kernels, reacquire, resampling
 from central.fastslam.config import FastSlamConfig
 from central.fastslam.lifecycle import RobotState
 from robots.gaussian import diagonal_variances, sqrt_psd, turn_slip, valid_cov2
@@ -106,10 +106,9 @@ def take_pending(slam: FastSlam, robot: RobotState) -> tuple[np.ndarray, np.ndar
     clear(robot)
     config = slam.config
     if motion is not None and config.reacquire and config.association == "shared":
-        w, heading = slam.weights(), slam.pose[:, robot.index, 2]
+        heading = resampling.weighted_heading(slam.pose[:, robot.index, 2], slam.weights())
         slip = 0.0 if config.turn_slip else robot.info.turn_slip_var  # turn_slip: already in the motion's covariance
-        robot.drift = reacquire.accumulate(robot.drift, math.atan2(w @ np.sin(heading), w @ np.cos(heading)),
-                                           motion[0], motion[1], slip)
+        robot.drift = reacquire.accumulate(robot.drift, heading, motion[0], motion[1], slip)
     if motion is not None and (config.turn_gain_std > 0.0 or config.turn_gain_walk > 0.0):
         col = robot.index
         slam.pose[:, col, 2] = wrap_angle(slam.pose[:, col, 2] + (slam.turn_gain[:, col] - 1.0) * motion[0][2])

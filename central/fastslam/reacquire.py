@@ -52,7 +52,6 @@ SIGMAS = 3.0  # the search window in σ of the drift
 class BlindWindow:
     """The detections of a robot that is re-acquiring the map: world points from its dead-reckoned pose."""
 
-    since: float
     tried: float = -math.inf
     stamps: list = field(default_factory=list)
     points: list = field(default_factory=list)
@@ -195,13 +194,13 @@ def step(slam: FastSlam, robot: RobotState, pose: np.ndarray, z: np.ndarray, lan
     if robot.blind is None:
         if not lost(config, robot.drift):
             return "associate"
-        robot.blind = BlindWindow(since=stamp)
+        robot.blind = BlindWindow()
         slam.counts["reacquire_started"] += 1
     window = robot.blind
     window.add(stamp, robot.sensor.inverse(pose, z), config.reacquire_window_s)
     if stamp - window.tried >= config.reacquire_every_s:
         window.tried = stamp
-        drift = robot.drift if robot.drift is not None else np.zeros((3, 3))
+        drift = robot.drift  # a held robot's drift is never reset: only a match or a correction does that
         turn_limit = min(SIGMAS * math.sqrt(drift[2, 2]), config.reacquire_max_turn)
         shift_limit = min(SIGMAS * math.sqrt(max(drift[0, 0], drift[1, 1])) + config.reacquire_inlier_m,
                           config.reacquire_max_shift_m)

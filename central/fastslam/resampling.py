@@ -29,10 +29,15 @@ def weights(logw: np.ndarray) -> np.ndarray:
     return w / w.sum()
 
 
+def weighted_heading(headings: np.ndarray, w: np.ndarray) -> float:
+    """The circular mean of particle ``headings`` ``(P,)`` with weights ``w``."""
+    return float(np.arctan2(w @ np.sin(headings), w @ np.cos(headings)))
+
+
 def weighted_pose(poses: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(mean, covariance) of particle poses ``(P, 3)`` with weights ``w``: circular mean heading, residual
     headings wrapped."""
-    theta = np.arctan2(w @ np.sin(poses[:, 2]), w @ np.cos(poses[:, 2]))
+    theta = weighted_heading(poses[:, 2], w)
     mean = np.array([w @ poses[:, 0], w @ poses[:, 1], theta])
     resid = poses - mean
     resid[:, 2] = wrap_angle(resid[:, 2])
