@@ -23,6 +23,8 @@ arrays of a few hundred 2 × 2 blocks, more than the arithmetic. Each kernel doe
   (:func:`central.fastslam.proposal.propose` then :func:`central.fastslam.association.update_known`;
   :func:`proposal_moments` gives the moments alone, against
   :func:`central.fastslam.proposal.proposal_moments_reference`, for the tests: the warm-up leaves it out).
+- :func:`vote_kernel`: the Hough vote of a blind robot's re-acquisition, every turn's binned shifts and the scores
+  of its best ones (:func:`central.fastslam.reacquire.vote_reference`, about 60 turns of a dozen numpy calls each).
 
 Each has a thin wrapper that takes the Python objects; ``FastSlamConfig.compiled`` chooses kernels or references.
 A robot's poses are a strided view of the (P, R, 3) particle poses when the filter holds several robots: the
@@ -695,6 +697,94 @@ def propose(landmarks, sensor, pose: np.ndarray, delta: np.ndarray, motion_cov: 
     return out
 
 
+@njit
+def vote_kernel(cells, weights, landmarks, centre, turns, shift_limit, inlier, shifts_per_turn):
+    """The Hough vote of :func:`central.fastslam.reacquire.vote_reference`, turn after turn in one pass: (detections,
+    index of the turn, shift, landmark reached by each cell or −1 when none is within ``inlier``) of each scored
+    shift, in the reference's order. A bin's pairs are sorted stably by key, so they keep the reference's order
+    (cell after cell): the mean adds them in the same order, and a cell's repeated votes in a bin are adjacent."""
+    n, k = cells.shape[0], landmarks.shape[0]
+    capacity = turns.shape[0] * shifts_per_turn
+    scores, turn_index = np.empty(capacity), np.empty(capacity, np.int64)
+    shifts_out, reached = np.empty((capacity, 2)), np.empty((capacity, n), np.int64)
+    moved = np.empty((n, 2))
+    shift, voter = np.empty((n * k, 2)), np.empty(n * k, np.int64)
+    cell, key = np.empty((n * k, 2), np.int64), np.empty(n * k, np.int64)
+    bin_votes, bin_sum, bin_count = np.empty(n * k), np.empty((n * k, 2)), np.empty(n * k, np.int64)
+    taken = np.empty(n * k, np.bool_)
+    found = 0
+    for t in range(turns.shape[0]):
+        c, s = math.cos(turns[t]), math.sin(turns[t])
+        for i in range(n):
+            dx, dy = cells[i, 0] - centre[0], cells[i, 1] - centre[1]
+            moved[i, 0] = (c * dx - s * dy) + centre[0]
+            moved[i, 1] = (s * dx + c * dy) + centre[1]
+        m = 0
+        for i in range(n):
+            for j in range(k):
+                sx, sy = landmarks[j, 0] - moved[i, 0], landmarks[j, 1] - moved[i, 1]
+                if math.hypot(sx, sy) <= shift_limit:
+                    shift[m, 0], shift[m, 1], voter[m] = sx, sy, i
+                    m += 1
+        if m == 0:
+            continue
+        for q in range(m):
+            cell[q, 0], cell[q, 1] = math.floor(shift[q, 0] / inlier), math.floor(shift[q, 1] / inlier)
+        low_x, low_y, high_y = cell[0, 0], cell[0, 1], cell[0, 1]
+        for q in range(1, m):
+            low_x, low_y, high_y = min(low_x, cell[q, 0]), min(low_y, cell[q, 1]), max(high_y, cell[q, 1])
+        for q in range(m):
+            key[q] = (cell[q, 0] - low_x) * (high_y - low_y + 1) + (cell[q, 1] - low_y)
+        order = np.argsort(key[:m], kind="mergesort")
+        bins, last = -1, 0
+        for q in order:
+            if bins < 0 or key[q] != key[last]:
+                bins += 1
+                bin_votes[bins], bin_sum[bins, 0], bin_sum[bins, 1], bin_count[bins] = weights[voter[q]], 0.0, 0.0, 0
+            elif voter[q] != voter[last]:  # each cell votes once per bin
+                bin_votes[bins] += weights[voter[q]]
+            bin_sum[bins, 0] += shift[q, 0]
+            bin_sum[bins, 1] += shift[q, 1]
+            bin_count[bins] += 1
+            last = q
+        bins += 1
+        taken[:bins] = False
+        for _ in range(min(shifts_per_turn, bins)):
+            best = -1
+            for b in range(bins):  # the most votes, the lowest key among equals
+                if not taken[b] and (best < 0 or bin_votes[b] > bin_votes[best]):
+                    best = b
+            taken[best] = True
+            sx, sy = bin_sum[best, 0] / bin_count[best], bin_sum[best, 1] / bin_count[best]
+            score = 0.0
+            for i in range(n):
+                px, py = moved[i, 0] + sx, moved[i, 1] + sy
+                nearest, gap = 0, math.hypot(px - landmarks[0, 0], py - landmarks[0, 1])
+                for j in range(1, k):
+                    d = math.hypot(px - landmarks[j, 0], py - landmarks[j, 1])
+                    if d < gap:
+                        nearest, gap = j, d
+                if gap < inlier:
+                    score += weights[i]
+                    reached[found, i] = nearest
+                else:
+                    reached[found, i] = -1
+            scores[found], turn_index[found], shifts_out[found, 0], shifts_out[found, 1] = score, t, sx, sy
+            found += 1
+    return scores[:found], turn_index[:found], shifts_out[:found], reached[:found]
+
+
+def vote(cells: np.ndarray, weights: np.ndarray, landmarks: np.ndarray, centre: np.ndarray, turns: np.ndarray,
+         shift_limit: float, inlier: float, shifts_per_turn: int) -> list[tuple[float, float, np.ndarray, np.ndarray]]:
+    """:func:`central.fastslam.reacquire.vote_reference` by :func:`vote_kernel`: the same list, entry for entry."""
+    scores, turn_index, shifts, reached = vote_kernel(
+        np.ascontiguousarray(cells, np.float64), np.ascontiguousarray(weights, np.float64),
+        np.ascontiguousarray(landmarks, np.float64), np.ascontiguousarray(centre, np.float64),
+        np.ascontiguousarray(turns, np.float64), float(shift_limit), float(inlier), int(shifts_per_turn))
+    return [(float(score), float(turns[t]), shift, row[row >= 0])
+            for score, t, shift, row in zip(scores, turn_index, shifts, reached)]
+
+
 def warm_up() -> None:
     """Compile (or load from the cache) every FastSLAM kernel on tiny inputs."""
     from central.fastslam.aligned_map import AlignedMap
@@ -716,7 +806,9 @@ def warm_up() -> None:
                          np.eye(2), np.array([[3.0, 0.0]]))
     propose(landmarks, RangeBearingSensor(), pose, np.zeros(3), np.eye(3) * 0.01, slots,
             np.array([[3.0, 0.0], [3.1, 0.3]]), np.eye(2) * 0.01, 1, np.zeros((2, 3)), 1e-12, 1.0, 6.0)
+    vote(np.array([[0.0, 0.0], [1.0, 0.0]]), np.array([1, 2]), np.array([[0.1, 0.0], [1.1, 0.1]]), np.zeros(2),
+         np.array([-0.1, 0.0, 0.1]), 0.5, 0.2, 4)
 
 
 __all__ = ["AVAILABLE", "integrate_controls", "known_update", "marginal_map", "private_blocks", "propose",
-           "proposal_moments", "shared_gating_kernel", "warm_up", "weighted_pose"]
+           "proposal_moments", "shared_gating_kernel", "vote", "warm_up", "weighted_pose"]

@@ -33,6 +33,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from central.fastslam import kernels
 from robots.models import wrap_angle
 
 if TYPE_CHECKING:
@@ -124,28 +125,9 @@ def search(points: np.ndarray, landmarks: np.ndarray, centre: np.ndarray, turn_l
         return None
     cells, weights = np.unique(np.round(points / POINT_QUANTUM) * POINT_QUANTUM, axis=0, return_counts=True)
     inlier = config.reacquire_inlier_m
-    n, k = cells.shape[0], landmarks.shape[0]
-    owner = np.repeat(np.arange(n), k)
     turns = np.arange(-turn_limit, turn_limit + 1e-12, TURN_STEP) if turn_limit > 0.0 else np.zeros(1)
-    scored: list[tuple[float, float, np.ndarray, np.ndarray]] = []
-    for turn in turns:
-        moved = turned(cells, centre, turn)
-        shifts = (landmarks[None, :, :] - moved[:, None, :]).reshape(-1, 2)
-        inside = np.hypot(shifts[:, 0], shifts[:, 1]) <= shift_limit
-        if not inside.any():
-            continue
-        shifts, voters = shifts[inside], owner[inside]
-        cell = np.floor(shifts / inlier).astype(np.int64)
-        cell -= cell.min(0)
-        key = cell[:, 0] * (int(cell[:, 1].max()) + 1) + cell[:, 1]
-        votes_of = np.unique(key * n + voters)  # each point votes once per cell
-        voted_cells, slot = np.unique(votes_of // n, return_inverse=True)
-        votes = np.bincount(slot, weights=weights[votes_of % n])
-        for best in np.argsort(-votes, kind="stable")[:SHIFTS_PER_TURN]:
-            shift = shifts[key == voted_cells[best]].mean(0)
-            gap = np.hypot(*((moved + shift)[:, None, :] - landmarks[None]).transpose(2, 0, 1))
-            near = gap.min(1) < inlier
-            scored.append((float(near @ weights), float(turn), shift, gap.argmin(1)[near]))
+    vote = kernels.vote if config.compiled else vote_reference
+    scored = vote(cells, weights, landmarks, np.asarray(centre, float), turns, shift_limit, inlier, SHIFTS_PER_TURN)
     if not scored:
         return None
     scored.sort(key=lambda item: -item[0])
@@ -166,6 +148,38 @@ def search(points: np.ndarray, landmarks: np.ndarray, centre: np.ndarray, turn_l
                 return None
             break
     return refine(cells, weights, landmarks, centre, turn, shift, inlier, detections, int(np.unique(reached).size))
+
+
+def vote_reference(cells: np.ndarray, weights: np.ndarray, landmarks: np.ndarray, centre: np.ndarray,
+                   turns: np.ndarray, shift_limit: float, inlier: float, shifts_per_turn: int
+                   ) -> list[tuple[float, float, np.ndarray, np.ndarray]]:
+    """The Hough vote of :func:`search`, in numpy (the reference of :func:`central.fastslam.kernels.vote`): for each
+    of ``turns`` about ``centre``, every (cell, landmark) pair within ``shift_limit`` votes for the shift joining
+    them, binned on an ``inlier`` grid, each cell once per bin with its weight; the ``shifts_per_turn`` best bins
+    (ties: the lower bin key first) are scored at the mean of their shifts. Returns, per scored shift, turn by turn
+    and best bin first: (detections brought within ``inlier`` of a landmark, turn, shift, the landmark each reaches)."""
+    n, k = cells.shape[0], landmarks.shape[0]
+    owner = np.repeat(np.arange(n), k)
+    scored: list[tuple[float, float, np.ndarray, np.ndarray]] = []
+    for turn in turns:
+        moved = turned(cells, centre, turn)
+        shifts = (landmarks[None, :, :] - moved[:, None, :]).reshape(-1, 2)
+        inside = np.hypot(shifts[:, 0], shifts[:, 1]) <= shift_limit
+        if not inside.any():
+            continue
+        shifts, voters = shifts[inside], owner[inside]
+        cell = np.floor(shifts / inlier).astype(np.int64)
+        cell -= cell.min(0)
+        key = cell[:, 0] * (int(cell[:, 1].max()) + 1) + cell[:, 1]
+        votes_of = np.unique(key * n + voters)  # each point votes once per cell
+        voted_cells, slot = np.unique(votes_of // n, return_inverse=True)
+        votes = np.bincount(slot, weights=weights[votes_of % n])
+        for best in np.argsort(-votes, kind="stable")[:shifts_per_turn]:
+            shift = shifts[key == voted_cells[best]].mean(0)
+            gap = np.hypot(*((moved + shift)[:, None, :] - landmarks[None]).transpose(2, 0, 1))
+            near = gap.min(1) < inlier
+            scored.append((float(near @ weights), float(turn), shift, gap.argmin(1)[near]))
+    return scored
 
 
 def refine(points: np.ndarray, weights: np.ndarray, landmarks: np.ndarray, centre: np.ndarray, turn: float,

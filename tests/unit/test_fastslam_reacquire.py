@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pytest
 
-from central.fastslam import reacquire
+from central.fastslam import kernels, reacquire
 from central.fastslam.config import FastSlamConfig
 from central.fastslam.core import FastSlam
 from robots.models import se2_compose, wrap_angle
@@ -153,3 +153,70 @@ def test_drift_grows_while_blind_and_restarts_at_a_match():
     grown = drifts[True][drifts[True] > 0]
     assert len(grown) > 5 and np.all(np.diff(grown) > 0)
     assert drifts[False].max() < 0.05 * drifts[True][-1]  # at most the motion since the last matched scan
+
+
+def vote_inputs(layout: str, seed: int) -> tuple:
+    """The Hough vote's inputs as :func:`reacquire.search` makes them: ``clusters`` of landmarks (a point's pairs
+    with two close landmarks fall in one bin), a ``lattice`` 1 m apart (equal votes: the order of ties decides),
+    or ``far`` (no pair within the shift limit)."""
+    rng = np.random.default_rng(seed)
+    if layout == "lattice":
+        landmarks = np.array([(x, y) for x in range(6) for y in range(6)], float)
+        points = np.repeat(landmarks[rng.choice(36, 6, replace=False)], 3, axis=0) + rng.normal(0.3, 0.02, (18, 2))
+    else:
+        landmarks = arena(seed)
+        points = rng.uniform([-1.0, -4.0], [5.0, 4.0], (30, 2))
+        points = np.concatenate([points, points[:10] + rng.normal(0.0, 0.01, (10, 2))])
+    if layout == "far":
+        points += 50.0
+    cells, weights = np.unique(np.round(points / reacquire.POINT_QUANTUM) * reacquire.POINT_QUANTUM, axis=0,
+                               return_counts=True)
+    turns = np.arange(-0.4, 0.4 + 1e-12, reacquire.TURN_STEP)
+    centre = rng.uniform(0.0, 3.0, 2)
+    return cells, weights, landmarks, centre, turns, 1.5, CONFIG.reacquire_inlier_m, reacquire.SHIFTS_PER_TURN
+
+
+@pytest.mark.parametrize("layout, seed", [("clusters", 0), ("clusters", 1), ("clusters", 2), ("lattice", 0),
+                                          ("lattice", 1), ("lattice", 2), ("far", 0)])
+def test_vote_kernel_scores_the_same_shifts_in_the_same_order_as_the_reference(layout, seed):
+    """Entry for entry: the later sort is stable, so among equal scores the order of the entries picks the
+    correction."""
+    inputs = vote_inputs(layout, seed)
+    reference = reacquire.vote_reference(*inputs)
+    compiled = kernels.vote(*inputs)
+    assert len(compiled) == len(reference)
+    assert (len(reference) == 0) == (layout == "far")
+    for (score, turn, shift, reached), (score_ref, turn_ref, shift_ref, reached_ref) in zip(compiled, reference):
+        assert score == score_ref and turn == turn_ref
+        np.testing.assert_allclose(shift, shift_ref, rtol=0.0, atol=1e-9)
+        np.testing.assert_array_equal(reached, reached_ref)
+
+
+@pytest.mark.parametrize("layout, seed", [("clusters", 0), ("lattice", 1), ("lattice", 3), ("far", 1)])
+def test_search_gives_the_same_correction_with_the_kernel(layout, seed):
+    cells, weights, landmarks, centre, turns, shift_limit, _, _ = vote_inputs(layout, seed)
+    points = np.repeat(cells, weights, axis=0)
+    found = {}
+    for compiled in (True, False):
+        config = CONFIG.model_copy(update={"compiled": compiled})
+        found[compiled] = reacquire.search(points, landmarks, centre, turns[-1], shift_limit, config)
+    assert (found[True] is None) == (found[False] is None)
+    if found[True] is not None:
+        assert found[True].turn == found[False].turn
+        np.testing.assert_allclose(found[True].shift, found[False].shift, rtol=0.0, atol=1e-9)
+        assert (found[True].detections, found[True].landmarks) == (found[False].detections, found[False].landmarks)
+
+
+def test_the_kernel_finds_the_correction_of_the_search_test():
+    """The compiled vote on the case :func:`test_search_finds_the_correction_that_puts_the_detections_back_on_the_map`
+    checks: the same correction as the reference."""
+    landmarks = arena()
+    centre = np.array([2.0, 0.0])
+    seen = landmarks[np.hypot(*(landmarks - centre).T) < 4.0]
+    truth = reacquire.Correction(math.radians(25.0), np.array([0.4, -0.3]), centre, 0.0, 0)
+    points = detections_from(np.repeat(seen, 3, axis=0), truth)
+    found = [reacquire.search(points, landmarks, centre, math.radians(45.0), 2.0,
+                              CONFIG.model_copy(update={"compiled": compiled})) for compiled in (True, False)]
+    assert found[0] is not None and found[1] is not None
+    assert found[0].turn == found[1].turn and found[0].detections == found[1].detections
+    np.testing.assert_allclose(found[0].shift, found[1].shift, rtol=0.0, atol=1e-9)
