@@ -112,8 +112,8 @@ class FastSlamConfig(CoreConfig):
         "their innovations against the true poses are heavy-tailed (bearing std 3.6x the scan's, median d² 0.4), and "
         "the scan's covariance let a few of them collapse the fleet's particles (1: MR.CLAM worst robot 1.66/2.50 m "
         "over 10 seeds; 2, 4, 8, 16 all 1.3-1.6 m median, 4 the best worst case)")
-    compiled: bool = Field(True, description="EKF updates with known ids, control integration, pose and map mixtures by the "
-                           "numba kernels (False: the numpy references)")
+    compiled: bool = Field(True, description="EKF updates with known ids, control integration, pose and map mixtures and the "
+                           "re-acquisition vote by the numba kernels (False: the numpy references)")
     robot_detection_max_dt: float = Field(0.1, ge=0.0, description="... only when the other robot's pose is this recent (s)")
 
     @property
