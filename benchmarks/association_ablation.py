@@ -28,8 +28,9 @@ Steps (D-SLAM, ``--association unknown``: the association service's ``auto``; de
 - ``dslam-floor``: ... gating with ``gate_pose_floor`` added to the pose covariance;
 - ``dslam-local-map``: ... and scans with fewer than two mapped features collected into local maps;
 - ``dslam-turn-slip``: ... and the heading variance per radian turned the robots announce (MR.CLAM's 0.015;
-  the other data sets announce none), summed since the last localization, added to the association's gate: the
-  default;
+  the other data sets announce none), summed since the last localization, added to the association's gate;
+- ``dslam-reacquire``: ... and re-acquisition of a lost robot (``reacquire``: position std beyond 1 m, detections
+  held until one rigid correction against the map is clear): the default;
 - ``dslam-unique``: the default with ``unique_pairs``.
 
 Data: MR.CLAM 6 (five robots in one filter), Victoria Park (GPS), ACFR car park (GPS and surveyed beacons).
@@ -64,10 +65,11 @@ STEPS: dict[str, tuple[str, str, dict]] = {
     "shared-jcbb": ("fastslam", "unknown", {}),
     "shared-jcbb-ess-0.05": ("fastslam", "unknown", {"resample_ess": 0.05}),
     "dslam-per-scan": ("dslam", "unknown", {"local_map_max_std": 0.0, "gate_pose_floor": (0.0, 0.0, 0.0),
-                                            "turn_slip": False}),
-    "dslam-floor": ("dslam", "unknown", {"local_map_max_std": 0.0, "turn_slip": False}),
-    "dslam-local-map": ("dslam", "unknown", {"turn_slip": False}),
-    "dslam-turn-slip": ("dslam", "unknown", {}),
+                                            "turn_slip": False, "reacquire": False}),
+    "dslam-floor": ("dslam", "unknown", {"local_map_max_std": 0.0, "turn_slip": False, "reacquire": False}),
+    "dslam-local-map": ("dslam", "unknown", {"turn_slip": False, "reacquire": False}),
+    "dslam-turn-slip": ("dslam", "unknown", {"reacquire": False}),
+    "dslam-reacquire": ("dslam", "unknown", {}),
     "shared-jcbb-unique": ("fastslam", "unknown", {"unique_pairs": True}),
     "shared-jcbb-turn-slip": ("fastslam", "unknown", {"turn_slip": True}),
     "shared-jcbb-turn-gain": ("fastslam", "unknown", {"turn_gain_std": 0.04, "turn_gain_walk": 0.002}),

@@ -7,6 +7,7 @@ from typing import Literal
 
 from pydantic import Field, model_validator
 
+from central.fastslam.reacquire import SearchRule
 from schemas.contract import CoreConfig
 
 Probability = Field(gt=0.0, lt=1.0)
@@ -115,6 +116,12 @@ class FastSlamConfig(CoreConfig):
     compiled: bool = Field(True, description="EKF updates with known ids, control integration, pose and map mixtures and the "
                            "re-acquisition vote by the numba kernels (False: the numpy references)")
     robot_detection_max_dt: float = Field(0.1, ge=0.0, description="... only when the other robot's pose is this recent (s)")
+
+    @property
+    def reacquire_rule(self) -> SearchRule:
+        """When re-acquisition's search takes a correction (:class:`central.fastslam.reacquire.SearchRule`)."""
+        return SearchRule(self.reacquire_min_detections, self.reacquire_inlier_m, self.reacquire_span_m,
+                          self.reacquire_margin, compiled=self.compiled)
 
     @property
     def fastslam2(self) -> bool:

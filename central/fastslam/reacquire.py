@@ -23,6 +23,9 @@ leaves the turn free), and no distinct correction comes within ``reacquire_margi
 robot's particles are moved by it, its drift starts again from zero and the scan is associated as usual. A
 blind robot's detections neither update nor start landmarks (counted as ``detections_blind``): what it would
 map from a pose it does not know is what this guards against.
+
+D-SLAM's re-acquisition (:meth:`services.dslam.core.DSlam._held`) uses the same window and search with its own
+:class:`SearchRule`: a robot there is lost when its own position std passes a limit.
 """
 
 from __future__ import annotations
@@ -45,8 +48,24 @@ TURN_STEP = math.radians(1.5)  # the turns tried, this far apart
 POINT_QUANTUM = 0.05  # m: the same landmark seen again from about the same place votes once, with its count
 SHIFTS_PER_TURN = 4  # the best-voted shifts of each turn scored in full
 DISTINCT_TURN = math.radians(8.0)  # a correction this far in turn, or ...
-DISTINCT_SHIFT = 0.4  # ... in shift (m) from the best is another hypothesis, not the same one
+DISTINCT_SHIFT = 1.6  # ... in shift (inlier radii: 0.4 m at 0.25) from the best is another hypothesis
 SIGMAS = 3.0  # the search window in σ of the drift
+
+
+@dataclass(frozen=True)
+class SearchRule:
+    """When :func:`search` takes a correction: it brings ``min_detections`` detections within ``inlier`` (m) of a
+    landmark, reaching ``min_landmarks`` distinct landmarks at least ``span`` (m) apart, and no distinct correction
+    comes within ``margin`` detections of it. ``compiled``: the vote by its numba kernel. FastSLAM's comes from its
+    config (:meth:`central.fastslam.config.FastSlamConfig.reacquire_rule`), D-SLAM's from its config and the
+    sensor's noise (:mod:`services.dslam.core`)."""
+
+    min_detections: int
+    inlier: float
+    span: float
+    margin: float
+    min_landmarks: int = 2
+    compiled: bool = True
 
 
 @dataclass
@@ -117,34 +136,35 @@ def lost(config: FastSlamConfig, drift: np.ndarray | None) -> bool:
 
 
 def search(points: np.ndarray, landmarks: np.ndarray, centre: np.ndarray, turn_limit: float, shift_limit: float,
-           config: FastSlamConfig) -> Correction | None:
+           rule: SearchRule) -> Correction | None:
     """The rigid correction (turn ≤ ``turn_limit`` about ``centre``, shift ≤ ``shift_limit``) that brings the most
-    ``points`` ``(n, 2)`` within ``reacquire_inlier_m`` of ``landmarks`` ``(K, 2)``, or None when it is not
-    clearly the one (too few detections, one landmark only, or a distinct correction nearly as good)."""
-    if points.shape[0] < config.reacquire_min_detections or landmarks.shape[0] < 2:
+    ``points`` ``(n, 2)`` within ``rule.inlier`` of ``landmarks`` ``(K, 2)``, or None when it is not clearly the
+    one (too few detections or landmarks, landmarks too close together, or a distinct correction nearly as good)."""
+    if points.shape[0] < rule.min_detections or landmarks.shape[0] < max(rule.min_landmarks, 2):
         return None
     cells, weights = np.unique(np.round(points / POINT_QUANTUM) * POINT_QUANTUM, axis=0, return_counts=True)
-    inlier = config.reacquire_inlier_m
+    inlier = rule.inlier
+    distinct_shift = DISTINCT_SHIFT * inlier
     turns = np.arange(-turn_limit, turn_limit + 1e-12, TURN_STEP) if turn_limit > 0.0 else np.zeros(1)
-    vote = kernels.vote if config.compiled else vote_reference
+    vote = kernels.vote if rule.compiled else vote_reference
     scored = vote(cells, weights, landmarks, np.asarray(centre, float), turns, shift_limit, inlier, SHIFTS_PER_TURN)
     if not scored:
         return None
     scored.sort(key=lambda item: -item[0])
     detections, turn, shift, reached = scored[0]
-    if detections < config.reacquire_min_detections:
+    if detections < rule.min_detections:
         return None
     tied = [item for item in scored if item[0] == detections and abs(item[1] - turn) <= DISTINCT_TURN
-            and np.hypot(*(item[2] - shift)) <= DISTINCT_SHIFT]
+            and np.hypot(*(item[2] - shift)) <= distinct_shift]
     middle = 0.5 * (min(item[1] for item in tied) + max(item[1] for item in tied))
     _, turn, shift, _ = min(tied, key=lambda item: abs(item[1] - middle))  # the middle of the turns that explain
     # as much, not the edge of that band (the first found)
     hit = landmarks[np.unique(reached)]
-    if np.max(np.hypot(*(hit[:, None] - hit[None]).transpose(2, 0, 1))) < config.reacquire_span_m:
+    if hit.shape[0] < rule.min_landmarks or np.max(np.hypot(*(hit[:, None] - hit[None]).transpose(2, 0, 1))) < rule.span:
         return None
     for other, other_turn, other_shift, _ in scored[1:]:
-        if abs(other_turn - turn) > DISTINCT_TURN or np.hypot(*(other_shift - shift)) > DISTINCT_SHIFT:
-            if other > detections - config.reacquire_margin:
+        if abs(other_turn - turn) > DISTINCT_TURN or np.hypot(*(other_shift - shift)) > distinct_shift:
+            if other > detections - rule.margin:
                 return None
             break
     return refine(cells, weights, landmarks, centre, turn, shift, inlier, detections, int(np.unique(reached).size))
@@ -220,7 +240,7 @@ def step(slam: FastSlam, robot: RobotState, pose: np.ndarray, z: np.ndarray, lan
                           config.reacquire_max_shift_m)
         points = np.concatenate(window.points)
         reach = float(np.hypot(*(points - pose[:2]).T).max()) + shift_limit + config.reacquire_inlier_m
-        correction = search(points, landmarks(pose[:2], reach), pose[:2], turn_limit, shift_limit, config)
+        correction = search(points, landmarks(pose[:2], reach), pose[:2], turn_limit, shift_limit, config.reacquire_rule)
         if correction is not None:
             col = robot.index
             slam.pose[:, col] = correction.apply(slam.pose[:, col])

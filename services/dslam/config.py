@@ -96,5 +96,28 @@ class DslamConfig(CoreConfig):
     relocalize_after: int = Field(
         10, ge=1, description="scans in a row whose observation estimate contradicts the prediction before the robot is relocalized"
     )
+    reacquire: bool = Field(
+        True, description="without ids, a robot whose position std exceeds reacquire_position_sd is lost: its scans "
+        "neither map nor localize it (the association that makes z_map and the observation estimate is made from the "
+        "pose), its detections are held as points from its dead-reckoned pose, and a search for one rigid correction "
+        "(services/dslam/core.py, the Hough vote of central/fastslam/reacquire.py) puts it back on the map. Victoria "
+        "Park: the car's std grows to 4 m in the sparse north-west, trees mapped from there were wrongly paired, and "
+        "the map they made in a wrong frame held it 100 m off for the rest of the run (README)")
+    reacquire_position_sd: float = Field(
+        2.0, gt=0.0, description="... lost beyond this position std (m). Victoria Park, GPS RMSE by this limit: 0.75 m "
+        "13.0, 1 m 7.0, 1.25 m 5.5, 1.5 m 5.1, 2 m 4.8, 2.5 m 4.0, 3 m 21.3 (lost before it counts as lost), none 58.0")
+    reacquire_window_s: float = Field(15.0, gt=0.0, description="... its detections of the last this many seconds count")
+    reacquire_every_s: float = Field(0.5, gt=0.0, description="... searched for a correction at most this often (s)")
+    reacquire_inlier_sigmas: float = Field(
+        2.0, gt=0.0, description="... a detection within this many range σ of the sensor of a landmark is explained "
+        "(Victoria Park 1 m, MR.CLAM 0.3 m, the car park 0.2 m); the landmarks it reaches must be 4 such radii apart")
+    reacquire_min_detections: int = Field(8, ge=1, description="... a correction must explain this many detections")
+    reacquire_min_landmarks: int = Field(
+        5, ge=2, description="... of this many distinct landmarks (a window of a car's scans sees few trees many "
+        "times: on Victoria Park corrections onto 2 to 4 trees were wrong by up to 35° and 32 m; GPS RMSE 15.2 m with "
+        "4, 7.0 m with 5, 6.4 m with 6, all at reacquire_position_sd 1 m)")
+    reacquire_margin: float = Field(
+        3.0, ge=0.0, description="... and no distinct correction may come within this many detections of it")
+    reacquire_max_turn: float = Field(0.785, ge=0.0, description="... turning it by at most this (rad)")
     ci_criterion: Literal["trace", "det"] = Field("trace", description="covariance intersection minimises the trace or the determinant")
     marginals_limit: int = Field(3000, ge=0, description="maps up to this many landmarks report every marginal covariance exactly")

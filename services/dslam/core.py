@@ -29,6 +29,12 @@ Per scan of a robot:
 Features are first *tentative* (counted sightings, dropped after misses in
 view) and enter the map once confirmed (§3.1); sightings from a known pose
 are kept and applied on confirmation.
+
+Re-acquisition (not in the paper; ``reacquire``): without ids, a robot whose
+position std passes ``reacquire_position_sd`` is lost. Its scans neither
+localize it nor map: their detections are held, placed from its dead-reckoned
+pose, until one rigid correction of them against the map is clear (the Hough
+vote of :mod:`central.fastslam.reacquire`).
 """
 
 from __future__ import annotations
@@ -43,6 +49,7 @@ import scipy.linalg
 
 from robots.gaussian import chi2_quantile, inv2, turn_slip, valid_placement
 from robots.models import in_field_of_view, robot_models, wrap_angle
+from central.fastslam import reacquire
 from schemas.association import AMBIGUOUS, NEW, AssociationReply, AssociationRequest
 from schemas.contract import MapView, OdomEvent, RunOptions, ScanEvent, SettingsError, build_config
 from schemas.messages import RobotInfo
@@ -94,6 +101,7 @@ class RobotState:
     local: LocalMap | None = None  # scans collected since the last z_map (local_map_max_std > 0)
     turn_slip: float = 0.0  # heading variance turned since the last full-rank localization: widens the gate only
     placed_at: float = float("-inf")  # the stamp of the pose it was placed at: its events before then are past
+    blind: reacquire.BlindWindow | None = None  # a lost robot's held detections (re-acquisition)
     deferred: tuple = ()  # scans kept, without a pose, until the columns of their mapped landmarks are solved
     wanted: tuple = ()  # ... those landmarks (DSlam.column_prefetch solves them first)
 
@@ -126,7 +134,11 @@ class RobotState:
             return False
         if not self.moved:
             return True
-        return mapped < 2 and float(np.sqrt(np.max(np.linalg.eigvalsh(self.cov[:2, :2])))) <= bootstrap_std
+        return mapped < 2 and self.position_std() <= bootstrap_std
+
+    def position_std(self) -> float:
+        """The largest standard deviation (m) of the robot's position."""
+        return float(np.sqrt(np.max(np.linalg.eigvalsh(self.cov[:2, :2]))))
 
 
 @dataclass
@@ -335,6 +347,8 @@ class DSlam:
         noise = np.asarray(event.noise_cov, float)
         robot.stamp = event.stamp
         self.counts["scans"] += 1
+        if self._held(robot, obs, noise):
+            return
         labels = self._associate(robot, obs, noise, ids)
         if labels is None:
             self.counts["scans_unassociated"] += 1
@@ -356,6 +370,50 @@ class DSlam:
             self._map_phase_two(obs, noise, kinds, refs, mapped, confirmed)
         self.map.maintain()
         self.last_step_ms = (time.perf_counter() - started) * 1e3
+
+    # --------------------------------------------------------- re-acquisition
+    def _held(self, robot: RobotState, obs: np.ndarray, noise: np.ndarray) -> bool:
+        """Whether this scan is held for re-acquisition: the robot is lost (no ids, position std beyond
+        ``reacquire_position_sd``) and no rigid correction of its recent detections is clear yet. A correction
+        found moves the robot (its covariance then that of the correction's grid) and the scan goes on as usual."""
+        s = self.config
+        if (not s.reacquire or s.association == "known" or robot.pose is None
+                or robot.position_std() <= s.reacquire_position_sd):
+            robot.blind = None
+            return False
+        if robot.blind is None:
+            robot.blind = reacquire.BlindWindow()
+            self.counts["reacquire_started"] += 1
+        robot.local = None
+        window = robot.blind
+        window.add(robot.stamp, robot.sensor.inverse(robot.pose, obs), s.reacquire_window_s)
+        if robot.stamp - window.tried >= s.reacquire_every_s:
+            window.tried = robot.stamp
+            inlier = s.reacquire_inlier_sigmas * float(np.sqrt(noise[0, 0]))
+            rule = reacquire.SearchRule(s.reacquire_min_detections, inlier, 4.0 * inlier, s.reacquire_margin,
+                                        s.reacquire_min_landmarks)
+            correction = self._search(robot, rule)
+            if correction is not None:
+                robot.pose = correction.apply(robot.pose)
+                robot.cov = np.diag([inlier ** 2, inlier ** 2, reacquire.TURN_STEP ** 2])
+                robot.blind, robot.turn_slip, robot.disagreements = None, 0.0, 0
+                self.counts["reacquired"] += 1
+                return False
+        self.counts["detections_blind"] += obs.shape[0]
+        return True
+
+    def _search(self, robot: RobotState, rule: reacquire.SearchRule) -> reacquire.Correction | None:
+        """The rigid correction of a lost robot's held detections against the mapped landmarks near them: turns
+        within 3σ of its heading (at most ``reacquire_max_turn``), shifts within 3σ of its position."""
+        points = np.concatenate(robot.blind.points)
+        if not points.shape[0] or not self.map.n:
+            return None
+        turn_limit = min(reacquire.SIGMAS * float(np.sqrt(robot.cov[2, 2] + robot.turn_slip)), self.config.reacquire_max_turn)
+        shift_limit = reacquire.SIGMAS * robot.position_std() + rule.inlier
+        reach = float(np.hypot(*(points - robot.pose[:2]).T).max()) + shift_limit + rule.inlier
+        means = self.map.means
+        near = means[np.sum((means - robot.pose[:2]) ** 2, axis=1) <= reach * reach]
+        return reacquire.search(points, near, robot.pose[:2], turn_limit, shift_limit, rule)
 
     # ------------------------------------------------------------ association
     def _associate(self, robot: RobotState, obs: np.ndarray, noise: np.ndarray, ids: np.ndarray | None):

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
+from robots.models import wrap_angle
 from robots.simulator import simulate
 from robots.worlds import make_world
 from schemas.contract import OdomEvent, RunOptions, ScanEvent
@@ -227,3 +228,48 @@ def test_a_robot_placed_against_the_map_maps_from_its_placed_pose_until_localize
                 np.testing.assert_allclose(means[i], landmarks[i], atol=0.05)
         else:
             assert sorted(estimator.ids) == [1, 2] and estimator.robots["r2"].localized
+
+
+
+def kidnapped(world: str, seed: int, duration: float, shift, reacquire: bool):
+    """D-SLAM without ids over a simulated run whose robot, halfway, is moved by ``shift`` (x, y, θ) in the filter
+    with its position std set beyond 3 m: (estimator, map means before, scans after, the true pose at the end)."""
+    data = simulate(world, robots=1, seed=seed, duration=duration)
+    events = list(data.events())
+    half = len(events) // 2
+    estimator = DSlam(DslamConfig(association="jcbb", reacquire=reacquire))
+    estimator.add_robot(data.robots["r1"].info)
+    for event in events[:half]:
+        (estimator.on_odometry if isinstance(event, OdomEvent) else estimator.on_scan)(event)
+    before = estimator.map.means.copy()
+    robot = estimator.robots["r1"]
+    robot.pose = robot.pose + np.asarray(shift, float)
+    robot.cov = robot.cov + np.diag([9.0, 9.0, 0.0])
+    scans = 0
+    for event in events[half:]:
+        scans += isinstance(event, ScanEvent)
+        (estimator.on_odometry if isinstance(event, OdomEvent) else estimator.on_scan)(event)
+    log = data.robots["r1"]
+    return estimator, before, scans, log.truth_at(np.array([log.scan_stamp[-1]]))[0]
+
+
+def test_a_lost_robot_leaves_the_map_alone_until_one_correction_puts_it_back():
+    """Re-acquisition: a robot whose position std is beyond ``reacquire_position_sd`` neither maps nor localizes
+    from its scans; its held detections are searched for one rigid correction, which puts it back on the map."""
+    estimator, before, scans, truth = kidnapped("arena", 2, 40.0, (1.2, -0.8, 0.15), reacquire=True)
+    assert before.shape[0] >= 8
+    assert estimator.counts["reacquire_started"] == 1 and estimator.counts["reacquired"] == 1
+    assert 0 < estimator.counts["detections_blind"]
+    pose, _ = estimator.poses()["r1"]
+    assert np.hypot(*(pose[:2] - truth[:2])) < 0.2 and abs(wrap_angle(pose[2] - truth[2])) < 0.15
+    held, before, scans, _ = kidnapped("arena", 2, 40.0, (30.0, 0.0, 0.0), reacquire=True)  # far off: no correction
+    np.testing.assert_array_equal(held.map.means, before)
+    assert held.counts["reacquired"] == 0 and held.counts["scans"] > scans > 20
+    assert held.robots["r1"].blind is not None
+
+
+def test_without_re_acquisition_the_kidnapped_robot_maps_from_where_it_wrongly_is():
+    estimator, before, _, truth = kidnapped("arena", 2, 40.0, (1.2, -0.8, 0.15), reacquire=False)
+    assert estimator.counts["reacquire_started"] == 0 and estimator.counts["detections_blind"] == 0
+    pose, _ = estimator.poses()["r1"]
+    assert np.hypot(*(pose[:2] - truth[:2])) > 1.0

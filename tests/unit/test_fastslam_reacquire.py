@@ -67,7 +67,7 @@ def test_search_finds_the_correction_that_puts_the_detections_back_on_the_map(tu
     assert len(seen) >= 4
     truth = reacquire.Correction(turn, np.array(shift), centre, 0.0, 0)
     points = detections_from(np.repeat(seen, 3, axis=0), truth)
-    found = reacquire.search(points, landmarks, centre, math.radians(45.0), 2.0, CONFIG)
+    found = reacquire.search(points, landmarks, centre, math.radians(45.0), 2.0, CONFIG.reacquire_rule)
     assert found is not None
     assert abs(found.turn - turn) < math.radians(2.0)
     moved = found.apply(np.column_stack([points, np.zeros(len(points))]))[:, :2]
@@ -80,17 +80,20 @@ def test_search_refuses_what_the_detections_cannot_decide():
     landmarks = arena()
     centre = np.array([2.0, 0.0])
     one = np.repeat(landmarks[:1], 8, axis=0) + 0.01
-    assert reacquire.search(one, landmarks, centre, 0.5, 1.0, CONFIG) is None  # one landmark: the turn is free
+    assert reacquire.search(one, landmarks, centre, 0.5, 1.0, CONFIG.reacquire_rule) is None  # one landmark: the turn is free
     few = landmarks[:2] + 0.01
-    assert reacquire.search(few, landmarks, centre, 0.5, 1.0, CONFIG) is None  # fewer than min_detections
+    assert reacquire.search(few, landmarks, centre, 0.5, 1.0, CONFIG.reacquire_rule) is None  # fewer than min_detections
     pair = np.array([[0.0, 0.0], [0.5, 0.0], [3.0, 3.0]])  # only two landmarks 0.5 m apart seen: the turn is loose
     points = np.repeat(pair[:2], 5, axis=0) + 0.1
-    assert reacquire.search(points, pair, np.zeros(2), 0.0, 0.3, CONFIG) is None
-    assert reacquire.search(points, pair, np.zeros(2), 0.0, 0.3, CONFIG.model_copy(update={"reacquire_span_m": 0.4}))
+    assert reacquire.search(points, pair, np.zeros(2), 0.0, 0.3, CONFIG.reacquire_rule) is None
+    loose_span = CONFIG.model_copy(update={"reacquire_span_m": 0.4}).reacquire_rule
+    assert reacquire.search(points, pair, np.zeros(2), 0.0, 0.3, loose_span)
+    three = dataclasses.replace(loose_span, min_landmarks=3)  # two landmarks reached, three wanted
+    assert reacquire.search(points, pair, np.zeros(2), 0.0, 0.3, three) is None
     grid = np.array([(x, y) for x in range(6) for y in range(6)], float)  # a lattice 1 m apart: shifts by 1 m tie
     points = np.repeat(grid[[7, 8, 13, 14]], 3, axis=0) + 0.3
-    assert reacquire.search(points, grid, np.array([1.5, 1.5]), 0.0, 2.0, CONFIG) is None
-    inside = reacquire.search(points, grid, np.array([1.5, 1.5]), 0.0, 0.5, CONFIG)  # a window of one cell decides
+    assert reacquire.search(points, grid, np.array([1.5, 1.5]), 0.0, 2.0, CONFIG.reacquire_rule) is None
+    inside = reacquire.search(points, grid, np.array([1.5, 1.5]), 0.0, 0.5, CONFIG.reacquire_rule)  # a window of one cell decides
     assert inside is not None and np.allclose(inside.shift, [-0.3, -0.3], atol=0.02)
 
 
@@ -198,8 +201,8 @@ def test_search_gives_the_same_correction_with_the_kernel(layout, seed):
     points = np.repeat(cells, weights, axis=0)
     found = {}
     for compiled in (True, False):
-        config = CONFIG.model_copy(update={"compiled": compiled})
-        found[compiled] = reacquire.search(points, landmarks, centre, turns[-1], shift_limit, config)
+        rule = CONFIG.model_copy(update={"compiled": compiled}).reacquire_rule
+        found[compiled] = reacquire.search(points, landmarks, centre, turns[-1], shift_limit, rule)
     assert (found[True] is None) == (found[False] is None)
     if found[True] is not None:
         assert found[True].turn == found[False].turn
@@ -216,7 +219,7 @@ def test_the_kernel_finds_the_correction_of_the_search_test():
     truth = reacquire.Correction(math.radians(25.0), np.array([0.4, -0.3]), centre, 0.0, 0)
     points = detections_from(np.repeat(seen, 3, axis=0), truth)
     found = [reacquire.search(points, landmarks, centre, math.radians(45.0), 2.0,
-                              CONFIG.model_copy(update={"compiled": compiled})) for compiled in (True, False)]
+                              CONFIG.model_copy(update={"compiled": compiled}).reacquire_rule) for compiled in (True, False)]
     assert found[0] is not None and found[1] is not None
     assert found[0].turn == found[1].turn and found[0].detections == found[1].detections
     np.testing.assert_allclose(found[0].shift, found[1].shift, rtol=0.0, atol=1e-9)
