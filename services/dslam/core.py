@@ -387,9 +387,9 @@ class DSlam:
         robot.local = None
         window = robot.blind
         window.add(robot.stamp, robot.sensor.inverse(robot.pose, obs), s.reacquire_window_s)
-        if robot.stamp - window.tried >= s.reacquire_every_s:
+        inlier = s.reacquire_inlier_sigmas * float(np.sqrt(max(noise[0, 0], 0.0)))
+        if inlier > 0.0 and robot.stamp - window.tried >= s.reacquire_every_s:  # no radius from a noise of 0
             window.tried = robot.stamp
-            inlier = s.reacquire_inlier_sigmas * float(np.sqrt(noise[0, 0]))
             rule = reacquire.SearchRule(s.reacquire_min_detections, inlier, 4.0 * inlier, s.reacquire_margin,
                                         s.reacquire_min_landmarks)
             correction = self._search(robot, rule)

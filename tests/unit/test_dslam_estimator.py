@@ -262,10 +262,17 @@ def test_a_lost_robot_leaves_the_map_alone_until_one_correction_puts_it_back():
     assert 0 < estimator.counts["detections_blind"]
     pose, _ = estimator.poses()["r1"]
     assert np.hypot(*(pose[:2] - truth[:2])) < 0.2 and abs(wrap_angle(pose[2] - truth[2])) < 0.15
-    held, before, scans, _ = kidnapped("arena", 2, 40.0, (30.0, 0.0, 0.0), reacquire=True)  # far off: no correction
+    held, before, scans, truth = kidnapped("arena", 2, 40.0, (30.0, 0.0, 0.0), reacquire=True)  # far off: none
     np.testing.assert_array_equal(held.map.means, before)
     assert held.counts["reacquired"] == 0 and held.counts["scans"] > scans > 20
     assert held.robots["r1"].blind is not None
+    scan = simulate("arena", robots=1, seed=2, duration=40.0).robots["r1"].scan(-1)
+    scan.seq, scan.stamp = scan.seq + 1, scan.stamp + 1.0
+    scan.noise_cov = np.zeros((2, 2))  # schema-valid, yet no inlier radius: held, not searched, nothing breaks
+    held.robots["r1"].pose = truth.copy()  # among the landmarks again, still lost
+    blind = held.counts["detections_blind"]
+    held.on_scan(scan)
+    assert held.counts["detections_blind"] == blind + len(scan.ranges) and held.counts["reacquired"] == 0
 
 
 def test_without_re_acquisition_the_kidnapped_robot_maps_from_where_it_wrongly_is():
