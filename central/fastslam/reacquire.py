@@ -84,6 +84,13 @@ class BlindWindow:
             old += 1
         del self.stamps[:old], self.points[:old]
 
+    def due(self, stamp: float, every_s: float) -> bool:
+        """Whether a search is due at ``stamp`` (at most one every ``every_s``); if so it counts as tried."""
+        if stamp - self.tried < every_s:
+            return False
+        self.tried = stamp
+        return True
+
 
 @dataclass(frozen=True)
 class Correction:
@@ -170,6 +177,20 @@ def search(points: np.ndarray, landmarks: np.ndarray, centre: np.ndarray, turn_l
     return refine(cells, weights, landmarks, centre, turn, shift, inlier, detections, int(np.unique(reached).size))
 
 
+def search_window(window: BlindWindow, centre: np.ndarray, heading_sd: float, position_sd: float, max_turn: float,
+                  max_shift: float, landmarks, rule: SearchRule) -> Correction | None:
+    """:func:`search` over a held window's points: turns about ``centre`` within ``SIGMAS`` of ``heading_sd`` (at
+    most ``max_turn``), shifts within ``SIGMAS`` of ``position_sd`` plus the inlier radius (at most ``max_shift``),
+    against ``landmarks(point, radius)``: the landmark means the points can reach after such a correction."""
+    points = np.concatenate(window.points)
+    if not points.shape[0]:
+        return None
+    turn_limit = min(SIGMAS * heading_sd, max_turn)
+    shift_limit = min(SIGMAS * position_sd + rule.inlier, max_shift)
+    reach = float(np.hypot(*(points - centre).T).max()) + shift_limit + rule.inlier
+    return search(points, landmarks(centre, reach), centre, turn_limit, shift_limit, rule)
+
+
 def vote_reference(cells: np.ndarray, weights: np.ndarray, landmarks: np.ndarray, centre: np.ndarray,
                    turns: np.ndarray, shift_limit: float, inlier: float, shifts_per_turn: int
                    ) -> list[tuple[float, float, np.ndarray, np.ndarray]]:
@@ -232,15 +253,11 @@ def step(slam: FastSlam, robot: RobotState, pose: np.ndarray, z: np.ndarray, lan
         slam.counts["reacquire_started"] += 1
     window = robot.blind
     window.add(stamp, robot.sensor.inverse(pose, z), config.reacquire_window_s)
-    if stamp - window.tried >= config.reacquire_every_s:
-        window.tried = stamp
+    if window.due(stamp, config.reacquire_every_s):
         drift = robot.drift  # a held robot's drift is never reset: only a match or a correction does that
-        turn_limit = min(SIGMAS * math.sqrt(drift[2, 2]), config.reacquire_max_turn)
-        shift_limit = min(SIGMAS * math.sqrt(max(drift[0, 0], drift[1, 1])) + config.reacquire_inlier_m,
-                          config.reacquire_max_shift_m)
-        points = np.concatenate(window.points)
-        reach = float(np.hypot(*(points - pose[:2]).T).max()) + shift_limit + config.reacquire_inlier_m
-        correction = search(points, landmarks(pose[:2], reach), pose[:2], turn_limit, shift_limit, config.reacquire_rule)
+        correction = search_window(window, pose[:2], math.sqrt(drift[2, 2]), math.sqrt(max(drift[0, 0], drift[1, 1])),
+                                   config.reacquire_max_turn, config.reacquire_max_shift_m, landmarks,
+                                   config.reacquire_rule)
         if correction is not None:
             col = robot.index
             slam.pose[:, col] = correction.apply(slam.pose[:, col])

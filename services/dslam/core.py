@@ -39,6 +39,7 @@ vote of :mod:`central.fastslam.reacquire`).
 
 from __future__ import annotations
 
+import math
 import time
 from collections import Counter
 from dataclasses import dataclass, field
@@ -388,11 +389,12 @@ class DSlam:
         window = robot.blind
         window.add(robot.stamp, robot.sensor.inverse(robot.pose, obs), s.reacquire_window_s)
         inlier = s.reacquire_inlier_sigmas * float(np.sqrt(max(noise[0, 0], 0.0)))
-        if inlier > 0.0 and robot.stamp - window.tried >= s.reacquire_every_s:  # no radius from a noise of 0
-            window.tried = robot.stamp
+        if inlier > 0.0 and window.due(robot.stamp, s.reacquire_every_s):  # no radius from a noise of 0
             rule = reacquire.SearchRule(s.reacquire_min_detections, inlier, 4.0 * inlier, s.reacquire_margin,
                                         s.reacquire_min_landmarks)
-            correction = self._search(robot, rule)
+            correction = reacquire.search_window(
+                window, robot.pose[:2], float(np.sqrt(robot.cov[2, 2] + robot.turn_slip)), robot.position_std(),
+                s.reacquire_max_turn, math.inf, self._landmarks_near, rule)
             if correction is not None:
                 robot.pose = correction.apply(robot.pose)
                 robot.cov = np.diag([inlier ** 2, inlier ** 2, reacquire.TURN_STEP ** 2])
@@ -402,18 +404,10 @@ class DSlam:
         self.counts["detections_blind"] += obs.shape[0]
         return True
 
-    def _search(self, robot: RobotState, rule: reacquire.SearchRule) -> reacquire.Correction | None:
-        """The rigid correction of a lost robot's held detections against the mapped landmarks near them: turns
-        within 3σ of its heading (at most ``reacquire_max_turn``), shifts within 3σ of its position."""
-        points = np.concatenate(robot.blind.points)
-        if not points.shape[0] or not self.map.n:
-            return None
-        turn_limit = min(reacquire.SIGMAS * float(np.sqrt(robot.cov[2, 2] + robot.turn_slip)), self.config.reacquire_max_turn)
-        shift_limit = reacquire.SIGMAS * robot.position_std() + rule.inlier
-        reach = float(np.hypot(*(points - robot.pose[:2]).T).max()) + shift_limit + rule.inlier
+    def _landmarks_near(self, point: np.ndarray, radius: float) -> np.ndarray:
+        """Means ``(K, 2)`` of the mapped landmarks within ``radius`` of ``point``."""
         means = self.map.means
-        near = means[np.sum((means - robot.pose[:2]) ** 2, axis=1) <= reach * reach]
-        return reacquire.search(points, near, robot.pose[:2], turn_limit, shift_limit, rule)
+        return means[np.sum((means - point) ** 2, axis=1) <= radius * radius]
 
     # ------------------------------------------------------------ association
     def _associate(self, robot: RobotState, obs: np.ndarray, noise: np.ndarray, ids: np.ndarray | None):

@@ -19,12 +19,16 @@ def run(estimator, data):
     for log in data.robots.values():
         if not estimator.has_robot(log.robot_id):
             estimator.add_robot(log.info)
-    for event in data.events():
+    feed(estimator, data.events())
+    return estimator
+
+
+def feed(estimator, events):
+    for event in events:
         if isinstance(event, OdomEvent):
             estimator.on_odometry(event)
         elif isinstance(event, ScanEvent):
             estimator.on_scan(event)
-    return estimator
 
 
 def quiet(world_name: str, seed: int = 0):
@@ -239,16 +243,13 @@ def kidnapped(world: str, seed: int, duration: float, shift, reacquire: bool):
     half = len(events) // 2
     estimator = DSlam(DslamConfig(association="jcbb", reacquire=reacquire))
     estimator.add_robot(data.robots["r1"].info)
-    for event in events[:half]:
-        (estimator.on_odometry if isinstance(event, OdomEvent) else estimator.on_scan)(event)
+    feed(estimator, events[:half])
     before = estimator.map.means.copy()
     robot = estimator.robots["r1"]
     robot.pose = robot.pose + np.asarray(shift, float)
     robot.cov = robot.cov + np.diag([9.0, 9.0, 0.0])
-    scans = 0
-    for event in events[half:]:
-        scans += isinstance(event, ScanEvent)
-        (estimator.on_odometry if isinstance(event, OdomEvent) else estimator.on_scan)(event)
+    feed(estimator, events[half:])
+    scans = sum(isinstance(event, ScanEvent) for event in events[half:])
     log = data.robots["r1"]
     return estimator, before, scans, log.truth_at(np.array([log.scan_stamp[-1]]))[0]
 
