@@ -18,12 +18,12 @@ Default noise: the ACFR example's σ_range 0.10 m, σ_bearing 1°; half its σ_s
 (0.35 m/s, 3.5°). The example's odometry noise is far looser than this run: placed from dead reckoning, two
 detections of a beacon from scans 1–40 s apart lie 0.10–0.17 m apart (RMS), where the example's model predicts
 0.32–0.81 m and its odometry part alone 0.24–0.78 m; at half its σ the odometry part alone (0.11–0.36 m) is
-still no less than what is measured (``benchmarks/odometry_noise.py``, no truth). Too loose a motion model
+still about as large as the whole scatter measured, sensor included (``benchmarks/odometry_noise.py``, no truth). Too loose a motion model
 spreads the particles where the laser must pull them back, and FastSLAM's particles then share a map of the
 far beacons drawn from a worse path: all 15 beacons within 0.3 m of the survey in 68 of 80 seeds (0–79) with the
 example's σ, 79 of 80 with half (README). The sensor's σ are looser than this run too (the sensor part alone
-predicts 0.21 m where 0.06 m is measured at 0–1 s) but are kept: halving them did not pay (77 of 80 with both
-halved, 78 of 80 with the odometry alone at 1/√2).
+predicts 0.21 m where 0.06 m is measured at 0–1 s) but are kept: shrinking them did not pay (both covariances
+halved: 77 of 80; the odometry's alone halved: 78 of 80).
 
 The laser's scans are stamped about 47 ms after they were taken (stamped on arrival): ``scan_delay_s``
 moves every scan stamp back by it. Measured without truth by ``benchmarks/sensor_timing.py`` (each detection
