@@ -1,0 +1,36 @@
+"""The noise-model check of ``benchmarks/odometry_noise.py``: on a simulated robot whose odometry noise is known it
+predicts the scatter measured, and more when the model claims a looser odometry."""
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from benchmarks.support.noise_check import pair_scatter
+from robots.loaders import load_dataset
+
+BINS = np.array([0.0, 1.0, 2.0, 4.0, 8.0])
+
+
+@pytest.fixture(scope="module")
+def noisy():
+    """A simulated robot whose controls carry 0.1 (m/s, rad/s) more noise per reading, which its covariance says."""
+    log = next(iter(load_dataset("sim:arena", seed=3, duration=60.0, odom_factor=4).robots.values()))
+    rng = np.random.default_rng(5)
+    return replace(log, odom_control=log.odom_control + 0.1 * rng.standard_normal(log.odom_control.shape),
+                   odom_cov=log.odom_cov + np.diag([0.1**2, 0.1**2]))
+
+
+def test_a_model_that_fits_predicts_the_measured_scatter(noisy):
+    rows = pair_scatter(noisy, BINS, draws=20)
+    assert all(row["pairs"] > 1000 for row in rows)
+    for row in rows:
+        assert row["predicted_m"] == pytest.approx(row["measured_m"], rel=0.1)
+        assert row["predicted_m"] ** 2 == pytest.approx(row["odometry_m"] ** 2 + row["sensor_m"] ** 2)
+    assert rows[-1]["odometry_m"] > 2.0 * rows[0]["odometry_m"]  # dead reckoning drifts with the time between scans
+
+
+def test_a_model_too_loose_predicts_more_than_is_measured(noisy):
+    rows = pair_scatter(noisy, BINS, draws=20, odom_scale=4.0)
+    assert rows[-1]["predicted_m"] > 1.3 * rows[-1]["measured_m"]
+    assert all(row["predicted_m"] > row["measured_m"] for row in rows)
