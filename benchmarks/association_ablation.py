@@ -12,8 +12,12 @@ Steps (FastSLAM, 100 particles, scans' ids ignored):
 - ``shared-jcbb-no-reacquire``: ... and those detections weighing the particles (the default before robots blind
   too long re-acquired the map);
 - ``shared-jcbb``: ... and a robot whose dead reckoning has drifted beyond what scan-by-scan association can trust
-  held until one rigid correction puts its recent detections back on the map (``reacquire``):
+  held until one rigid correction puts its recent detections back on the map (``reacquire``), or one within 1σ of
+  its dead reckoning explains as many, every correction scored less half its squared size in σ of the drift:
   ``--association unknown``, the default;
+- ``shared-jcbb-rigid-only``: ``shared-jcbb`` with the rigid correction alone (the default before: no correction
+  near the dead reckoning taken on one landmark, no prior on the corrections);
+- ``shared-jcbb-no-prior``: ``shared-jcbb`` without the prior (corrections near the dead reckoning confirmed);
 - ``shared-jcbb-ess-0.05``: ... resampling only when the effective sample size falls below 5 % (not 50 %);
 - ``shared-jcbb-unique``: ``shared-jcbb`` keeping only the pairings no other jointly compatible hypothesis with as
   many pairings does without (``unique_pairs``);
@@ -63,6 +67,8 @@ STEPS: dict[str, tuple[str, str, dict]] = {
     "shared-jcbb-no-robots": ("fastslam", "unknown", {"robot_detections": False}),
     "shared-jcbb-no-reacquire": ("fastslam", "unknown", {"reacquire": False}),
     "shared-jcbb": ("fastslam", "unknown", {}),
+    "shared-jcbb-rigid-only": ("fastslam", "unknown", {"reacquire_confirm_sigmas": 0.0, "reacquire_prior_weight": 0.0}),
+    "shared-jcbb-no-prior": ("fastslam", "unknown", {"reacquire_prior_weight": 0.0}),
     "shared-jcbb-ess-0.05": ("fastslam", "unknown", {"resample_ess": 0.05}),
     "dslam-per-scan": ("dslam", "unknown", {"local_map_max_std": 0.0, "gate_pose_floor": (0.0, 0.0, 0.0),
                                             "turn_slip": False, "reacquire": False}),

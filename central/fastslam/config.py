@@ -88,6 +88,15 @@ class FastSlamConfig(CoreConfig):
         3.0, ge=0.0, description="... and explain this many detections more than any distinct correction")
     reacquire_max_turn: float = Field(0.785, ge=0.0, description="... turning it by at most this (rad)")
     reacquire_max_shift_m: float = Field(2.0, ge=0.0, description="... and shifting it by at most this (m)")
+    reacquire_confirm_sigmas: float = Field(
+        1.0, ge=0.0, description="... or, failing that, a correction within this many σ of the drift that explains "
+        "as many detections (one landmark in view is enough: the drift bounds the turn); 0: off")
+    reacquire_confirm_max_turn: float = Field(0.2, ge=0.0, description="... turning it by at most this (rad)")
+    reacquire_confirm_max_shift_m: float = Field(0.5, ge=0.0, description="... and shifting it by at most this (m)")
+    reacquire_prior_weight: float = Field(
+        0.5, ge=0.0, description="... each correction scored by its detections less this times its squared size in σ "
+        "of the drift (a Gaussian prior on the correction: of two that explain about as much, the one the dead "
+        "reckoning makes likelier wins; 0: every correction within the window alike)")
     sensor_noise_scale: float = Field(1.0, gt=0.0, description="multiplies the scan's noise covariance")
     max_batch_s: float = Field(1.0, gt=0.0, description="integrate buffered controls at least this often (s)")
     max_extrapolation_s: float = Field(
@@ -121,7 +130,10 @@ class FastSlamConfig(CoreConfig):
     def reacquire_rule(self) -> SearchRule:
         """When re-acquisition's search takes a correction (:class:`central.fastslam.reacquire.SearchRule`)."""
         return SearchRule(self.reacquire_min_detections, self.reacquire_inlier_m, self.reacquire_span_m,
-                          self.reacquire_margin, compiled=self.compiled)
+                          self.reacquire_margin, compiled=self.compiled, confirm_sigmas=self.reacquire_confirm_sigmas,
+                          confirm_max_turn=self.reacquire_confirm_max_turn,
+                          confirm_max_shift=self.reacquire_confirm_max_shift_m,
+                          prior_weight=self.reacquire_prior_weight)
 
     @property
     def fastslam2(self) -> bool:

@@ -20,9 +20,16 @@ shift that joins them (a Hough transform), and scores the best shifts of each tu
 bring within ``reacquire_inlier_m`` of a confirmed landmark. The best correction is taken when it brings at
 least ``reacquire_min_detections``, reaching landmarks at least ``reacquire_span_m`` apart (one landmark
 leaves the turn free), and no distinct correction comes within ``reacquire_margin`` detections of it. The
-robot's particles are moved by it, its drift starts again from zero and the scan is associated as usual. A
-blind robot's detections neither update nor start landmarks (counted as ``detections_blind``): what it would
-map from a pose it does not know is what this guards against.
+robot's particles are moved by it, its drift starts again from zero and the scan is associated as usual.
+Failing that rule, a correction within ``reacquire_confirm_sigmas`` of the drift (capped) that explains as many
+detections as any is taken too (:func:`confirm`): on MR.CLAM the map has about eight landmarks, a robot sees one at
+a time, and a robot counted as lost while its dead reckoning held (0.1–0.3 m off) stayed blind for up to 280 s,
+drifting until a wrong correction took it. And the drift is a prior, not only a window: each correction's
+detections are scored less ``reacquire_prior_weight`` times its squared size in σ of the drift, so a far
+correction must explain clearly more than a near one (seed 18: a robot 0.2 m off was turned by 19° and moved
+1.1 m, 3.5σ, on 26 detections of a dead-reckoned window, against fewer for the near ones). A blind robot's
+detections neither update nor start landmarks (counted as ``detections_blind``): what it would map from a pose it
+does not know is what this guards against.
 
 D-SLAM's re-acquisition (:meth:`services.dslam.core.DSlam._held`) uses the same window and search with its own
 :class:`SearchRule`: a robot there is lost when its own position std passes a limit.
@@ -56,7 +63,12 @@ SIGMAS = 3.0  # the search window in σ of the drift
 class SearchRule:
     """When :func:`search` takes a correction: it brings ``min_detections`` detections within ``inlier`` (m) of a
     landmark, reaching ``min_landmarks`` distinct landmarks at least ``span`` (m) apart, and no distinct correction
-    comes within ``margin`` detections of it. ``compiled``: the vote by its numba kernel. FastSLAM's comes from its
+    comes within ``margin`` detections of it. Failing that, with ``confirm_sigmas`` > 0, a correction within
+    ``confirm_sigmas`` of the drift (at most ``confirm_max_turn`` rad and ``confirm_max_shift`` m) is taken when it
+    brings ``min_detections`` detections onto a landmark and no correction brings ``margin`` more: the dead
+    reckoning was right, and the landmarks it reaches need not pin the turn (:func:`confirm`). With ``prior_weight``
+    > 0 every correction counts its detections less ``prior_weight`` times its squared size in σ of the drift
+    (:func:`prior_d2`), and these scores are what the rules compare. ``compiled``: the vote by its numba kernel. FastSLAM's comes from its
     config (:meth:`central.fastslam.config.FastSlamConfig.reacquire_rule`), D-SLAM's from its config and the
     sensor's noise (:mod:`services.dslam.core`)."""
 
@@ -66,6 +78,10 @@ class SearchRule:
     margin: float
     min_landmarks: int = 2
     compiled: bool = True
+    confirm_sigmas: float = 0.0
+    confirm_max_turn: float = 0.0
+    confirm_max_shift: float = 0.0
+    prior_weight: float = 0.0
 
 
 @dataclass
@@ -143,7 +159,7 @@ def lost(config: FastSlamConfig, drift: np.ndarray | None) -> bool:
 
 
 def search(points: np.ndarray, landmarks: np.ndarray, centre: np.ndarray, turn_limit: float, shift_limit: float,
-           rule: SearchRule) -> Correction | None:
+           rule: SearchRule, sigmas: tuple[float, float] | None = None) -> Correction | None:
     """The rigid correction (turn ≤ ``turn_limit`` about ``centre``, shift ≤ ``shift_limit``) that brings the most
     ``points`` ``(n, 2)`` within ``rule.inlier`` of ``landmarks`` ``(K, 2)``, or None when it is not clearly the
     one (too few detections or landmarks, landmarks too close together, or a distinct correction nearly as good)."""
@@ -151,21 +167,36 @@ def search(points: np.ndarray, landmarks: np.ndarray, centre: np.ndarray, turn_l
         return None
     cells, weights = np.unique(np.round(points / POINT_QUANTUM) * POINT_QUANTUM, axis=0, return_counts=True)
     inlier = rule.inlier
-    distinct_shift = DISTINCT_SHIFT * inlier
     turns = np.arange(-turn_limit, turn_limit + 1e-12, TURN_STEP) if turn_limit > 0.0 else np.zeros(1)
     vote = kernels.vote if rule.compiled else vote_reference
     scored = vote(cells, weights, landmarks, np.asarray(centre, float), turns, shift_limit, inlier, SHIFTS_PER_TURN)
     if not scored:
         return None
+    if sigmas is not None and rule.prior_weight > 0.0:
+        scored = [(count - rule.prior_weight * prior_d2(turn, shift, sigmas), turn, shift, reached)
+                  for count, turn, shift, reached in scored]
     scored.sort(key=lambda item: -item[0])
+    taken = clear_best(scored, landmarks, rule)
+    if taken is None and sigmas is not None and rule.confirm_sigmas > 0.0:
+        taken = confirm(scored, rule, sigmas)
+    if taken is None:
+        return None
+    detections, turn, shift, reached = taken
+    return refine(cells, weights, landmarks, centre, turn, shift, inlier, detections, int(np.unique(reached).size))
+
+
+def clear_best(scored: list, landmarks: np.ndarray, rule: SearchRule) -> tuple | None:
+    """The best of the vote's ``scored`` corrections (sorted, most detections first) when it is clearly the one:
+    enough detections, reaching landmarks far enough apart, no distinct correction within ``rule.margin``."""
     detections, turn, shift, reached = scored[0]
     if detections < rule.min_detections:
         return None
+    distinct_shift = DISTINCT_SHIFT * rule.inlier
     tied = [item for item in scored if item[0] == detections and abs(item[1] - turn) <= DISTINCT_TURN
             and np.hypot(*(item[2] - shift)) <= distinct_shift]
     middle = 0.5 * (min(item[1] for item in tied) + max(item[1] for item in tied))
-    _, turn, shift, _ = min(tied, key=lambda item: abs(item[1] - middle))  # the middle of the turns that explain
-    # as much, not the edge of that band (the first found)
+    _, turn, shift, reached = min(tied, key=lambda item: abs(item[1] - middle))  # the middle of the turns that
+    # explain as much, not the edge of that band (the first found)
     hit = landmarks[np.unique(reached)]
     if hit.shape[0] < rule.min_landmarks or np.max(np.hypot(*(hit[:, None] - hit[None]).transpose(2, 0, 1))) < rule.span:
         return None
@@ -174,7 +205,30 @@ def search(points: np.ndarray, landmarks: np.ndarray, centre: np.ndarray, turn_l
             if other > detections - rule.margin:
                 return None
             break
-    return refine(cells, weights, landmarks, centre, turn, shift, inlier, detections, int(np.unique(reached).size))
+    return detections, turn, shift, reached
+
+
+def confirm(scored: list, rule: SearchRule, sigmas: tuple[float, float]) -> tuple | None:
+    """The correction nearest the dead reckoning among the vote's ``scored`` ones within ``rule.confirm_sigmas`` of
+    the drift (σ heading, σ position: ``sigmas``), when it explains ``rule.min_detections`` and nothing explains
+    ``rule.margin`` more. One landmark in view leaves the turn free (:func:`clear_best` refuses it), but the
+    drift's own Gaussian does not: a robot counted as lost while its dead reckoning held comes back at once
+    instead of staying blind for minutes among landmarks it sees one at a time (MR.CLAM)."""
+    heading_sd, position_sd = sigmas
+    turn_limit = min(rule.confirm_sigmas * heading_sd, rule.confirm_max_turn)
+    shift_limit = min(rule.confirm_sigmas * position_sd, rule.confirm_max_shift)
+    near = [item for item in scored if abs(item[1]) <= turn_limit and np.hypot(*item[2]) <= shift_limit]
+    if not near:
+        return None
+    best = max(item[0] for item in near)
+    if best < rule.min_detections or best < scored[0][0] - rule.margin:
+        return None
+    return min((item for item in near if item[0] == best), key=lambda item: prior_d2(item[1], item[2], sigmas))
+
+
+def prior_d2(turn: float, shift: np.ndarray, sigmas: tuple[float, float]) -> float:
+    """Squared Mahalanobis size of a correction against the drift (σ heading, σ position)."""
+    return (turn / sigmas[0]) ** 2 + float(shift @ shift) / sigmas[1] ** 2
 
 
 def search_window(window: BlindWindow, centre: np.ndarray, heading_sd: float, position_sd: float, max_turn: float,
@@ -188,7 +242,7 @@ def search_window(window: BlindWindow, centre: np.ndarray, heading_sd: float, po
     turn_limit = min(SIGMAS * heading_sd, max_turn)
     shift_limit = min(SIGMAS * position_sd + rule.inlier, max_shift)
     reach = float(np.hypot(*(points - centre).T).max()) + shift_limit + rule.inlier
-    return search(points, landmarks(centre, reach), centre, turn_limit, shift_limit, rule)
+    return search(points, landmarks(centre, reach), centre, turn_limit, shift_limit, rule, (heading_sd, position_sd))
 
 
 def vote_reference(cells: np.ndarray, weights: np.ndarray, landmarks: np.ndarray, centre: np.ndarray,

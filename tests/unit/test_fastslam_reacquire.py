@@ -97,6 +97,53 @@ def test_search_refuses_what_the_detections_cannot_decide():
     assert inside is not None and np.allclose(inside.shift, [-0.3, -0.3], atol=0.02)
 
 
+def test_confirm_takes_the_dead_reckoning_when_one_landmark_cannot_pin_the_turn():
+    """A robot counted as lost whose dead reckoning held sees one landmark at a time: the rigid search cannot fix
+    its turn, but a correction within the drift's σ that explains every detection is taken (the smallest); one
+    beyond it, or one that a distinct correction out-explains, is not."""
+    landmarks = np.array([[3.0, 0.0], [0.0, 5.0], [-4.0, -4.0]])
+    centre, sigmas = np.zeros(2), (0.1, 0.2)  # σ heading (rad), σ position (m)
+    rule = CONFIG.reacquire_rule
+    assert rule.confirm_sigmas > 0.0  # on by default
+    rng = np.random.default_rng(3)
+    seen = landmarks[0] + np.array([0.06, -0.04]) + rng.normal(0.0, 0.02, (8, 2))  # 7 cm off: within the drift
+    found = reacquire.search(seen, landmarks, centre, 0.5, 1.0, rule, sigmas)
+    assert found is not None and abs(found.turn) <= 0.1 and np.hypot(*found.shift) <= 0.2
+    moved = found.apply(np.column_stack([seen, np.zeros(len(seen))]))[:, :2]
+    assert np.hypot(*(moved.mean(0) - landmarks[0])) < 0.03
+    off = dataclasses.replace(rule, confirm_sigmas=0.0)
+    assert reacquire.search(seen, landmarks, centre, 0.5, 1.0, off, sigmas) is None  # the rigid rule alone refuses
+    assert reacquire.search(seen, landmarks, centre, 0.5, 1.0, rule) is None  # no drift given: nothing to confirm
+    far = landmarks[0] + np.array([0.0, 1.0]) + rng.normal(0.0, 0.02, (8, 2))  # 1 m off: beyond 1σ
+    assert reacquire.search(far, landmarks, centre, 0.5, 1.0, rule, sigmas) is None
+    wider = dataclasses.replace(rule, confirm_sigmas=4.0, confirm_max_turn=0.4, confirm_max_shift=0.8, prior_weight=0.0)
+    assert reacquire.search(far, landmarks, centre, 0.5, 1.0, wider, sigmas) is not None
+    other = landmarks[1] + np.array([0.6, 0.0]) + rng.normal(0.0, 0.02, (10, 2))  # a 0.6 m shift explains these 10
+    both = np.concatenate([seen[:6], other])
+    counted = dataclasses.replace(rule, prior_weight=0.0)  # corrections by their detections alone
+    assert reacquire.search(both, landmarks, centre, 0.0, 1.0, counted, sigmas) is None  # out-explained: 4 > margin 3
+    taken = reacquire.search(both, landmarks, centre, 0.0, 1.0, rule, sigmas)  # the prior: 10 at 3σ against 6 at 0.4σ
+    assert taken is not None and np.hypot(*taken.shift) <= 0.2
+
+
+def test_the_drift_prior_decides_between_corrections_that_explain_as_much():
+    """Two copies of a landmark pattern 1.2 m apart: two corrections explain every detection, and the rigid rule
+    refuses; weighed by the drift's Gaussian, the one near the dead reckoning wins by more than the margin."""
+    pattern = np.array([[1.0, 0.0], [0.0, 1.2], [-1.0, 0.3], [0.4, -1.0]])
+    landmarks = np.concatenate([pattern, pattern + [1.0, 0.6]])
+    points = np.repeat(pattern, 3, axis=0) + [0.1, -0.05] + np.random.default_rng(5).normal(0.0, 0.01, (12, 2))
+    centre, sigmas = np.zeros(2), (0.05, 0.2)
+    rule = dataclasses.replace(CONFIG.reacquire_rule, confirm_sigmas=0.0)  # the prior alone
+    assert rule.prior_weight > 0.0  # on by default
+    found = reacquire.search(points, landmarks, centre, 0.0, 2.0, rule, sigmas)
+    assert found is not None and np.allclose(found.shift, [-0.1, 0.05], atol=0.02)
+    flat = dataclasses.replace(rule, prior_weight=0.0)
+    assert reacquire.search(points, landmarks, centre, 0.0, 2.0, flat, sigmas) is None
+    assert reacquire.search(points, landmarks, centre, 0.0, 2.0, rule) is None  # no drift given: no prior
+    wide = (0.05, 5.0)  # a drift this wide cannot tell the two apart by the margin
+    assert reacquire.search(points, landmarks, centre, 0.0, 2.0, rule, wide) is None
+
+
 def lost_robot_run(seed: int, reacquire_on: bool) -> tuple[float, float, int, FastSlam]:
     """One robot maps the MR.CLAM-like arena for 30 s; then its estimate is thrown off by 25° and 0.5 m, as a
     blind turn on slipping wheels would, with a drift that says so; it drives on for 30 s. (final position error,
