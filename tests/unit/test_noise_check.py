@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from benchmarks.support.noise_check import pair_scatter, within_gate_second_moment
-from robots.loaders import load_dataset
+from robots.loaders import data_root, load_dataset
 
 BINS = np.array([0.0, 1.0, 2.0, 4.0, 8.0])
 
@@ -65,3 +65,19 @@ def test_within_the_gate_a_model_too_loose_still_predicts_more(noisy):
         assert tight["gated_m"] <= tight["predicted_m"] and tight["gated_m"] < 0.3
         assert wide["gated_m"] > tight["gated_m"]
     assert loose[-1]["gated_m"] > 1.2 * loose[-1]["measured_m"]
+
+
+@pytest.mark.skipif(data_root() is None, reason="real data sets not found (set FLEETSLAM_DATA or add ../shared/data)")
+def test_victoria_parks_odometry_model_lies_between_its_scatter_and_the_acfr_example():
+    """Within a 0.5 m gate, the sensor at the detections' scan-to-scan repeatability (its covariance / 100): the
+    loader's odometry predicts no less than the scatter (not too tight), the ACFR example's (twice its covariance)
+    more in every interval."""
+    log = load_dataset("victoria-park:victoria_park").robots["r1"]
+    assert np.allclose(np.sqrt(np.diag(log.odom_cov)), [0.495, np.radians(4.95)])  # the ACFR example's σ / √2
+    bins = np.array([0.0, 1.0, 4.0, 16.0])
+    adopted = pair_scatter(log, bins, gate=0.5, draws=5, sensor_scale=0.01)
+    example = pair_scatter(log, bins, gate=0.5, draws=5, sensor_scale=0.01, odom_scale=2.0)
+    for ours, theirs in zip(adopted, example):
+        assert ours["pairs"] > 10_000
+        assert ours["gated_m"] >= ours["measured_m"]
+        assert theirs["gated_m"] > 1.1 * ours["measured_m"] and theirs["gated_m"] > ours["gated_m"]
