@@ -68,16 +68,15 @@ def test_within_the_gate_a_model_too_loose_still_predicts_more(noisy):
 
 
 @pytest.mark.skipif(data_root() is None, reason="real data sets not found (set FLEETSLAM_DATA or add ../shared/data)")
-def test_victoria_parks_odometry_model_lies_between_its_scatter_and_the_acfr_example():
+def test_victoria_parks_odometry_model_is_looser_than_its_scatter():
     """Within a 0.5 m gate, the sensor at the detections' scan-to-scan repeatability (its covariance / 100): the
-    loader's odometry predicts no less than the scatter (not too tight), the ACFR example's (twice its covariance)
-    more in every interval."""
+    loader's odometry (the ACFR example's) predicts more than the scatter in every interval, σ/√2 still no less."""
     log = load_dataset("victoria-park:victoria_park").robots["r1"]
-    assert np.allclose(np.sqrt(np.diag(log.odom_cov)), [0.495, np.radians(4.95)])  # the ACFR example's σ / √2
+    assert np.allclose(np.sqrt(np.diag(log.odom_cov)), [0.7, np.radians(7.0)])
     bins = np.array([0.0, 1.0, 4.0, 16.0])
-    adopted = pair_scatter(log, bins, gate=0.5, draws=5, sensor_scale=0.01)
-    example = pair_scatter(log, bins, gate=0.5, draws=5, sensor_scale=0.01, odom_scale=2.0)
-    for ours, theirs in zip(adopted, example):
-        assert ours["pairs"] > 10_000
+    example = pair_scatter(log, bins, gate=0.5, draws=5, sensor_scale=0.01)
+    tighter = pair_scatter(log, bins, gate=0.5, draws=5, sensor_scale=0.01, odom_scale=0.5)
+    for theirs, ours in zip(example, tighter):
+        assert theirs["pairs"] > 10_000
         assert ours["gated_m"] >= ours["measured_m"]
-        assert theirs["gated_m"] > 1.1 * ours["measured_m"] and theirs["gated_m"] > ours["gated_m"]
+        assert theirs["gated_m"] > 1.1 * theirs["measured_m"] and theirs["gated_m"] > ours["gated_m"]
