@@ -11,13 +11,27 @@ from robots.dataset import RobotLog
 from robots.models import dead_reckon, robot_models
 
 
+def within_gate_second_moment(variance: np.ndarray, gate: float) -> np.ndarray:
+    """E[|d|² | |d| < gate] for d ~ N(0, variance/2 · I₂) (``variance`` the trace): what a pair's squared distance
+    averages to once the gate has kept the far pairs out. ``variance`` itself when the gate is far beyond it, gate²/2
+    (a disc filled evenly) when it is far below.
+    """
+    half = np.asarray(variance, float) / 2.0
+    x = gate * gate / (2.0 * np.maximum(half, 1e-300))
+    kept = -np.expm1(-x)  # P(|d| < gate)
+    return 2.0 * half * (kept - x * np.exp(-x)) / np.maximum(kept, 1e-300)
+
+
 def pair_scatter(log: RobotLog, bins: np.ndarray, gate: float = 1.0, draws: int = 30, seed: int = 0,
-                 odom_scale: float = 1.0) -> list[dict]:
+                 odom_scale: float = 1.0, sensor_scale: float = 1.0) -> list[dict]:
     """Per interval ``(bins[i], bins[i + 1]]`` of time between two scans: the detection pairs (from different scans,
     placed from dead reckoning, closer than ``gate`` m: the same landmark), the RMS of their distance, and what the
     log's noise model predicts for it: the odometry's part (``draws`` dead reckonings with controls drawn from
     ``odom_scale`` × the odometry covariance, the same pairs) and the sensor's (each detection's range and bearing
-    variances), both RMS. A model that fits predicts the measured RMS; one too loose predicts more.
+    variances times ``sensor_scale``), both RMS. A model that fits predicts the measured RMS; one too loose predicts
+    more. Where the model's scatter reaches the gate, the measured RMS cannot follow it past the gate:
+    ``gated_m`` is the RMS the model predicts for the pairs the gate keeps (:func:`within_gate_second_moment` of
+    each pair's predicted variance, as if isotropic), the figure to set against ``measured_m`` there.
     """
     stamps, poses = dead_reckoning(log)
     scan_of = scan_of_detection(log)
@@ -40,13 +54,15 @@ def pair_scatter(log: RobotLog, bins: np.ndarray, gate: float = 1.0, draws: int 
         moved = detections_at(log, stamps, drawn, t) - placed
         odometry += np.sum((moved[a] - moved[b]) ** 2, axis=1) / draws
     ranges = log.det_range
-    point = log.scan_cov[0, 0] + ranges**2 * log.scan_cov[1, 1]  # a detection's variance in the plane (trace)
+    point = (log.scan_cov[0, 0] + ranges**2 * log.scan_cov[1, 1]) * sensor_scale  # a detection's variance (trace)
     sensor = point[a] + point[b]
+    gated = within_gate_second_moment(odometry + sensor, gate)
     out = []
     for low, high in zip(bins[:-1], bins[1:]):
         inside = (apart > low) & (apart <= high)
         count = int(inside.sum())
         rms = (lambda v: float(np.sqrt(v[inside].mean())) if count else float("nan"))
         out.append({"from_s": float(low), "to_s": float(high), "pairs": count, "measured_m": rms(measured),
-                    "odometry_m": rms(odometry), "sensor_m": rms(sensor), "predicted_m": rms(odometry + sensor)})
+                    "odometry_m": rms(odometry), "sensor_m": rms(sensor), "predicted_m": rms(odometry + sensor),
+                    "gated_m": rms(gated)})
     return out
