@@ -16,7 +16,9 @@ Cases (FastSLAM, 100 particles, unless said):
   barcodes or without (``--association unknown``), with every start pose or none (D-SLAM draws nothing at
   random: the seed is MCL's);
 - ``unknown-none-no-meetings``, ``known-none-no-meetings``, ``dslam-unknown-none-no-meetings``: the placement
-  without the robots' detections of each other (``--no-robot-meetings``; on by default since they were added).
+  without the robots' detections of each other (``--no-robot-meetings``; on by default since they were added);
+- ``unknown-none-no-prior``, ``unknown-none-rigid-only``: ``unknown-none`` with FastSLAM's re-acquisition
+  without the drift's prior on its corrections, and with the rigid correction alone (the default before).
 
 The data bound the placement delays stand against (``data_bound_s``, no estimator): after its first scan,
 how long each robot takes to have seen two distinct landmarks that the anchor (the first robot to scan) had
@@ -28,7 +30,7 @@ frame is the survey's), and for placement cases the delay from each robot's firs
 (the anchor: 0); for the ``mcl-`` cases the time to first localized. Per case: median and worst over seeds of
 the worst robot's ATE and of the longest delay.
 
-    .venv/bin/python benchmarks/placement_seeds.py [--cases known-none,unknown-none] [--seeds 10] [--jobs 2]
+    .venv/bin/python benchmarks/placement_seeds.py [--cases known-none,unknown-none] [--seeds 10] [--first-seed 0] [--jobs 2]
         [--data mrclam:] [--out FILE]
 """
 
@@ -51,6 +53,9 @@ CASES: dict[str, tuple] = {  # estimator, association, start poses[, settings]
     "known-first": ("fastslam", "known", "first"),
     "unknown-none": ("fastslam", "unknown", "none"),
     "unknown-none-no-meetings": ("fastslam", "unknown", "none", {"robot_meetings": False}),
+    "unknown-none-no-prior": ("fastslam", "unknown", "none", {"reacquire_prior_weight": 0.0}),
+    "unknown-none-rigid-only": ("fastslam", "unknown", "none", {"reacquire_prior_weight": 0.0,
+                                                                "reacquire_confirm_sigmas": 0.0}),
     "known-none-no-meetings": ("fastslam", "known", "none", {"robot_meetings": False}),
     "mcl-signatures": ("mcl", "known", "none"),
     "mcl-unknown": ("mcl", "unknown", "none"),
@@ -122,7 +127,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", default="mrclam:", help="data set spec (needs robot truth)")
     parser.add_argument("--cases", default=",".join(CASES), help=f"comma-separated, of: {', '.join(CASES)}")
-    parser.add_argument("--seeds", type=int, default=10, help="seeds 0..N-1")
+    parser.add_argument("--seeds", type=int, default=10, help="seeds first..first+N-1")
+    parser.add_argument("--first-seed", type=int, default=0, help="the first seed")
     parser.add_argument("--jobs", type=int, default=2, help="runs in parallel (processes)")
     parser.add_argument("--out")
     args = parser.parse_args()
@@ -130,7 +136,7 @@ def main() -> None:
     unknown = [c for c in cases if c not in CASES]
     if unknown:
         parser.error(f"unknown cases {unknown}; choose from {', '.join(CASES)}")
-    jobs = [(args.data, case, seed) for case in cases for seed in range(args.seeds)]
+    jobs = [(args.data, case, seed) for case in cases for seed in range(args.first_seed, args.first_seed + args.seeds)]
     with ProcessPoolExecutor(max_workers=args.jobs) as pool:
         runs = list(pool.map(one_run, *zip(*jobs)))
     summary = {}
