@@ -68,9 +68,9 @@ class SearchRule:
     brings ``min_detections`` detections onto a landmark and no correction brings ``margin`` more: the dead
     reckoning was right, and the landmarks it reaches need not pin the turn (:func:`confirm`). With ``prior_weight``
     > 0 every correction counts its detections less ``prior_weight`` times its squared size in σ of the drift
-    (:func:`prior_d2`), and these scores are what the rules compare. ``compiled``: the vote by its numba kernel. FastSLAM's comes from its
-    config (:meth:`central.fastslam.config.FastSlamConfig.reacquire_rule`), D-SLAM's from its config and the
-    sensor's noise (:mod:`services.dslam.core`)."""
+    (:func:`prior_d2`), and these scores are what the rules compare. ``compiled``: the vote by its numba kernel.
+    FastSLAM's comes from its config (:meth:`central.fastslam.config.FastSlamConfig.reacquire_rule`), D-SLAM's from
+    its config and the sensor's noise (:mod:`services.dslam.core`)."""
 
     min_detections: int
     inlier: float
@@ -162,7 +162,8 @@ def search(points: np.ndarray, landmarks: np.ndarray, centre: np.ndarray, turn_l
            rule: SearchRule, sigmas: tuple[float, float] | None = None) -> Correction | None:
     """The rigid correction (turn ≤ ``turn_limit`` about ``centre``, shift ≤ ``shift_limit``) that brings the most
     ``points`` ``(n, 2)`` within ``rule.inlier`` of ``landmarks`` ``(K, 2)``, or None when it is not clearly the
-    one (too few detections or landmarks, landmarks too close together, or a distinct correction nearly as good)."""
+    one (too few detections or landmarks, landmarks too close together, or a distinct correction nearly as good).
+    ``sigmas`` (the drift's σ heading, σ position) lets ``rule``'s confirmation and prior weigh the corrections."""
     if points.shape[0] < rule.min_detections or landmarks.shape[0] < max(rule.min_landmarks, 2):
         return None
     cells, weights = np.unique(np.round(points / POINT_QUANTUM) * POINT_QUANTUM, axis=0, return_counts=True)
@@ -186,7 +187,8 @@ def search(points: np.ndarray, landmarks: np.ndarray, centre: np.ndarray, turn_l
 
 
 def clear_best(scored: list, landmarks: np.ndarray, rule: SearchRule) -> tuple | None:
-    """The best of the vote's ``scored`` corrections (sorted, most detections first) when it is clearly the one:
+    """The best of the vote's ``scored`` corrections (sorted by score, best first: detections, less the prior if
+    any) when it is clearly the one:
     enough detections, reaching landmarks far enough apart, no distinct correction within ``rule.margin``."""
     detections, turn, shift, reached = scored[0]
     if detections < rule.min_detections:
