@@ -19,6 +19,12 @@ RobotId = Annotated[str, Field(pattern=ROBOT_ID_PATTERN)]
 FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
 
 
+def _symmetric(array: np.ndarray) -> bool:
+    """Symmetric in its last two axes, exactly (the usual case, cheap) or within rounding."""
+    swapped = np.swapaxes(array, -1, -2)
+    return bool(np.array_equal(array, swapped)) or bool(np.allclose(array, swapped, atol=1e-9, rtol=1e-6))
+
+
 def _array_validator(shape: tuple[int | None, ...], kind: str, finite: bool, nonnegative: bool, symmetric: bool):
     dtype = {"float": np.float64, "int": np.int64, "bool": np.bool_}[kind]
 
@@ -43,7 +49,7 @@ def _array_validator(shape: tuple[int | None, ...], kind: str, finite: bool, non
             raise ValueError("contains NaN or infinity")
         if nonnegative and np.any(array < 0):
             raise ValueError("contains negative values")
-        if symmetric and array.size and not np.allclose(array, np.swapaxes(array, -1, -2), atol=1e-9, rtol=1e-6):
+        if symmetric and array.size and not _symmetric(array):
             raise ValueError("covariance is not symmetric")
         return array
 

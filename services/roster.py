@@ -389,14 +389,20 @@ class Roster:
         return True
 
 
-@dataclass(order=True)
+@dataclass
 class _Held:
+    """One held event; the heap orders it by :meth:`key`, a plain tuple (compared in C: a dataclass's generated
+    ordering cost a service seconds a minute at a few hundred events a second)."""
+
     stamp: float
     rank: int  # at equal stamps odometry (0) before scans (1): a control ends at its stamp
     robot: str  # then by robot id, not by arrival: robots on one clock share stamps, and runs must not differ
-    order: int
-    arrived: float = field(compare=False)
-    event: StreamEvent = field(compare=False)
+    order: int  # then in arrival order; unique, so the heap never compares two _Held
+    arrived: float
+    event: StreamEvent
+
+    def entry(self) -> tuple:
+        return (self.stamp, self.rank, self.robot, self.order, self)
 
 
 class ReorderBuffer:
@@ -441,12 +447,19 @@ class ReorderBuffer:
         self.join_wait_s = join_wait_s
         self.expected: dict[tuple[str, str], float] = {}  # (robot, stream) announced, nothing pushed → when announced
         self.clock = clock
-        self._heap: list[_Held] = []
+        self._heap: list[tuple] = []  # _Held.entry() of every held event
         self._order = 0  # ties in stamp, kind and robot go out in arrival order
         self.newest: dict[tuple[str, str], float] = {}  # (robot, stream) → newest stamp pushed
         self.heard: dict[tuple[str, str], float] = {}  # (robot, stream) → wall time of its last push
         self.resuming: set[tuple[str, str]] = set()  # streams being recovered after a restart or a link change
         self.resuming_until = float("-inf")  # ... until then (wall clock)
+
+    def __setstate__(self, state: dict) -> None:
+        """Unpickle (a service checkpoint); one written when the heap held the events themselves gets their
+        entries."""
+        self.__dict__.update(state)
+        self._heap = [held.entry() if isinstance(held, _Held) else held for held in self._heap]
+        heapq.heapify(self._heap)
 
     def __len__(self) -> int:
         return len(self._heap)
@@ -459,7 +472,8 @@ class ReorderBuffer:
         self.heard[stream] = arrived
         self.expected.pop(stream, None)
         self._order += 1
-        heapq.heappush(self._heap, _Held(event.stamp, 0 if is_odom else 1, event.robot_id, self._order, arrived, event))
+        heapq.heappush(self._heap, _Held(event.stamp, 0 if is_odom else 1, event.robot_id, self._order, arrived,
+                                         event).entry())
 
     def listening(self) -> float:
         """The service's loop is running now; returns the stall (s) since the previous call, 0 if none: a gap longer
@@ -486,8 +500,8 @@ class ReorderBuffer:
         """Restored from a checkpoint in a new process (whose clock started afresh): held events arrived now, and
         every known stream is waited for ``recovery_window_s`` from now."""
         now = self.clock()
-        for held in self._heap:
-            held.arrived = now
+        for entry in self._heap:
+            entry[-1].arrived = now
         self._listened = None
         self.link_changed()
         self.expected = {stream: now for stream in self.expected}
@@ -502,7 +516,7 @@ class ReorderBuffer:
 
     def drop_robot(self, robot_id: str) -> None:
         """Forget a robot's held events and its streams (a new run of it)."""
-        self._heap = [held for held in self._heap if held.event.robot_id != robot_id]
+        self._heap = [entry for entry in self._heap if entry[-1].event.robot_id != robot_id]
         heapq.heapify(self._heap)
         for table in (self.newest, self.heard):
             for stream in [stream for stream in table if stream[0] == robot_id]:
@@ -525,7 +539,7 @@ class ReorderBuffer:
         are waited for from their announcement on even before they are taken in; ``queued``: the robots with
         messages received and not yet handled (a service busy with a backlog must not count them as silent)."""
         if flush or self.window_s == 0:
-            out = [(held.event, held.arrived) for held in sorted(self._heap)]
+            out = [(entry[-1].event, entry[-1].arrived) for entry in sorted(self._heap)]
             self._heap = []
             return out
         live = set(live)
@@ -541,7 +555,7 @@ class ReorderBuffer:
         if joining:
             return out
         while self._heap:
-            held = heapq.heappop(self._heap)
+            held = heapq.heappop(self._heap)[-1]
             rid = held.event.robot_id
             if rid in waiting_robots:
                 kept.append(held)
@@ -556,5 +570,5 @@ class ReorderBuffer:
                 break
             out.append((held.event, held.arrived))
         for held in kept:
-            heapq.heappush(self._heap, held)
+            heapq.heappush(self._heap, held.entry())
         return out

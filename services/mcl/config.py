@@ -40,6 +40,8 @@ class MclConfig(CoreConfig):
     motion_noise_scale: float = Field(1.5, gt=0, description="the prediction samples the control noise with this times its std")
     diffusion_xy: float = Field(0.05, ge=0, description="extra position diffusion per sqrt(second) (m)")
     diffusion_theta: float = Field(0.02, ge=0, description="extra heading diffusion per sqrt(second) (rad)")
+    max_batch_s: float = Field(1.0, gt=0, description="buffered odometry moves the particles at the next scan or "
+                               "after this much time (s)")
     srl_threshold: float = Field(0.3, gt=0, description="P_t of sensor resetting, eq. 1, against the mean match quality")
     reset_oversample: int = Field(4, ge=1, description="sensor resetting draws this many candidate poses per sample kept")
     reset_prior: float = Field(

@@ -22,6 +22,8 @@ import math
 
 import numpy as np
 
+from robots import kernels as robot_kernels
+
 from services.compiled import AVAILABLE, njit, wrap_angle
 
 
@@ -154,3 +156,4 @@ def warm_up() -> None:
                                    0.0, 0.0, 9.0, 5.0, 0.0, 1.0, False, -1.0)
         merge_cells_kernel(np.array([0, 1], np.int64), 3, 8, np.array([[0, 0, 1]], np.int64), np.zeros((2, 2)),
                            np.zeros(2), 1.0, 1.0)
+        robot_kernels.warm_up()

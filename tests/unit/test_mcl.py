@@ -233,6 +233,58 @@ def test_map_files_load_as_landmark_arrays(tmp_path):
         load_map_file(str(tmp_path / "nan.npy"))
 
 
+def _per_control_reference(particles, controls, dt, cov, config, rng):
+    """The prediction before odometry was buffered: one noisy control and one diffusion per particle and control."""
+    from robots.models import unicycle_step
+
+    for control in controls:
+        noisy = control + rng.standard_normal((len(particles), 2)) @ (np.linalg.cholesky(cov) * config.motion_noise_scale).T
+        particles = unicycle_step(particles, noisy, dt)
+        particles[:, :2] += rng.normal(0.0, config.diffusion_xy * math.sqrt(dt), size=(len(particles), 2))
+        particles[:, 2] = wrap_angle(particles[:, 2] + rng.normal(0.0, config.diffusion_theta * math.sqrt(dt),
+                                                                   size=len(particles)))
+    return particles
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+@pytest.mark.parametrize("diffusion", [False, True])
+def test_buffered_odometry_moves_the_particles_as_one_draw_per_control_does(compiled, diffusion):
+    """Twenty controls on a turning arc, applied as one draw from their integrated motion when the particles are
+    next looked at: the same mean and covariance as drawing at every control. The diffusion is added once for the
+    time buffered, like FastSLAM's pose noise: its variances are the per-control ones', its correlations with the
+    later motion are left out."""
+    start = np.array([1.0, -2.0, 0.7])
+    noise = {} if diffusion else {"diffusion_xy": 0.0, "diffusion_theta": 0.0}
+    config = MclConfig(particles=20000, max_particles=20000, compiled=compiled, max_batch_s=10.0, **noise)
+    mcl = MonteCarloLocalizer(np.array([[5.0, 0.0]]), info().model_copy(
+        update={"start_pose": start, "start_pose_cov": np.diag([1e-12] * 3)}), config, np.random.default_rng(3))
+    controls = np.column_stack([np.linspace(0.5, 1.0, 20), np.linspace(-0.8, 0.8, 20)])
+    cov = np.diag([0.05**2, 0.1**2])
+    for control in controls:
+        mcl.predict(control, 0.05, cov)
+    assert len(mcl._pending) == 20  # nothing moved yet ...
+    batched = mcl.particles.copy()  # ... until the particles are read
+    assert not mcl._pending
+    reference = _per_control_reference(np.tile(start, (20000, 1)), controls, 0.05, cov, config,
+                                       np.random.default_rng(4))
+    assert np.hypot(*(batched.mean(0)[:2] - start[:2])) > 0.5  # it did move
+    assert np.allclose(batched.mean(0), reference.mean(0), atol=2e-3)
+    got, want = np.cov(batched.T), np.cov(reference.T)
+    if diffusion:
+        got, want = np.diag(got), np.diag(want)
+    assert np.allclose(got, want, rtol=0.06, atol=1e-6)
+
+
+def test_odometry_is_applied_at_least_every_max_batch_s_and_a_new_set_drops_what_moved_the_old():
+    start = info().model_copy(update={"start_pose": np.zeros(3), "start_pose_cov": np.diag([1e-6] * 3)})
+    mcl = MonteCarloLocalizer(np.array([[5.0, 0.0]]), start, MclConfig(particles=100, max_batch_s=0.25))
+    for _ in range(5):
+        mcl.predict(np.array([1.0, 0.0]), 0.1, np.diag([1e-6, 1e-6]))
+    assert len(mcl._pending) == 2 and mcl._particles[:, 0].mean() == pytest.approx(0.3, abs=0.05)
+    mcl.particles = np.zeros((50, 3))
+    assert not mcl._pending and mcl.count == 50 and np.all(mcl.particles == 0.0)
+
+
 # ---------------------------------------------------------------- the fleet
 
 
