@@ -9,8 +9,9 @@ robot in global localization (``cluster_kld_srl``, adaptive). Reports, per
 particle count, the time of one scan update (weigh, cluster, resample) as
 wall time and as this process's CPU time (less disturbed by other work on a
 shared machine), of the likelihood alone (CPU; the numba kernel, and its numpy
-reference in the same run: ``likelihood_speedup``) and of one prediction (wall):
-median and 10th/90th percentiles over the run. ``kernel_warm_up_s``: compiling
+reference in the same run: ``likelihood_speedup``), of one odometry message (``predict``, wall: buffered, MCL
+moves its particles once per scan) and of applying a scan's buffered odometry (``motion``, wall: one draw per
+particle from the integrated motion): median and 10th/90th percentiles over the run. ``kernel_warm_up_s``: compiling
 (or loading the cached) kernel before the first run.
 
     .venv/bin/python benchmarks/mcl_timing.py [--out FILE] [--particles 100,300,1000,3000]
@@ -62,7 +63,8 @@ def run(dataset, variant: str, particles: int, known_start: bool, seed: int) -> 
     config = MclConfig(variant=variant, particles=particles, seed=seed,
                        max_particles=max(particles, 5000), min_particles=min(100, particles))
     mcl = MonteCarloLocalizer(dataset.landmarks, info, config)
-    times: dict[str, list] = {"update": [], "update_cpu": [], "likelihood": [], "likelihood_numpy": [], "predict": []}
+    times: dict[str, list] = {"update": [], "update_cpu": [], "likelihood": [], "likelihood_numpy": [], "predict": [],
+                               "motion": []}
     counts, observations = [], []
     for event in dataset.events():
         if isinstance(event, OdomEvent):
@@ -70,6 +72,7 @@ def run(dataset, variant: str, particles: int, known_start: bool, seed: int) -> 
         elif isinstance(event, ScanEvent):
             z = event.observations
             if mcl.initialized:
+                times["motion"].append(timed(lambda: mcl.particles)[0])
                 times["likelihood"].append(timed(lambda: scan_log_likelihood(mcl.particles, z, mcl.map, mcl.model))[1])
                 times["likelihood_numpy"].append(timed(lambda: scan_log_likelihood(
                     mcl.particles, z, mcl.map, mcl.model, compiled=False))[1])
