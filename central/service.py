@@ -227,14 +227,14 @@ class CentralService(ServiceShell):
             self.reject("bad_placement", f"MCL pose of {rid}")
 
     def _check_placement(self, rid: str, message: MclPose) -> None:
-        """A robot MCL placed, whose localized MCL pose has stayed far from the filter's (``replace_after``,
-        ``replace_distance_m``): it leaves the filter (its landmarks stay) and the next localized pose places it
+        """A robot MCL placed, whose localized MCL pose has stayed far from the filter's pose of the same stamp
+        (``replace_after``, ``replace_distance_m``; :class:`services.placement.PlacementCheck`): it leaves the filter (its landmarks stay) and the next localized pose places it
         again, counted as ``replaced``."""
-        poses = self.slam.poses() if rid in self.placed_by_mcl else {}
-        if rid not in poses or not self.placement_check.observe(rid, poses[rid][0], message.best_pose):
+        if rid not in self.placed_by_mcl or not self.placement_check.observe(rid, message.stamp, message.best_pose):
             return
-        log.warning("robot %s: MCL has put it %.1f m from the filter's pose for %d localized poses in a row: it is "
-                    "placed again", rid, float(np.hypot(*(poses[rid][0][:2] - np.asarray(message.best_pose)[:2]))),
+        there = self.placement_check.filter_at(rid, message.stamp)
+        log.warning("robot %s: MCL has put it %.1f m from the filter's pose of the same moment for %d localized poses "
+                    "in a row: it is placed again", rid, float(np.hypot(*(there - np.asarray(message.best_pose)[:2]))),
                     self.settings.replace_after)
         self.count_extra("replaced")
         info = self.slam.remove_robot(rid)
@@ -250,6 +250,8 @@ class CentralService(ServiceShell):
         robots = []
         for rid, (pose, cov) in self.slam.poses().items():
             stamp = self.slam.pose_stamp(rid)
+            if rid in self.placed_by_mcl and stamp is not None:
+                self.placement_check.record(rid, stamp, pose)  # MCL's later poses are compared with this
             robots.append(RobotEstimate(robot_id=rid, stamp=self.last_stamp if stamp is None else stamp, pose=pose,
                                         cov=0.5 * (cov + cov.T)))
         view = self.slam.landmark_map()

@@ -30,6 +30,8 @@ Each robot's :class:`Placement` says when and how it was placed, or why not.
 
 from __future__ import annotations
 
+import bisect
+from collections import deque
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -94,20 +96,49 @@ class Placement:
 
 class PlacementCheck:
     """Whether a robot MCL placed must be placed again: MCL, localized, has put it farther than ``distance_m`` from
-    the filter's pose for ``messages`` poses in a row. MCL's first ``localized`` can be a wrong hypothesis of a
-    symmetric map that it later leaves by relocalizing; the filter never sees that on its own, since the robot's
-    scans then build its own part of the map where it was put."""
+    the filter's pose at the same stamp for ``messages`` poses in a row. MCL's first ``localized`` can be a wrong
+    hypothesis of a symmetric map that it later leaves by relocalizing; the filter never sees that on its own, since
+    the robot's scans then build its own part of the map where it was put.
 
-    def __init__(self, distance_m: float, messages: int):
+    MCL's poses are compared with the filter's poses of the same moment (:meth:`record`, the nearest within
+    ``max_skew_s`` of robot time), not with its latest: an MCL service seconds behind a fast replay would otherwise
+    find a moving robot metres from where the filter has it now, and have it placed again and again with stale
+    poses. An MCL pose with no filter pose that near is not counted either way."""
+
+    def __init__(self, distance_m: float, messages: int, max_skew_s: float = 1.0, history: int = 600):
         self.distance_m = distance_m
         self.messages = messages
+        self.max_skew_s = max_skew_s
+        self.history = history
         self.runs: dict[str, int] = {}
+        self.tracks: dict[str, deque] = {}  # robot → (stamp, (x, y)) of the filter's poses, oldest first
 
-    def observe(self, robot_id: str, filter_pose, mcl_pose) -> bool:
-        """Count one localized MCL pose; True (and the count starts again) when the robot must be placed again."""
+    def record(self, robot_id: str, stamp: float, filter_pose) -> None:
+        """The filter's pose of ``robot_id`` at ``stamp`` (kept for the last ``history`` poses)."""
+        track = self.tracks.setdefault(robot_id, deque(maxlen=self.history))
+        if track and stamp <= track[-1][0]:
+            return
+        track.append((float(stamp), np.asarray(filter_pose, float)[:2].copy()))
+
+    def filter_at(self, robot_id: str, stamp: float) -> np.ndarray | None:
+        """The recorded filter position nearest ``stamp``, or None when none is within ``max_skew_s``."""
+        track = self.tracks.get(robot_id)
+        if not track:
+            return None
+        stamps = [at for at, _ in track]
+        index = bisect.bisect_left(stamps, stamp)
+        near = min((i for i in (index - 1, index) if 0 <= i < len(track)), key=lambda i: abs(stamps[i] - stamp))
+        return track[near][1] if abs(stamps[near] - stamp) <= self.max_skew_s else None
+
+    def observe(self, robot_id: str, stamp: float, mcl_pose) -> bool:
+        """Count one localized MCL pose stamped ``stamp``; True (and the count starts again) when the robot must be
+        placed again."""
         if self.messages <= 0:
             return False
-        apart = float(np.hypot(*(np.asarray(filter_pose, float)[:2] - np.asarray(mcl_pose, float)[:2])))
+        there = self.filter_at(robot_id, stamp)
+        if there is None:
+            return False
+        apart = float(np.hypot(*(there - np.asarray(mcl_pose, float)[:2])))
         run = self.runs.get(robot_id, 0) + 1 if apart > self.distance_m else 0
         self.runs[robot_id] = run
         if run < self.messages:
@@ -117,6 +148,7 @@ class PlacementCheck:
 
     def forget(self, robot_id: str) -> None:
         self.runs.pop(robot_id, None)
+        self.tracks.pop(robot_id, None)
 
 
 class FleetPlacer:

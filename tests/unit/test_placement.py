@@ -150,15 +150,32 @@ def test_placement_check_asks_again_only_after_a_run_of_far_localized_poses():
     row; one close pose starts the count again, and 0 messages never asks."""
     check = PlacementCheck(distance_m=2.0, messages=3)
     here, far, near = np.array([1.0, 1.0, 0.0]), np.array([4.0, 1.0, 2.0]), np.array([2.5, 1.0, 0.0])
-    assert [check.observe("r4", here, far) for _ in range(2)] == [False, False]
-    assert not check.observe("r4", here, near)  # 1.5 m: close enough, the run starts again
-    assert [check.observe("r4", here, far) for _ in range(3)] == [False, False, True]
-    assert not check.observe("r4", here, far)  # after asking, it counts afresh
-    assert not check.observe("r1", here, far)  # per robot
+    for robot in ("r4", "r1"):
+        check.record(robot, 10.0, here)
+    assert [check.observe("r4", 10.0, far) for _ in range(2)] == [False, False]
+    assert not check.observe("r4", 10.0, near)  # 1.5 m: close enough, the run starts again
+    assert [check.observe("r4", 10.0, far) for _ in range(3)] == [False, False, True]
+    assert not check.observe("r4", 10.0, far)  # after asking, it counts afresh
+    assert not check.observe("r1", 10.0, far)  # per robot
     check.forget("r4")
-    assert check.runs.get("r4") is None
+    assert check.runs.get("r4") is None and check.filter_at("r4", 10.0) is None
     never = PlacementCheck(distance_m=2.0, messages=0)
-    assert not any(never.observe("r4", here, far) for _ in range(50))
+    never.record("r4", 10.0, here)
+    assert not any(never.observe("r4", 10.0, far) for _ in range(50))
+
+
+def test_placement_check_compares_mcl_with_the_filter_at_the_same_stamp():
+    """An MCL service seconds behind: its poses of a robot driving at 1 m/s agree with the filter's poses of the
+    same stamps, though the filter's latest is 10 m ahead of them; they are not a reason to place it again. Poses
+    with no filter pose within ``max_skew_s`` are not counted; a real disagreement at the same stamp still is."""
+    check = PlacementCheck(distance_m=2.0, messages=3, max_skew_s=1.0)
+    for t in np.arange(0.0, 20.5, 0.5):
+        check.record("r2", t, np.array([t, 0.0, 0.0]))  # the filter: x = t
+    stale = [check.observe("r2", t, np.array([t + 0.1, 0.2, 0.0])) for t in np.arange(5.0, 10.0, 0.5)]
+    assert not any(stale) and check.runs["r2"] == 0
+    assert np.allclose(check.filter_at("r2", 7.2), [7.0, 0.0]) and check.filter_at("r2", 21.6) is None
+    assert not any(check.observe("r2", 40.0, np.array([99.0, 0.0, 0.0])) for _ in range(5))  # no filter pose then
+    assert [check.observe("r2", 8.0, np.array([8.0, 5.0, 0.0])) for _ in range(3)] == [False, False, True]
 
 
 def test_a_mapping_service_takes_only_a_localized_mcl_pose_on_its_robots_key():
