@@ -228,8 +228,8 @@ class CentralService(ServiceShell):
 
     def _check_placement(self, rid: str, message: MclPose) -> None:
         """A robot MCL placed, whose localized MCL pose has stayed far from the filter's pose of the same stamp
-        (``replace_after``, ``replace_distance_m``; :class:`services.placement.PlacementCheck`): it leaves the filter (its landmarks stay) and the next localized pose places it
-        again, counted as ``replaced``."""
+        (``replace_after``, ``replace_distance_m``; :class:`services.placement.PlacementCheck`): it leaves the
+        filter (its landmarks stay) and the next localized pose places it again, counted as ``replaced``."""
         if rid not in self.placed_by_mcl or not self.placement_check.observe(rid, message.stamp, message.best_pose):
             return
         there = self.placement_check.filter_at(rid, message.stamp)

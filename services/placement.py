@@ -125,10 +125,10 @@ class PlacementCheck:
         track = self.tracks.get(robot_id)
         if not track:
             return None
-        stamps = [at for at, _ in track]
-        index = bisect.bisect_left(stamps, stamp)
-        near = min((i for i in (index - 1, index) if 0 <= i < len(track)), key=lambda i: abs(stamps[i] - stamp))
-        return track[near][1] if abs(stamps[near] - stamp) <= self.max_skew_s else None
+        index = bisect.bisect_left(track, stamp, key=lambda item: item[0])
+        at, position = min((track[i] for i in (index - 1, index) if 0 <= i < len(track)),
+                           key=lambda item: abs(item[0] - stamp))
+        return position if abs(at - stamp) <= self.max_skew_s else None
 
     def observe(self, robot_id: str, stamp: float, mcl_pose) -> bool:
         """Count one localized MCL pose stamped ``stamp``; True (and the count starts again) when the robot must be

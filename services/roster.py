@@ -391,7 +391,7 @@ class Roster:
 
 @dataclass
 class _Held:
-    """One held event; the heap orders it by :meth:`key`, a plain tuple (compared in C: a dataclass's generated
+    """One held event; the heap orders it by :meth:`entry`, a plain tuple (compared in C: a dataclass's generated
     ordering cost a service seconds a minute at a few hundred events a second)."""
 
     stamp: float

@@ -38,8 +38,8 @@ import math
 
 import numpy as np
 
+from robots import kernels as robot_kernels
 from robots.kernels import integrate_controls
-from robots.models import AckermannModel, UnicycleModel
 from robots.gaussian import LOG_2PI
 from services.compiled import AVAILABLE, njit, wrap_angle
 
@@ -718,8 +718,7 @@ def warm_up() -> None:
                           np.array([0, 1]))
     pose = np.zeros((2, 3))  # the wrappers make a robot's poses contiguous
     known_update(landmarks, RangeBearingSensor(), pose, slots[:1], np.array([[3.0, 0.0]]), np.eye(2) * 0.01, 1.0, 6.0)
-    for model in (UnicycleModel(), AckermannModel()):
-        integrate_controls(model, np.array([[1.0, 0.1]]), np.array([0.1]), np.eye(2)[None] * 0.01)
+    robot_kernels.warm_up()  # integrate_controls, shared with MCL
     weights = np.full(2, 0.5)
     weighted_pose(pose, weights, None)
     weighted_pose(pose, weights, (np.zeros(3), np.eye(3)))
