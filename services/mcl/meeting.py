@@ -177,15 +177,16 @@ class MeetingLog:
         free, _ = _residual_function(entries, odometry, sensor, shared=False)
         minima: list[np.ndarray] = []
         for heading in np.linspace(-math.pi, math.pi, self.headings, endpoint=False):
-            frame = least_squares(free, _start(entries[0], odometry[0], heading, sensor), method="lm",
-                                  x_scale=[1.0, 1.0, 0.1]).x
+            frame = least_squares(_one(free), _start(entries[0], odometry[0], heading, sensor), method="lm",
+                                  jac=_forward_differences(free), x_scale=[1.0, 1.0, 0.1]).x
             if not any(_same_frame(frame, other) for other in minima):
                 minima.append(frame)
-        residuals, others = _residual_function(entries, odometry, sensor)
+        batch, others = _residual_function(entries, odometry, sensor)
+        residuals = _one(batch)
         solutions = []
         for frame in minima:
             fit = least_squares(residuals, np.concatenate([frame, np.zeros(3 * others)]), method="lm",
-                                x_scale=[1.0, 1.0, 0.1] + [0.1, 0.1, 0.01] * others)
+                                jac=_forward_differences(batch), x_scale=[1.0, 1.0, 0.1] + [0.1, 0.1, 0.01] * others)
             solutions.append((2.0 * fit.cost, fit.x, fit.jac))
         solutions.sort(key=lambda item: item[0])
         chi2, unknowns, jacobian = solutions[0]
@@ -218,7 +219,8 @@ def _same_frame(a: np.ndarray, b: np.ndarray) -> bool:
 
 def _residual_function(entries: list[_Logged], odometry: np.ndarray, sensor: RangeBearingSensor,
                        shared: bool = True):
-    """(whitened residuals of every meeting for the unknowns, how many placed robots' pose errors are unknowns).
+    """(whitened residuals ``(B, m)`` of every meeting for a batch ``(B, n)`` of unknowns, how many placed robots'
+    pose errors are unknowns).
 
     The unknowns are the frame (the world pose of the odometry's origin) and, per placed robot named by the
     meetings (``shared``), an error δ ``(3,)`` added to every pose of it the meetings hold, with its covariance
@@ -254,20 +256,42 @@ def _residual_function(entries: list[_Logged], odometry: np.ndarray, sensor: Ran
     noise = np.array([entries[k].meeting.noise_cov for k in saw], float).reshape(-1, 2, 2)
 
     def residuals(unknowns: np.ndarray) -> np.ndarray:
-        errors = np.vstack([unknowns[3:].reshape(-1, 3), np.zeros((1, 3))])[group]  # δ of each meeting's robot
-        poses = se2_compose(unknowns[:3], odometry)
-        moved = means + np.einsum("kij,kj->ki", shift, errors[seen])
-        out = [np.einsum("kij,kj->ki", whiten, poses[seen, :2] - moved).ravel()]
+        batch = unknowns.shape[0]
+        errors = np.concatenate([unknowns[:, 3:].reshape(batch, -1, 3), np.zeros((batch, 1, 3))], 1)[:, group]
+        poses = se2_compose(unknowns[:, None, :3], odometry)
+        moved = means + np.einsum("kij,bkj->bki", shift, errors[:, seen])
+        out = [np.einsum("kij,bkj->bki", whiten, poses[:, seen, :2] - moved).reshape(batch, -1)]
         if saw:
-            predicted, h_other = sensor.observe_with_jacobian(poses[saw][:, None, :], others[:, None, :])
-            h_other = h_other[:, 0]
-            nu = sensor.innovation(z, predicted[:, 0]) - np.einsum("kij,kj->ki", h_other, errors[saw, :2])
+            predicted, h_other = sensor.observe_with_jacobian(poses[:, saw, None, :], others[:, None, :])
+            h_other = h_other[..., 0, :, :]
+            nu = sensor.innovation(z, predicted[..., 0, :]) - np.einsum("bkij,bkj->bki", h_other, errors[:, saw, :2])
             cov = noise + h_other @ other_covs @ np.swapaxes(h_other, -1, -2)
-            out.append(np.einsum("kij,kj->ki", np.linalg.inv(np.linalg.cholesky(cov)), nu).ravel())
-        out.append(np.einsum("gij,gj->gi", prior_whiten, unknowns[3:].reshape(-1, 3)).ravel())
-        return np.concatenate(out)
+            out.append(np.einsum("bkij,bkj->bki", np.linalg.inv(np.linalg.cholesky(cov)), nu).reshape(batch, -1))
+        out.append(np.einsum("gij,bgj->bgi", prior_whiten, unknowns[:, 3:].reshape(batch, -1, 3)).reshape(batch, -1))
+        return np.concatenate(out, 1)
 
     return residuals, len(names)
+
+
+def _one(batch):
+    """The residuals of one vector of unknowns, from a function of a batch ``(B, n)`` of them."""
+    return lambda unknowns: batch(unknowns[None])[0]
+
+
+def _forward_differences(batch):
+    """The Jacobian of ``batch``'s residuals by forward differences, scipy's ``jac="2-point"`` steps (√ε·max(1, |x|),
+    signed as x), with every shifted copy of the unknowns evaluated in one call of ``batch`` instead of one each:
+    the solves are dominated by numpy's per-call overhead on a few meetings."""
+    def jacobian(unknowns: np.ndarray) -> np.ndarray:
+        step = _FORWARD_STEP * np.where(unknowns >= 0.0, 1.0, -1.0) * np.maximum(1.0, np.abs(unknowns))
+        taken = (unknowns + step) - unknowns
+        values = batch(np.vstack([unknowns, unknowns + np.diag(step)]))
+        return ((values[1:] - values[0]) / taken[:, None]).T
+
+    return jacobian
+
+
+_FORWARD_STEP = math.sqrt(np.finfo(float).eps)
 
 
 def _start(entry: _Logged, odometry: np.ndarray, heading: float, sensor: RangeBearingSensor) -> np.ndarray:

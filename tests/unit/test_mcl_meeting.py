@@ -13,7 +13,10 @@ from robots.models import RangeBearingSensor, se2_accumulate, se2_compose, wrap_
 from services.mcl.config import MclConfig
 from services.mcl.core import MonteCarloLocalizer
 from schemas.contract import OdomEvent, ScanEvent
-from services.mcl.meeting import GATE, Meeting, MeetingDesk, MeetingLog, PlacedPoses, draw, log_likelihood
+from scipy.optimize._numdiff import approx_derivative
+
+from services.mcl.meeting import (GATE, Meeting, MeetingDesk, MeetingLog, PlacedPoses, _forward_differences,
+                                  _residual_function, draw, log_likelihood)
 from robots.simulator import simulate
 
 OTHER_SENSOR, OWN_SENSOR = RangeBearingSensor((0.1, 0.0)), RangeBearingSensor((0.2, 0.05))
@@ -77,6 +80,38 @@ def test_a_robots_meetings_fix_its_pose_once_they_are_enough(seed):
     error = np.append(fix.pose[:2] - world[-1][:2], wrap_angle(fix.pose[2] - world[-1][2]))
     assert np.hypot(*error[:2]) < 0.15 and abs(error[2]) < 0.05
     assert error @ np.linalg.solve(fix.cov, error) < 16.3  # χ²(3) 99.9 %
+
+
+@pytest.mark.parametrize("shared", [True, False])
+def test_the_solves_jacobian_is_scipys_forward_differences_from_one_batched_call(shared):
+    """The meetings' residuals of a batch of unknowns are each row's own residuals, and their Jacobian by forward
+    differences in one batched call is scipy's ``2-point`` Jacobian (the solves took it from there before)."""
+    rng = np.random.default_rng(4)
+    frame = np.array([1.0, -2.0, 0.7])
+    odometry, world = robot_path(frame, 10, np.array([0.25, 0.0, 0.08]))
+    log = MeetingLog()
+    for k in range(10):
+        log.move(odometry[k])
+        other = world[k] + np.array([2.0, 1.0 - 0.2 * k, 0.4])
+        meeting = simulated_meeting(rng, world[k], other, by_other=k % 3 == 0)
+        log.add(Meeting(meeting.other_pose, meeting.other_cov, meeting.z, meeting.noise_cov, meeting.by_other,
+                        meeting.other_sensor, "r2" if k % 2 else "r3"))
+    entries = log.usable()
+    batch, others = _residual_function(entries, np.array([e.odometry for e in entries]), OWN_SENSOR, shared)
+    assert others == (2 if shared else 0)
+    unknowns = np.concatenate([frame + [0.05, -0.03, 0.02], rng.normal(0.0, 0.05, 3 * others)])
+    unknowns[1] = -1e-3  # a negative unknown: the step takes its sign
+    rows = np.vstack([unknowns, unknowns + 0.1, -unknowns])
+    together = batch(rows)
+    for row, residuals in zip(rows, together):
+        np.testing.assert_allclose(batch(row[None])[0], residuals, rtol=1e-12, atol=1e-12)
+    one = lambda x: batch(x[None])[0]  # noqa: E731
+    np.testing.assert_allclose(_forward_differences(batch)(unknowns), approx_derivative(one, unknowns),
+                               rtol=1e-5, atol=1e-5)  # the residuals agree to rounding, over a step of 1e-8
+    at_zero = np.array(unknowns)
+    at_zero[0] = 0.0
+    np.testing.assert_allclose(_forward_differences(batch)(at_zero), approx_derivative(one, at_zero),
+                               rtol=1e-5, atol=1e-5)
 
 
 def test_meetings_with_one_robot_count_its_pose_error_once():
