@@ -141,7 +141,8 @@ def jcbb_search(innovations, joint_blocks, noise, candidates, counts, order, bou
             stacked = np.empty((rows, 2))  # C_{H,n}
             for j in range(k):
                 stacked[2 * j: 2 * j + 2, :] = joint_blocks[pair_n[j], n]
-            b = lower[:rows, :rows] @ stacked  # L⁻¹ C_{H,n}
+            lower_hh = np.ascontiguousarray(lower[:rows, :rows])  # the product copies a strided block anyway
+            b = lower_hh @ stacked  # L⁻¹ C_{H,n}
             schur = joint_blocks[n, n] + noise - b.T @ b
             residual = innovations[m, n] - b.T @ white[:rows]
             if schur[0, 0] <= 0.0:
@@ -157,7 +158,7 @@ def jcbb_search(innovations, joint_blocks, noise, candidates, counts, order, bou
             d2_new = d2_at[k] + u[0] * u[0] + u[1] * u[1]
             if d2_new > bounds[k]:
                 continue
-            lower[rows:rows + 2, :rows] = -(inv_lower @ b.T) @ lower[:rows, :rows]
+            lower[rows:rows + 2, :rows] = -(inv_lower @ np.ascontiguousarray(b.T)) @ lower_hh
             lower[rows:rows + 2, rows:rows + 2] = inv_lower
             white[rows:rows + 2] = u
             pair_m[k], pair_n[k] = m, n
