@@ -158,7 +158,7 @@ def jcbb_search(innovations, joint_blocks, noise, candidates, counts, order, bou
             d2_new = d2_at[k] + u[0] * u[0] + u[1] * u[1]
             if d2_new > bounds[k]:
                 continue
-            lower[rows:rows + 2, :rows] = -(inv_lower @ np.ascontiguousarray(b.T)) @ lower_hh
+            lower[rows:rows + 2, :rows] = -(inv_lower @ b.T) @ lower_hh
             lower[rows:rows + 2, rows:rows + 2] = inv_lower
             white[rows:rows + 2] = u
             pair_m[k], pair_n[k] = m, n

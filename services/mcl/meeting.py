@@ -35,6 +35,7 @@ from robots.models import (RangeBearingSensor, compose_start_jacobian, robot_mod
 from schemas.contract import OdomEvent, ScanEvent
 
 GATE = chi2_quantile(0.999, 2)  # a particle farther than this (d²) from the meeting disagrees with it
+_FORWARD_STEP = math.sqrt(np.finfo(float).eps)  # scipy's 2-point relative step (_forward_differences)
 
 
 @dataclass(frozen=True)
@@ -289,9 +290,6 @@ def _forward_differences(batch):
         return ((values[1:] - values[0]) / taken[:, None]).T
 
     return jacobian
-
-
-_FORWARD_STEP = math.sqrt(np.finfo(float).eps)
 
 
 def _start(entry: _Logged, odometry: np.ndarray, heading: float, sensor: RangeBearingSensor) -> np.ndarray:
