@@ -60,11 +60,14 @@ PLANS = {
         Step(PROBES["forged_stream"], ("r2",), 13.0),
         Step(PROBES["twin_robot"], ("r3",)),
     )),
-    "floods": Plan(robots=("r1", "r2"), duration=60.0, assoc=True, service_env=UNANNOUNCED, steps=(
-        Step(PROBES["buggy_seq_jump"], ("r2",), 3.0),  # 5 s apart: each window opens LIE_LEAD_S before its lie
-        Step(PROBES["buggy_stamp_jump"], ("r2",), 8.0),
-        Step(PROBES["buggy_dt_lie"], ("r2",), 13.0),
-        Step(PROBES["buggy_control_lie"], ("r2",), 18.0),
+    # the buggy robot's lies 8 robot seconds apart (each window opens LIE_LEAD_S before its lie, so a service has 6
+    # robot seconds, 3 s of wall time, to count one): 5 apart, D-SLAM on a loaded machine counted the stamp and dt
+    # lies 5 robot seconds late, in the next lie's window (seen in two fresh clones); the duration grew with them
+    "floods": Plan(robots=("r1", "r2"), duration=72.0, assoc=True, service_env=UNANNOUNCED, steps=(
+        Step(PROBES["buggy_seq_jump"], ("r2",), 3.0),
+        Step(PROBES["buggy_stamp_jump"], ("r2",), 11.0),
+        Step(PROBES["buggy_dt_lie"], ("r2",), 19.0),
+        Step(PROBES["buggy_control_lie"], ("r2",), 27.0),
         Step(PROBES["stale_big_scans"], ("r1",)),  # the attacker's probes, one right after the other
         Step(PROBES["ghosts"]),
         Step(PROBES["ghost_big_scans"]),
