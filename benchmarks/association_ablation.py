@@ -15,6 +15,8 @@ Steps (FastSLAM, 100 particles, scans' ids ignored):
   held until one rigid correction puts its recent detections back on the map (``reacquire``), or one within 1σ of
   its dead reckoning explains as many, every correction scored less half its squared size in σ of the drift:
   ``--association unknown``, the default;
+- ``shared-jcbb-drift-reset``: ``shared-jcbb`` with a robot's drift started from zero at every match (the default
+  before a match conditioned it on the matched detections, ``reacquire_drift_update``);
 - ``shared-jcbb-rigid-only``: ``shared-jcbb`` with the rigid correction alone (the default before: no correction
   near the dead reckoning taken on one landmark, no prior on the corrections);
 - ``shared-jcbb-no-prior``: ``shared-jcbb`` without the prior (corrections near the dead reckoning confirmed);
@@ -70,6 +72,7 @@ STEPS: dict[str, tuple[str, str, dict]] = {
     "shared-jcbb-rigid-only": ("fastslam", "unknown", {"reacquire_confirm_sigmas": 0.0, "reacquire_prior_weight": 0.0}),
     "shared-jcbb-no-prior": ("fastslam", "unknown", {"reacquire_prior_weight": 0.0}),
     "shared-jcbb-ess-0.05": ("fastslam", "unknown", {"resample_ess": 0.05}),
+    "shared-jcbb-drift-reset": ("fastslam", "unknown", {"reacquire_drift_update": False}),
     "dslam-per-scan": ("dslam", "unknown", {"local_map_max_std": 0.0, "gate_pose_floor": (0.0, 0.0, 0.0),
                                             "turn_slip": False, "reacquire": False}),
     "dslam-floor": ("dslam", "unknown", {"local_map_max_std": 0.0, "turn_slip": False, "reacquire": False}),

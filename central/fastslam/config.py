@@ -97,6 +97,11 @@ class FastSlamConfig(CoreConfig):
         0.5, ge=0.0, description="... each correction scored by its detections less this times its squared size in σ "
         "of the drift (a Gaussian prior on the correction: of two that explain about as much, the one the dead "
         "reckoning makes likelier wins; 0: every correction within the window alike)")
+    reacquire_drift_update: bool = Field(
+        True, description="... a match conditions the drift on the matched detections (a Kalman update: one landmark "
+        "leaves the turn about it free) instead of starting it from zero (False, the default before). MR.CLAM without "
+        "barcodes, 80 seeds: worst robot 0.55 / 1.48 m against 0.56 / 1.29, robot-median 0.35 / 0.69 against "
+        "0.39 / 0.96 m, every block of ten seeds within the targets (7 of 8 before); Victoria Park, car park unchanged")
     sensor_noise_scale: float = Field(1.0, gt=0.0, description="multiplies the scan's noise covariance")
     max_batch_s: float = Field(1.0, gt=0.0, description="integrate buffered controls at least this often (s)")
     max_extrapolation_s: float = Field(

@@ -8,9 +8,10 @@ neighbouring cluster, a metre away), and the FastSLAM 2.0 proposal, which cannot
 is that certain, turns it by 20–60° instead. The robot then maps its own rotated copy of the landmarks and
 drags the robots that see it along.
 
-What. Each robot carries the covariance of its dead reckoning since it last matched a landmark (``drift``):
-the odometry's own covariance propagated along the path, plus the heading variance per radian turned that the
-robot announces (``RobotInfo.turn_slip_var``, wheel slip). Once the drift's heading σ exceeds
+What. Each robot carries the covariance of its dead reckoning (``drift``): the odometry's own covariance
+propagated along the path, plus the heading variance per radian turned that the robot announces
+(``RobotInfo.turn_slip_var``, wheel slip), conditioned at each match on the matched detections
+(:func:`condition`: one landmark leaves the turn about it free, so that part of the drift stays). Once the drift's heading σ exceeds
 ``reacquire_heading_sd`` or its position σ ``reacquire_position_sd``, the robot's scans are no longer
 associated one at a time: their detections are kept, as points placed from the robot's dead-reckoned mean
 pose, over the last ``reacquire_window_s``. Every ``reacquire_every_s`` a search over rigid corrections — a
@@ -148,6 +149,21 @@ def accumulate(drift: np.ndarray | None, heading: float, delta: np.ndarray, cov:
     out = jac @ drift @ jac.T + rot @ cov @ rot.T
     out[2, 2] += turn_slip_var * abs(float(delta[2]))
     return out
+
+
+def condition(drift: np.ndarray, h_x: np.ndarray, noise: np.ndarray) -> np.ndarray:
+    """The drift after the robot matched confirmed landmarks: the Kalman update of the covariance ``drift`` by the
+    detections' pose Jacobians ``h_x`` ``(n, 2, 3)`` and their noise ``(n, 2, 2)`` (the sensor's plus the
+    landmark's). One landmark leaves the turn about it free, so the drift keeps what the match cannot pin, and a
+    robot that saw one landmark at a time comes back to re-acquisition sooner, instead of starting from zero at
+    every match (MR.CLAM: a robot 49° off matched one landmark and went on for a minute as if its heading were
+    known)."""
+    h = h_x.reshape(-1, 3)
+    q = np.zeros((h.shape[0], h.shape[0]))
+    for k, block in enumerate(noise):
+        q[2 * k:2 * k + 2, 2 * k:2 * k + 2] = block
+    gain = drift @ h.T @ np.linalg.inv(h @ drift @ h.T + q)
+    return drift - gain @ h @ drift
 
 
 def lost(config: FastSlamConfig, drift: np.ndarray | None) -> bool:

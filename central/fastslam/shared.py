@@ -123,7 +123,10 @@ def associate(slam: FastSlam, robot: RobotState, z: np.ndarray, r: np.ndarray) -
         fresh, unmatched_count = np.ones(m, bool), m
     if rows_matched := m - unmatched_count:
         robot.last_match_stamp = robot.last_scan_stamp
-        robot.drift = None
+        if not slam.config.reacquire_drift_update:
+            robot.drift = None
+        elif robot.drift is not None and (pinned := cols[~tentative[cols]]).size:
+            robot.drift = reacquire.condition(robot.drift, h_x[pinned], own[pinned] + r)
         slam.counts["detections_matched"] += rows_matched
     created = int(np.count_nonzero(fresh))
     ids[fresh] = slam.next_landmark_id + np.arange(created)

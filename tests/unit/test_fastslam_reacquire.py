@@ -126,6 +126,30 @@ def test_confirm_takes_the_dead_reckoning_when_one_landmark_cannot_pin_the_turn(
     assert taken is not None and np.hypot(*taken.shift) <= 0.2
 
 
+def test_a_match_conditions_the_drift_on_what_its_landmarks_pin():
+    """``condition``: the Kalman update of the drift by matched detections equals the information form
+    (D⁻¹ + Hᵀ Q⁻¹ H)⁻¹; one landmark leaves most of the heading's variance (the turn about it is free), two
+    landmarks far apart pin it."""
+    info = simulate("arena", robots=1, duration=1.0).robots["r1"].info
+    sensor = FastSlam(FastSlamConfig(particles=4, association="shared"), [info]).robots["r1"].sensor
+    pose, drift = np.array([1.0, 2.0, 0.3]), np.diag([0.25, 0.25, 0.06])  # σ 0.5 m, 14°
+    noise = np.diag([0.01, 0.001])
+
+    def conditioned(points: np.ndarray) -> np.ndarray:
+        h_x, _ = sensor.jacobians(np.broadcast_to(pose, (len(points), 3)), points)
+        out = reacquire.condition(drift, h_x, np.broadcast_to(noise, (len(points), 2, 2)))
+        h = h_x.reshape(-1, 3)
+        q_inv = np.kron(np.eye(len(points)), np.linalg.inv(noise))
+        np.testing.assert_allclose(out, np.linalg.inv(np.linalg.inv(drift) + h.T @ q_inv @ h), atol=1e-12)
+        return out
+
+    one = conditioned(np.array([[2.5, 2.4]]))
+    two = conditioned(np.array([[2.5, 2.4], [0.2, 4.0]]))
+    assert one[2, 2] > 0.5 * drift[2, 2]  # the turn about one landmark stays mostly free
+    assert two[2, 2] < 0.05 * one[2, 2]  # two landmarks 2.8 m apart pin it
+    assert max(one[0, 0], one[1, 1]) < 0.5 * drift[0, 0]  # the position along the landmark is pinned
+
+
 def test_the_drift_prior_decides_between_corrections_that_explain_as_much():
     """Two copies of a landmark pattern 1.2 m apart: two corrections explain every detection, and the rigid rule
     refuses; weighed by the drift's Gaussian, the one near the dead reckoning wins by more than the margin."""
@@ -181,14 +205,17 @@ def test_a_lost_robot_is_put_back_on_the_map_instead_of_mapping_a_copy():
     assert slam.robots["r1"].blind is None
 
 
-def test_drift_grows_while_blind_and_restarts_at_a_match():
-    """A robot that sees nothing accumulates drift scan after scan; one that matches landmarks starts it again
-    at every match (then the proposal adds that scan's motion), so it never grows."""
+def test_drift_grows_while_blind_and_levels_off_while_matching():
+    """A robot that sees nothing accumulates drift scan after scan. One that matches landmarks has its drift
+    conditioned on them at every match (the default), so it levels off far below the blind one's; with
+    ``reacquire_drift_update`` off it starts again from zero at every match (then the proposal adds that scan's
+    motion)."""
     data = simulate("arena", robots=1, seed=0, duration=8.0)
     info = data.robots["r1"].info
     drifts = {}
-    for blind in (True, False):
-        slam = FastSlam(FastSlamConfig(particles=10, association="shared", seed=0, confirm_hits=1), [info])
+    for blind, update in ((True, True), (False, True), (False, False)):
+        config = FastSlamConfig(particles=10, association="shared", seed=0, confirm_hits=1, reacquire_drift_update=update)
+        slam = FastSlam(config, [info])
         robot, seen = slam.robots["r1"], []
         for event in data.events():
             if isinstance(event, OdomEvent):
@@ -198,11 +225,14 @@ def test_drift_grows_while_blind_and_restarts_at_a_match():
                     event = dataclasses.replace(event, ranges=np.zeros(0), bearings=np.zeros(0), landmark_ids=None)
                 slam.on_scan(event)
                 seen.append(0.0 if robot.drift is None else robot.drift[2, 2])
-        drifts[blind] = np.array(seen)
+        drifts[blind, update] = np.array(seen)
         assert (slam.counts["detections_matched"] > 0) != blind
-    grown = drifts[True][drifts[True] > 0]
+    grown = drifts[True, True][drifts[True, True] > 0]
     assert len(grown) > 5 and np.all(np.diff(grown) > 0)
-    assert drifts[False].max() < 0.05 * drifts[True][-1]  # at most the motion since the last matched scan
+    conditioned, reset = drifts[False, True], drifts[False, False]
+    assert conditioned.max() < 0.1 * grown[-1] and conditioned[-1] > 0.0
+    assert conditioned[-1] <= conditioned[-10] and np.ptp(conditioned[-10:]) < 0.1 * conditioned[-1]  # level
+    assert reset.max() < 0.05 * grown[-1]  # at most the motion since the last matched scan
 
 
 def vote_inputs(layout: str, seed: int) -> tuple:
