@@ -41,7 +41,7 @@ class RobotState:
     last_match_stamp: float | None = None  # shared association: the last scan with a detection matched
     checked_cov: object = None  # the control covariance last validated (by identity) and its scaled copy
     scaled_cov: np.ndarray | None = None
-    drift: np.ndarray | None = None  # shared association: covariance of the dead reckoning since the last match
+    drift: np.ndarray | None = None  # shared association: covariance of the dead reckoning, conditioned on matches
     blind: object = None  # a reacquire.BlindWindow while the robot re-acquires the map
 
     @property

@@ -96,7 +96,7 @@ def clear(robot: RobotState) -> None:
 
 def take_pending(slam: FastSlam, robot: RobotState) -> tuple[np.ndarray, np.ndarray] | None:
     """The buffered motion (:func:`pending_motion`), cleared from the buffer for the caller to apply; with shared
-    association it is also added to the robot's drift since its last match (:mod:`central.fastslam.reacquire`).
+    association it is also added to the robot's drift (:mod:`central.fastslam.reacquire`).
 
     With turn gains on, each particle first turns by (gain − 1)·Δθ̄ (its own hypothesis of the robot's turn gain;
     composing Δ̄ after that turn rotates Δ̄'s few centimetres with it, well inside its noise), and the gains walk

@@ -11,9 +11,9 @@ drags the robots that see it along.
 What. Each robot carries the covariance of its dead reckoning (``drift``): the odometry's own covariance
 propagated along the path, plus the heading variance per radian turned that the robot announces
 (``RobotInfo.turn_slip_var``, wheel slip), conditioned at each match on the matched detections
-(:func:`condition`: one landmark leaves the turn about it free, so that part of the drift stays). Once the drift's heading σ exceeds
-``reacquire_heading_sd`` or its position σ ``reacquire_position_sd``, the robot's scans are no longer
-associated one at a time: their detections are kept, as points placed from the robot's dead-reckoned mean
+(:func:`condition`: one landmark leaves the turn about it free, so that part of the drift stays). Once the
+drift's heading σ exceeds ``reacquire_heading_sd`` or its position σ ``reacquire_position_sd``, the robot's
+scans are no longer associated one at a time: their detections are kept, as points placed from the robot's dead-reckoned mean
 pose, over the last ``reacquire_window_s``. Every ``reacquire_every_s`` a search over rigid corrections — a
 turn about the robot's position, then a shift, both within 3σ of the drift and at most
 ``reacquire_max_turn`` / ``reacquire_max_shift_m`` — lets every (point, confirmed landmark) pair vote for the
@@ -43,6 +43,7 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import numpy as np
+import scipy.linalg
 
 from central.fastslam import kernels
 from robots.models import wrap_angle
@@ -159,15 +160,13 @@ def condition(drift: np.ndarray, h_x: np.ndarray, noise: np.ndarray) -> np.ndarr
     every match (MR.CLAM: a robot 49° off matched one landmark and went on for a minute as if its heading were
     known)."""
     h = h_x.reshape(-1, 3)
-    q = np.zeros((h.shape[0], h.shape[0]))
-    for k, block in enumerate(noise):
-        q[2 * k:2 * k + 2, 2 * k:2 * k + 2] = block
-    gain = drift @ h.T @ np.linalg.inv(h @ drift @ h.T + q)
+    gain = drift @ h.T @ np.linalg.inv(h @ drift @ h.T + scipy.linalg.block_diag(*noise))
     return drift - gain @ h @ drift
 
 
 def lost(config: FastSlamConfig, drift: np.ndarray | None) -> bool:
-    """Whether a robot's drift since its last match is beyond what scan-by-scan association can trust."""
+    """Whether a robot's drift (its dead reckoning, conditioned on its matches) is beyond what scan-by-scan
+    association can trust."""
     if drift is None:
         return False
     return bool(drift[2, 2] > config.reacquire_heading_sd ** 2
@@ -326,7 +325,7 @@ def step(slam: FastSlam, robot: RobotState, pose: np.ndarray, z: np.ndarray, lan
     window = robot.blind
     window.add(stamp, robot.sensor.inverse(pose, z), config.reacquire_window_s)
     if window.due(stamp, config.reacquire_every_s):
-        drift = robot.drift  # a held robot's drift is never reset: only a match or a correction does that
+        drift = robot.drift  # a held robot matches nothing: only a correction resets its drift
         correction = search_window(window, pose[:2], math.sqrt(drift[2, 2]), math.sqrt(max(drift[0, 0], drift[1, 1])),
                                    config.reacquire_max_turn, config.reacquire_max_shift_m, landmarks,
                                    config.reacquire_rule)
