@@ -23,7 +23,8 @@ filter (:class:`central.fastslam.FastSlam`):
   started after it) has lost its start pose: counted, and with ``late_join``
   = ``wait`` it waits for MCL like a robot without a start pose.
 - Robot-to-robot detections in scans weight the particles (``robot_detections``, on by default; with the scan's
-  noise covariance times ``robot_detection_noise_scale``); they never update the map.
+  noise covariance times ``robot_detection_noise_scale``, plus ``robot_detection_position_sd`` of relative
+  position without landmark ids); they never update the map.
 
 The estimate (every placed robot's weighted mean pose and covariance, the
 map) is published on ``{prefix}/central/estimate`` at ``estimate_rate_hz``;

@@ -46,6 +46,7 @@ import numpy as np
 import scipy.linalg
 
 from central.fastslam import kernels
+from robots.gaussian import ekf_update
 from robots.models import wrap_angle
 
 if TYPE_CHECKING:
@@ -160,8 +161,7 @@ def condition(drift: np.ndarray, h_x: np.ndarray, noise: np.ndarray) -> np.ndarr
     every match (MR.CLAM: a robot 49° off matched one landmark and went on for a minute as if its heading were
     known)."""
     h = h_x.reshape(-1, 3)
-    gain = drift @ h.T @ np.linalg.inv(h @ drift @ h.T + scipy.linalg.block_diag(*noise))
-    return drift - gain @ h @ drift
+    return ekf_update(np.zeros(3), drift, np.zeros(h.shape[0]), h, scipy.linalg.block_diag(*noise))[1]
 
 
 def lost(config: FastSlamConfig, drift: np.ndarray | None) -> bool:

@@ -18,8 +18,8 @@ experimental evaluation of D-SLAM", §3.1: confirmed and tentative lists): they 
 appear in the map until associated ``confirm_hits`` times, and a tentative landmark in view but not seen
 ``tentative_misses`` times is dropped.
 
-A robot whose dead reckoning has drifted too far since its last match is not associated scan by scan: its scans
-are held until one rigid correction puts them back on the map (:mod:`central.fastslam.reacquire`).
+A robot whose dead reckoning has drifted too far (its drift, conditioned on its matches) is not associated scan by
+scan: its scans are held until one rigid correction puts them back on the map (:mod:`central.fastslam.reacquire`).
 """
 
 from __future__ import annotations

@@ -576,14 +576,48 @@ def test_a_robot_detection_pulls_the_detected_robot_toward_where_it_was_seen():
 
 
 def test_robot_detection_noise_scale_widens_their_likelihood():
-    """With no motion pending, the log-weight differences a detection makes shrink by the noise scale."""
+    """With no motion pending and no relative position allowed, the log-weight differences a detection makes
+    shrink by the noise scale."""
     from central.fastslam import robot_detections
     spreads = {}
     for scale in (1.0, 4.0):
-        slam, event, noise, _ = robot_sighting_filter(robot_detection_noise_scale=scale)
+        slam, event, noise, _ = robot_sighting_filter(robot_detection_noise_scale=scale, robot_detection_position_sd=0.0)
         robot_detections.weigh(slam, slam.robots["r1"], event, noise)
         spreads[scale] = slam.logw - slam.logw.max()
     np.testing.assert_allclose(spreads[4.0], spreads[1.0] / 4.0, rtol=1e-9, atol=1e-9)
+
+
+def test_robot_detection_position_sd_adds_the_relative_position_through_the_jacobian():
+    """Each particle's log-weight gains a Gaussian log-density whose covariance is kR + σ² H Hᵀ, H the detection's
+    Jacobian by the detected robot's position (here by finite differences), and a wider σ flattens the weights."""
+    from central.fastslam import robot_detections
+    sigma, scale = 0.4, 4.0
+    slam, event, noise, _ = robot_sighting_filter(robot_detection_position_sd=sigma)
+    plain, *_ = robot_sighting_filter(robot_detection_position_sd=0.0)
+    before = slam.logw.copy()
+    robot_detections.weigh(slam, slam.robots["r1"], event, noise)
+    robot_detections.weigh(plain, plain.robots["r1"], event, noise)
+    sensor, pose = slam.robots["r1"].sensor, slam.pose[:, slam.robots["r1"].index]
+    target = slam.pose[:, slam.robots["r2"].index, :2]
+    z = np.array([event.robot_ranges[0], event.robot_bearings[0]])
+    for i in (0, 7, 123):
+        h = np.empty((2, 2))
+        for k in range(2):
+            step = np.zeros(2)
+            step[k] = 1e-6
+            h[:, k] = (sensor.observe(pose[i], (target[i] + step)[None])[0]
+                       - sensor.observe(pose[i], (target[i] - step)[None])[0]) / 2e-6
+        s = scale * noise + sigma ** 2 * h @ h.T
+        nu = sensor.innovation(z, sensor.observe(pose[i], target[i][None])[0])
+        expected = -0.5 * nu @ np.linalg.solve(s, nu) - 0.5 * np.log(np.linalg.det(s)) - math.log(2 * math.pi)
+        assert slam.logw[i] - before[i] == pytest.approx(expected, abs=1e-5)
+    assert np.ptp(slam.logw) < 0.5 * np.ptp(plain.logw)
+
+
+def test_robot_detection_position_sd_defaults_to_a_decimetre_without_ids_and_none_with_them():
+    assert FastSlamConfig(association="shared").robot_detection_relative_sd == 0.1
+    assert FastSlamConfig(association="known").robot_detection_relative_sd == 0.0
+    assert FastSlamConfig(association="known", robot_detection_position_sd=0.3).robot_detection_relative_sd == 0.3
 
 
 def test_turn_gains_learn_how_much_a_robot_over_counts_its_turns():
