@@ -615,6 +615,7 @@ def test_robot_detection_position_sd_adds_the_relative_position_through_the_jaco
 
 
 def test_robot_detection_position_sd_defaults_to_a_decimetre_without_ids_and_none_with_them():
+    """None resolves by the association (MR.CLAM: better without barcodes, worse with them); a value set wins."""
     assert FastSlamConfig(association="shared").robot_detection_relative_sd == 0.1
     assert FastSlamConfig(association="known").robot_detection_relative_sd == 0.0
     assert FastSlamConfig(association="known", robot_detection_position_sd=0.3).robot_detection_relative_sd == 0.3
