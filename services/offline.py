@@ -241,7 +241,7 @@ def save_run_map(settings: RunSettings, result: OfflineRun, robots: list[str]) -
 
 def run(settings: RunSettings, console: Console | None = None, should_stop: Callable[[], bool] | None = None) -> dict:
     """Load, run, score; write the JSON and the report folder; return the results."""
-    from services.evaluation.metrics import Trajectory, fleet_alignment, score_estimates
+    from services.evaluation.metrics import Trajectory, fleet_alignment, map_alignment, score_estimates
     from services.evaluation.report import clean_json, clear_report, write_report
 
     if settings.rerun:
@@ -286,6 +286,9 @@ def run(settings: RunSettings, console: Console | None = None, should_stop: Call
         "fleet_aligned": fleet_alignment(result.trajectories, truth, true_landmarks=dataset.landmarks,
                                          map_means=result.map_means, map_cutoff=settings.map_cutoff_m,
                                          truth_offset=truth_offset),
+        "map_aligned": map_alignment(result.map_means, dataset.landmarks, settings.map_cutoff_m)
+        if not truth and dataset.landmarks is not None and result.map_means is not None
+        and result.extra.get("start_poses") != "known" else {},
         "timing": result.timing,
         "settings": settings.model_dump(mode="json"),
         "dataset_meta": _meta_counts(dataset.meta),
@@ -337,6 +340,10 @@ def print_results(output: dict, console: Console) -> None:
         console.print(f"ATE after one SE(2) transform for the whole fleet: {errors} m")
         if "landmarks" in fleet:  # the map in the anchor's frame: judged after the same transform
             map_rmse, landmarks, frame = fleet.get("map_rmse_m"), fleet["landmarks"], " (after that transform)"
+    elif aligned := output.get("map_aligned"):  # no robot truth: the map alone fitted to the survey
+        map_rmse, landmarks = aligned["map_rmse_m"], aligned["landmarks"]
+        frame = (f" (after one SE(2) transform of the map to the survey, no robot truth; {aligned['within_inlier']} "
+                 f"surveyed landmarks within {aligned['inlier_m']:g} m)")
     marks = {k: "-" if v is None else v for k, v in (landmarks or {}).items()} or {
         k: "-" for k in ("estimated", "matched", "missed", "spurious")}
     console.print(f"map{frame} RMSE {fmt(map_rmse)} m; landmarks estimated {marks['estimated']}, matched "

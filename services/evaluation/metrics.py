@@ -182,6 +182,46 @@ def map_error(estimated: np.ndarray, truth: np.ndarray, cutoff: float = 1.0) -> 
     return result
 
 
+def map_alignment(estimated: np.ndarray, truth: np.ndarray, cutoff: float = 1.0, inlier: float = 0.3,
+                  max_landmarks: int = 100) -> dict:
+    """The map's errors after one SE(2) transform fitted from the map alone, for runs with a survey but no robot
+    truth whose frame is an anchor robot's (MR.CLAM Dataset 1 without start poses). Landmarks carry no usable
+    ids here, so the fit registers point sets: every pair of mapped landmarks at least 0.5 m apart against
+    every surveyed pair whose distance agrees within ``inlier``, keeping the transform that brings the most
+    mapped landmarks within ``inlier`` of the survey, refined on them. Returns the transform (x, y, θ), the
+    errors of :func:`map_error` after it and ``within_inlier`` (surveyed landmarks with a mapped one within
+    ``inlier``); empty with fewer than two landmarks on either side, or more than ``max_landmarks`` mapped (the
+    search grows with the square of the map: 4 s for 60 landmarks)."""
+    estimated = np.asarray(estimated, float).reshape(-1, 2)
+    truth = np.asarray(truth, float).reshape(-1, 2)
+    if min(estimated.shape[0], truth.shape[0]) < 2 or estimated.shape[0] > max_landmarks:
+        return {}
+    true_gap = np.linalg.norm(truth[:, None] - truth[None], axis=-1)
+    mapped_gap = np.linalg.norm(estimated[:, None] - estimated[None], axis=-1)
+    best, transform = (-1, np.inf), None
+    for i, j in zip(*np.nonzero(np.triu(mapped_gap >= 0.5, 1))):
+        for p, q in zip(*np.nonzero(np.abs(true_gap - mapped_gap[i, j]) < inlier)):
+            candidate = fit_se2(estimated[[i, j]], truth[[p, q]])
+            nearest = np.linalg.norm(transform_points(candidate, estimated)[:, None] - truth[None], axis=-1).min(1)
+            close = nearest < inlier
+            score = (int(close.sum()), float(np.sum(nearest[close] ** 2)))
+            if score[0] > best[0] or (score[0] == best[0] and score[1] < best[1]):
+                best, transform = score, candidate
+    if transform is None:
+        return {}
+    for _ in range(3):
+        distance = np.linalg.norm(transform_points(transform, estimated)[:, None] - truth[None], axis=-1)
+        close = distance.min(1) < inlier
+        if close.sum() < 2:
+            break
+        transform = fit_se2(estimated[close], truth[distance[close].argmin(1)])
+    aligned = transform_points(transform, estimated)
+    detail = map_error(aligned, truth, cutoff)
+    within = int((np.linalg.norm(aligned[:, None] - truth[None], axis=-1).min(0) <= inlier).sum())
+    return {"transform": np.asarray(transform).tolist(), "map_rmse_m": detail["rmse_m"], "within_inlier": within,
+            "inlier_m": inlier, "landmarks": {k: detail[k] for k in ("estimated", "matched", "missed", "spurious")}}
+
+
 def association_accuracy(true_ids: np.ndarray, estimated_labels: np.ndarray) -> dict:
     """Fraction of detections associated correctly, where truth ids exist.
 
