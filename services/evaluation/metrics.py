@@ -196,13 +196,16 @@ def map_alignment(estimated: np.ndarray, truth: np.ndarray, cutoff: float = 1.0,
     truth = np.asarray(truth, float).reshape(-1, 2)
     if min(estimated.shape[0], truth.shape[0]) < 2 or estimated.shape[0] > max_landmarks:
         return {}
+    def to_survey(transform: np.ndarray) -> np.ndarray:  # (mapped, surveyed) distances after ``transform``
+        return np.linalg.norm(transform_points(transform, estimated)[:, None] - truth[None], axis=-1)
+
     true_gap = np.linalg.norm(truth[:, None] - truth[None], axis=-1)
     mapped_gap = np.linalg.norm(estimated[:, None] - estimated[None], axis=-1)
     best, transform = (-1, np.inf), None
     for i, j in zip(*np.nonzero(np.triu(mapped_gap >= 0.5, 1))):
         for p, q in zip(*np.nonzero(np.abs(true_gap - mapped_gap[i, j]) < inlier)):
             candidate = fit_se2(estimated[[i, j]], truth[[p, q]])
-            nearest = np.linalg.norm(transform_points(candidate, estimated)[:, None] - truth[None], axis=-1).min(1)
+            nearest = to_survey(candidate).min(1)
             close = nearest < inlier
             score = (int(close.sum()), float(np.sum(nearest[close] ** 2)))
             if score[0] > best[0] or (score[0] == best[0] and score[1] < best[1]):
@@ -210,14 +213,13 @@ def map_alignment(estimated: np.ndarray, truth: np.ndarray, cutoff: float = 1.0,
     if transform is None:
         return {}
     for _ in range(3):
-        distance = np.linalg.norm(transform_points(transform, estimated)[:, None] - truth[None], axis=-1)
+        distance = to_survey(transform)
         close = distance.min(1) < inlier
         if close.sum() < 2:
             break
         transform = fit_se2(estimated[close], truth[distance[close].argmin(1)])
-    aligned = transform_points(transform, estimated)
-    detail = map_error(aligned, truth, cutoff)
-    within = int((np.linalg.norm(aligned[:, None] - truth[None], axis=-1).min(0) <= inlier).sum())
+    detail = map_error(transform_points(transform, estimated), truth, cutoff)
+    within = int((to_survey(transform).min(0) <= inlier).sum())
     return {"transform": np.asarray(transform).tolist(), "map_rmse_m": detail["rmse_m"], "within_inlier": within,
             "inlier_m": inlier, "landmarks": {k: detail[k] for k in ("estimated", "matched", "missed", "spurious")}}
 
