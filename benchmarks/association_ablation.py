@@ -17,6 +17,9 @@ Steps (FastSLAM, 100 particles, scans' ids ignored):
   ``--association unknown``, the default;
 - ``shared-jcbb-drift-reset``: ``shared-jcbb`` with a robot's drift started from zero at every match (the default
   before a match conditioned it on the matched detections, ``reacquire_drift_update``);
+- ``shared-jcbb-confirm-tol-1``: ``shared-jcbb`` whose confirmation takes, of the corrections near the dead reckoning
+  within one detection of the best, the nearest (``reacquire_confirm_tolerance``; one landmark leaves the turn
+  free, and the best by a fraction can be the window's edge);
 - ``shared-jcbb-rigid-only``: ``shared-jcbb`` with the rigid correction alone (the default before: no correction
   near the dead reckoning taken on one landmark, no prior on the corrections);
 - ``shared-jcbb-no-prior``: ``shared-jcbb`` without the prior (corrections near the dead reckoning confirmed);
@@ -76,6 +79,7 @@ STEPS: dict[str, tuple[str, str, dict]] = {
     "shared-jcbb-robot-sd-0": ("fastslam", "unknown", {"robot_detection_position_sd": 0.0}),
     "shared-jcbb-robot-sd-0.2": ("fastslam", "unknown", {"robot_detection_position_sd": 0.2}),
     "shared-jcbb-robot-sd-0.4": ("fastslam", "unknown", {"robot_detection_position_sd": 0.4}),
+    "shared-jcbb-confirm-tol-1": ("fastslam", "unknown", {"reacquire_confirm_tolerance": 1.0}),
     "dslam-per-scan": ("dslam", "unknown", {"local_map_max_std": 0.0, "gate_pose_floor": (0.0, 0.0, 0.0),
                                             "turn_slip": False, "reacquire": False}),
     "dslam-floor": ("dslam", "unknown", {"local_map_max_std": 0.0, "turn_slip": False, "reacquire": False}),

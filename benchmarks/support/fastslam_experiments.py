@@ -14,6 +14,7 @@ import time
 import numpy as np
 
 from robots.dataset import Dataset
+from robots.models import fit_se2, transform_points
 from schemas.contract import RunOptions
 from services.evaluation.metrics import Trajectory, map_error, score_estimates
 from services.offline import run_estimator
@@ -60,14 +61,8 @@ def aligned_map_error(means: np.ndarray, truth: np.ndarray, anchors: np.ndarray 
     matched = map_error(means, fit, cutoff)["pairs"]
     if len(matched) < 2:
         return map_error(means, truth, cutoff), means
-    a = means[[r for r, _ in matched]]
-    b = fit[[c for _, c in matched]]
-    ca, cb = a.mean(0), b.mean(0)
-    u, _, vt = np.linalg.svd((a - ca).T @ (b - cb))
-    if np.linalg.det(u @ vt) < 0:
-        vt[-1] *= -1
-    rotation = (u @ vt).T
-    aligned = (means - ca) @ rotation.T + cb
+    transform = fit_se2(means[[r for r, _ in matched]], fit[[c for _, c in matched]])
+    aligned = transform_points(transform, means)
     return map_error(aligned, truth, cutoff), aligned
 
 

@@ -85,6 +85,7 @@ class SearchRule:
     confirm_max_turn: float = 0.0
     confirm_max_shift: float = 0.0
     prior_weight: float = 0.0
+    confirm_tolerance: float = 0.0
 
 
 @dataclass
@@ -240,7 +241,8 @@ def confirm(scored: list, rule: SearchRule, sigmas: tuple[float, float]) -> tupl
     best = max(item[0] for item in near)
     if best < rule.min_detections or best < scored[0][0] - rule.margin:
         return None
-    return min((item for item in near if item[0] == best), key=lambda item: prior_d2(item[1], item[2], sigmas))
+    return min((item for item in near if item[0] >= best - rule.confirm_tolerance),
+               key=lambda item: prior_d2(item[1], item[2], sigmas))
 
 
 def prior_d2(turn: float, shift: np.ndarray, sigmas: tuple[float, float]) -> float:

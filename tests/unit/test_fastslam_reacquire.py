@@ -126,6 +126,25 @@ def test_confirm_takes_the_dead_reckoning_when_one_landmark_cannot_pin_the_turn(
     assert taken is not None and np.hypot(*taken.shift) <= 0.2
 
 
+def test_confirm_tolerance_takes_the_nearest_of_the_corrections_that_explain_about_as_much():
+    """One landmark leaves the turn free: the turns of a window all explain about as many detections, and the best
+    of them by a fraction (the prior's, a point at the inlier's edge) can be the edge of the window. With a tolerance
+    the confirmation takes, of those within it of the best, the one nearest the dead reckoning."""
+    landmarks = np.array([[3.0, 0.0], [0.0, 5.0], [-4.0, -4.0]])
+    centre, sigmas = np.zeros(2), (0.2, 0.2)
+    rng = np.random.default_rng(5)
+    seen = landmarks[0] + rng.normal(0.0, 0.03, (8, 2))
+    plain = dataclasses.replace(CONFIG.reacquire_rule, confirm_max_turn=0.2, confirm_max_shift=0.5, prior_weight=0.0)
+    scored = [(8.0, 0.18, np.array([0.02, 0.1]), np.zeros(8, int)), (7.5, 0.0, np.array([0.01, 0.0]), np.zeros(8, int))]
+    assert reacquire.confirm(scored, plain, sigmas)[1] == 0.18  # the best by half a detection, 0.9σ of turn away
+    tolerant = dataclasses.replace(plain, confirm_tolerance=1.0)
+    assert reacquire.confirm(scored, tolerant, sigmas)[1] == 0.0  # within a detection of it: the dead reckoning
+    assert reacquire.confirm([(8.0, 0.18, scored[0][2], scored[0][3]), (6.5, 0.0, scored[1][2], scored[1][3])],
+                             tolerant, sigmas)[1] == 0.18  # 1.5 detections fewer: not within the tolerance
+    found = reacquire.search(seen, landmarks, centre, 0.2, 0.5, tolerant, sigmas)
+    assert found is not None and abs(found.turn) < 0.02  # the whole search: no turn where none is needed
+
+
 def test_a_match_conditions_the_drift_on_what_its_landmarks_pin():
     """``condition``: the Kalman update of the drift by matched detections equals the information form
     (D⁻¹ + Hᵀ Q⁻¹ H)⁻¹; one landmark leaves most of the heading's variance (the turn about it is free), two
