@@ -13,8 +13,10 @@ Steps (FastSLAM, 100 particles, scans' ids ignored):
   too long re-acquired the map);
 - ``shared-jcbb``: ... and a robot whose dead reckoning has drifted beyond what scan-by-scan association can trust
   held until one rigid correction puts its recent detections back on the map (``reacquire``), or one within 1σ of
-  its dead reckoning explains as many, every correction scored less half its squared size in σ of the drift:
-  ``--association unknown``, the default;
+  its dead reckoning explains as many, every correction scored less half its squared size in σ of the drift, and
+  a robot whose detections of other robots contradict its pose held too, those detections voting in its search
+  (``reacquire_by_robots``): ``--association unknown``, the default;
+- ``shared-jcbb-no-by-robots``: ``shared-jcbb`` without the robots' say in re-acquisition (the default before);
 - ``shared-jcbb-drift-reset``: ``shared-jcbb`` with a robot's drift started from zero at every match (the default
   before a match conditioned it on the matched detections, ``reacquire_drift_update``);
 - ``shared-jcbb-confirm-tol-1``: ``shared-jcbb`` whose confirmation takes, of the corrections near the dead reckoning
@@ -80,6 +82,7 @@ STEPS: dict[str, tuple[str, str, dict]] = {
     "shared-jcbb-robot-sd-0.2": ("fastslam", "unknown", {"robot_detection_position_sd": 0.2}),
     "shared-jcbb-robot-sd-0.4": ("fastslam", "unknown", {"robot_detection_position_sd": 0.4}),
     "shared-jcbb-confirm-tol-1": ("fastslam", "unknown", {"reacquire_confirm_tolerance": 1.0}),
+    "shared-jcbb-no-by-robots": ("fastslam", "unknown", {"reacquire_by_robots": False}),
     "dslam-per-scan": ("dslam", "unknown", {"local_map_max_std": 0.0, "gate_pose_floor": (0.0, 0.0, 0.0),
                                             "turn_slip": False, "reacquire": False}),
     "dslam-floor": ("dslam", "unknown", {"local_map_max_std": 0.0, "turn_slip": False, "reacquire": False}),

@@ -53,6 +53,7 @@ CASES: dict[str, tuple] = {  # estimator, association, start poses[, settings]
     "known-first": ("fastslam", "known", "first"),
     "unknown-none": ("fastslam", "unknown", "none"),
     "unknown-none-robot-sd-0": ("fastslam", "unknown", "none", {"robot_detection_position_sd": 0.0}),
+    "unknown-none-no-by-robots": ("fastslam", "unknown", "none", {"reacquire_by_robots": False}),
     "unknown-none-no-meetings": ("fastslam", "unknown", "none", {"robot_meetings": False}),
     "unknown-none-no-prior": ("fastslam", "unknown", "none", {"reacquire_prior_weight": 0.0}),
     "unknown-none-rigid-only": ("fastslam", "unknown", "none", {"reacquire_prior_weight": 0.0,

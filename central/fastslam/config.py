@@ -102,6 +102,16 @@ class FastSlamConfig(CoreConfig):
         0.5, ge=0.0, description="... each correction scored by its detections less this times its squared size in σ "
         "of the drift (a Gaussian prior on the correction: of two that explain about as much, the one the dead "
         "reckoning makes likelier wins; 0: every correction within the window alike)")
+    reacquire_by_robots: bool = Field(
+        True, description="... and a robot whose detections of other robots contradict its pose (reacquire_robots_min "
+        "of them in reacquire_robots_window_s that no particle explains, of two robots at least, four in five) is "
+        "counted as lost, its drift widened to the search's limits; while held, its robot detections vote in the "
+        "search with the robot each saw. MR.CLAM 6 without barcodes, seeds 0-79: worst robot 0.56 / 1.09 -> "
+        "0.38 / 2.92 m (64 better, 16 worse; seed 19 the one above 1.5 m), held out 0.53 / 1.24 -> 0.37 / 0.55 m; "
+        "without start poses 0.49 / 1.42 -> 0.42 / 1.45 m; MR.CLAM 1 against its run with barcodes 3.43 / 4.39 -> "
+        "1.82 / 4.48 m, spurious 32 -> 20 (README)")
+    reacquire_robots_window_s: float = Field(10.0, gt=0.0, description="... over this many seconds")
+    reacquire_robots_min: int = Field(6, ge=1, description="... this many unexplained detections of robots")
     reacquire_drift_update: bool = Field(
         True, description="... a match conditions the drift on the matched detections (a Kalman update: one landmark "
         "leaves the turn about it free) instead of starting it from zero (False, the default before). MR.CLAM without "
@@ -153,6 +163,11 @@ class FastSlamConfig(CoreConfig):
                           confirm_max_shift=self.reacquire_confirm_max_shift_m,
                           prior_weight=self.reacquire_prior_weight,
                           confirm_tolerance=self.reacquire_confirm_tolerance)
+
+    @property
+    def reacquires_by_robots(self) -> bool:
+        """Whether robot detections may count a robot as lost and vote in its search (shared association only)."""
+        return self.reacquire_by_robots and self.reacquire and self.association == "shared"
 
     @property
     def robot_detection_relative_sd(self) -> float:

@@ -187,8 +187,8 @@ class FastSlam:
 
     def __setstate__(self, state: dict) -> None:
         """Restore a pickled filter (a checkpoint), also one written before the weights were cached, the
-        known-landmark table kept its arrays (such a checkpoint holds ``logw`` and a plain dict) or the map
-        numbered its landmarks."""
+        known-landmark table kept its arrays (such a checkpoint holds ``logw`` and a plain dict), the map
+        numbered its landmarks or the robots kept their detections of robots (``robot_checks``)."""
         if "logw" in state:
             state["_logw"] = state.pop("logw")
         state["_weights"] = None
@@ -196,6 +196,8 @@ class FastSlam:
             state["turn_gain"] = np.ones(state["pose"].shape[:2])
         if not isinstance(state.get("known_slots"), SlotTable):
             state["known_slots"] = SlotTable(state.get("known_slots", {}))
+        for robot in state.get("robots", {}).values():  # robots pickled before they kept their checks by robots
+            robot.__dict__.setdefault("robot_checks", [])
         self.__dict__.update(state)
         if isinstance(self.map, AlignedMap):  # a map pickled before it numbered its landmarks: the table's order
             self.map.set_order(self.known_slots.arrays()[1])

@@ -43,6 +43,7 @@ class RobotState:
     scaled_cov: np.ndarray | None = None
     drift: np.ndarray | None = None  # shared association: covariance of the dead reckoning, conditioned on matches
     blind: object = None  # a reacquire.BlindWindow while the robot re-acquires the map
+    robot_checks: list = field(default_factory=list)  # (stamp, robot seen, explained): reacquire.contradicted
 
     @property
     def robot_id(self) -> str:

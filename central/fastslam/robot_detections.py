@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from central.fastslam import motion
+from central.fastslam import motion, reacquire
 from central.fastslam.lifecycle import RobotState
 from robots.gaussian import LOG_2PI, inv2, quad2, sandwich, sandwich2
 from robots.models import compose_jacobian, se2_compose
@@ -25,6 +25,8 @@ from schemas.contract import ScanEvent
 
 if TYPE_CHECKING:
     from central.fastslam.core import FastSlam
+
+ROBOT_GATE = 13.816  # χ²(2) at 0.999: a detection no particle explains within it contradicts the two poses
 
 
 def weigh(slam: FastSlam, robot: RobotState, event: ScanEvent, r: np.ndarray) -> None:
@@ -54,5 +56,12 @@ def weigh(slam: FastSlam, robot: RobotState, event: ScanEvent, r: np.ndarray) ->
         s = sandwich2(h_lm, relative) + r * slam.config.robot_detection_noise_scale
         s_inv, det = inv2(s)
         nu = robot.sensor.innovation(np.array([rng_, brg]), zhat)
-        slam.logw += -0.5 * quad2(nu, s_inv) - 0.5 * np.log(np.maximum(det, 1e-300)) - LOG_2PI
+        d2 = quad2(nu, s_inv)
+        slam.logw += -0.5 * d2 - 0.5 * np.log(np.maximum(det, 1e-300)) - LOG_2PI
+        if slam.config.reacquires_by_robots:
+            reacquire.note_robot_detection(robot, float(event.stamp), other_id, bool(d2.min() <= ROBOT_GATE),
+                                           slam.config.reacquire_robots_window_s)
+            if robot.blind is not None:  # held: the detection is a point of its window, with its own robot
+                seen = robot.sensor.inverse(pose.mean(0), np.array([[rng_, brg]]))[0]
+                robot.blind.robots.append((float(event.stamp), np.r_[seen, target[:, :2].mean(0)]))
         slam.counts["robot_detections_used"] += 1

@@ -102,8 +102,9 @@ def test_fastslam_carries_on_bitwise_after_a_checkpoint(two_robots, association,
 
 def test_a_fastslam_checkpoint_from_before_the_weight_cache_carries_on_bitwise(two_robots):
     """A checkpoint pickled before the filter cached its weights and its known-landmark arrays (``logw`` in the
-    state, ``known_slots`` a plain dict) and before the turn gains (none in the state: every gain 1, as with
-    them off) is restored as one of today's and carries on exactly."""
+    state, ``known_slots`` a plain dict), before the turn gains (none in the state: every gain 1, as with
+    them off) and before the robots kept their detections of robots is restored as one of today's and carries on
+    exactly."""
     dataset, events = two_robots
     make = lambda: FastSlam(FastSlamConfig(particles=30, association="shared", seed=5,  # noqa: E731
                                            turn_gain_std=0.0, turn_gain_walk=0.0))
@@ -118,9 +119,13 @@ def test_a_fastslam_checkpoint_from_before_the_weight_cache_carries_on_bitwise(t
     old.pop("_weights")
     old["known_slots"] = dict(old["known_slots"])
     old.pop("turn_gain")
+    state = pickle.loads(pickle.dumps(old))
+    for robot in state["robots"].values():
+        del robot.__dict__["robot_checks"]
     restored = FastSlam.__new__(FastSlam)
-    restored.__setstate__(pickle.loads(pickle.dumps(old)))
+    restored.__setstate__(state)
     assert restored.known_slots.arrays()[0].size > 3
+    assert all(robot.robot_checks == [] for robot in restored.robots.values())
     _feed(restored, events[split:])
     np.testing.assert_array_equal(straight.weights(), restored.weights())
     np.testing.assert_array_equal(straight.landmark_map().means, restored.landmark_map().means)

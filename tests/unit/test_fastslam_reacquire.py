@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import pickle
 
 import numpy as np
 import pytest
@@ -222,6 +223,80 @@ def test_a_lost_robot_is_put_back_on_the_map_instead_of_mapping_a_copy():
         plain_error, _, plain_landmarks, plain = lost_robot_run(seed, False)
         assert plain.counts["reacquired"] == 0 and plain_error > 1.0 and plain_landmarks > landmarks
     assert slam.robots["r1"].blind is None
+
+
+def test_detections_of_other_robots_contradict_a_robot_only_when_most_are_unexplained_and_of_two_robots():
+    """The last window's detections of robots decide; older ones are dropped. One robot seen wrongly is not enough (it
+    may be the one that is off), nor a few unexplained among many explained ones."""
+    robot = FastSlam(FastSlamConfig(association="shared"), [simulate("arena", robots=1, seed=0, duration=1.0)
+                                                            .robots["r1"].info]).robots["r1"]
+    robot.robot_checks = [(t, "r2" if t % 2 else "r3", False) for t in range(6)]
+    assert reacquire.contradicted(robot, 5.0, 10.0, 6)
+    assert not reacquire.contradicted(robot, 12.0, 10.0, 6) and len(robot.robot_checks) == 4  # two fell out
+    robot.robot_checks = [(t, "r2", False) for t in range(8)]
+    assert not reacquire.contradicted(robot, 8.0, 10.0, 6)  # one robot: either of the two may be off
+    robot.robot_checks = [(t, "r2" if t % 2 else "r3", t < 6) for t in range(12)]
+    assert not reacquire.contradicted(robot, 12.0, 20.0, 6)  # 6 unexplained of 12
+    config = FastSlamConfig(association="shared")
+    wide = reacquire.widened(None, config)
+    assert reacquire.lost(config, wide) and math.sqrt(wide[2, 2]) * reacquire.SIGMAS == pytest.approx(config.reacquire_max_turn)
+
+
+def test_robot_detections_in_the_window_decide_between_corrections_the_landmarks_cannot():
+    """Three landmarks in a row 1.2 m apart, two of them seen from a pose 1.2 m along the row: no shift and one of
+    −1.2 m explain every detection alike, so the search refuses; four detections of a robot, each with where that
+    robot was, decide it."""
+    landmarks = np.array([[3.0, 0.0], [3.0, 1.2], [3.0, 2.4]])
+    rng = np.random.default_rng(1)
+    points = np.repeat(landmarks[:2] + [0.0, 1.2], 5, axis=0) + rng.normal(0.0, 0.02, (10, 2))
+    centre, rule = np.zeros(2), CONFIG.reacquire_rule
+    assert reacquire.search(points, landmarks, centre, 0.0, 2.0, rule) is None
+    robot_at = np.array([[1.0, -1.0], [1.2, -0.8], [1.4, -0.6], [1.6, -0.4]])
+    pairs = np.column_stack([robot_at + [0.0, 1.2] + rng.normal(0.0, 0.05, (4, 2)), robot_at])
+    found = reacquire.search(points, landmarks, centre, 0.0, 2.0, rule, robot_pairs=pairs)
+    assert found is not None and np.allclose(found.shift, [0.0, -1.2], atol=0.05)
+    window = reacquire.BlindWindow(robots=[(0.0, pair) for pair in pairs])
+    restored = pickle.loads(pickle.dumps(window))
+    del restored.__dict__["robots"]  # a window pickled before it kept robot detections
+    restored.__setstate__(dict(restored.__dict__))
+    assert restored.robot_pairs() is None and window.robot_pairs().shape == (4, 4)
+
+
+def robots_seen_run(on: bool) -> tuple[float, float, FastSlam]:
+    """Three robots that see each other map the arena for 30 s; then r1's estimate is thrown 25° and 0.5 m off with a
+    drift that says all is well (a wrong correction). (r1's final position error, heading error, the filter)."""
+    data = simulate("arena", robots=3, seed=2, duration=60.0)
+    log = data.robots["r1"]
+    slam = FastSlam(FastSlamConfig(particles=30, association="shared", seed=2, reacquire_by_robots=on),
+                    [robot.info for robot in data.robots.values()])
+    thrown = False
+    for event in data.events():
+        if not thrown and event.stamp - log.scan_stamp[0] >= 30.0:
+            pose, _ = slam.poses()["r1"]
+            error = reacquire.Correction(math.radians(25.0), np.array([0.4, -0.3]), pose[:2], 0.0, 0)
+            column = slam.robots["r1"].index
+            slam.pose[:, column] = error.apply(slam.pose[:, column])
+            slam.robots["r1"].drift = None
+            thrown = True
+        if isinstance(event, OdomEvent):
+            slam.on_odometry(event)
+        elif isinstance(event, ScanEvent):
+            slam.on_scan(event)
+    pose, _ = slam.poses()["r1"]
+    return float(np.hypot(*(pose[:2] - log.truth_pose[-1, :2]))), abs(wrap_angle(pose[2] - log.truth_pose[-1, 2])), slam
+
+
+def test_a_robot_sure_of_a_wrong_pose_is_put_back_when_the_robots_it_sees_contradict_it():
+    """Its drift says nothing is wrong, so only its detections of the other two robots can: with
+    ``reacquire_by_robots`` (the default) they count it as lost and one correction puts it back; without, it stays
+    off."""
+    assert FastSlamConfig(association="shared").reacquires_by_robots
+    assert not FastSlamConfig(association="known").reacquires_by_robots  # re-acquisition is the shared association's
+    error, heading, slam = robots_seen_run(True)
+    assert slam.counts["reacquire_contradicted"] >= 1 and slam.counts["reacquired"] >= 1
+    assert error < 0.2 and heading < math.radians(4.0)
+    plain_error, plain_heading, plain = robots_seen_run(False)
+    assert plain.counts["reacquire_started"] == 0 and plain_error > 0.5 and plain_heading > math.radians(8.0)
 
 
 def test_drift_grows_while_blind_and_levels_off_while_matching():
