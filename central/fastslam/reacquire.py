@@ -112,10 +112,7 @@ class BlindWindow:
         while self.stamps[old] < stamp - window_s:
             old += 1
         del self.stamps[:old], self.points[:old]
-        old = 0
-        while old < len(self.robots) and self.robots[old][0] < stamp - window_s:
-            old += 1
-        del self.robots[:old]
+        drop_before(self.robots, stamp - window_s)
 
     def __setstate__(self, state: dict) -> None:
         """Restore a pickled window (a checkpoint), also one written before it kept robot detections."""
@@ -196,15 +193,19 @@ def lost(config: FastSlamConfig, drift: np.ndarray | None) -> bool:
                 or max(drift[0, 0], drift[1, 1]) > config.reacquire_position_sd ** 2)
 
 
+def drop_before(items: list, oldest: float) -> None:
+    """Drop the leading ``items`` (tuples in time order, their stamp first) stamped before ``oldest``."""
+    old = 0
+    while old < len(items) and items[old][0] < oldest:
+        old += 1
+    del items[:old]
+
+
 def note_robot_detection(robot: RobotState, stamp: float, seen: str, explained: bool, window_s: float) -> None:
     """Keep the robot's detection of robot ``seen`` (whether some particle explains it) for :func:`contradicted`;
     those older than ``window_s`` are dropped."""
-    checks = robot.robot_checks
-    checks.append((stamp, seen, explained))
-    old = 0
-    while checks[old][0] < stamp - window_s:
-        old += 1
-    del checks[:old]
+    robot.robot_checks.append((stamp, seen, explained))
+    drop_before(robot.robot_checks, stamp - window_s)
 
 
 def contradicted(robot: RobotState, stamp: float, window_s: float, least: int) -> bool:
@@ -215,10 +216,7 @@ def contradicted(robot: RobotState, stamp: float, window_s: float, least: int) -
     the run with barcodes: 91 % of the detections made by a robot more than 1 m or 20° off lie beyond the gate, 3 %
     of those between two robots that are not; Dataset 6 against Vicon: 77 % and 7 %)."""
     checks = robot.robot_checks
-    old = 0
-    while old < len(checks) and checks[old][0] < stamp - window_s:
-        old += 1
-    del checks[:old]
+    drop_before(checks, stamp - window_s)
     unexplained = [seen for _, seen, explained in checks if not explained]
     return len(unexplained) >= least and len(set(unexplained)) >= 2 and len(unexplained) >= 0.8 * len(checks)
 

@@ -9,7 +9,9 @@ MR.CLAM these detections are heavy-tailed. Without landmark ids the likelihood a
 ``robot_detection_position_sd`` of relative position between the two robots: the other robots' scans resample
 the shared particles until a robot's position spread is a centimetre, re-acquisition puts robots back a few
 decimetres off, and such a position error seen from nearby is then explained by turning the robot (a 0.5 m
-error seen at 1.7 m is 17° of bearing). With ids it made MR.CLAM worse."""
+error seen at 1.7 m is 17° of bearing). With ids it made MR.CLAM worse. With the shared association they also
+tell re-acquisition when a robot is sure of a wrong pose, and vote in its search (``reacquire_by_robots``,
+:mod:`central.fastslam.reacquire`)."""
 
 from __future__ import annotations
 
@@ -19,14 +21,14 @@ import numpy as np
 
 from central.fastslam import motion, reacquire
 from central.fastslam.lifecycle import RobotState
-from robots.gaussian import LOG_2PI, inv2, quad2, sandwich, sandwich2
+from robots.gaussian import LOG_2PI, chi2_quantile, inv2, quad2, sandwich, sandwich2
 from robots.models import compose_jacobian, se2_compose
 from schemas.contract import ScanEvent
 
 if TYPE_CHECKING:
     from central.fastslam.core import FastSlam
 
-ROBOT_GATE = 13.816  # χ²(2) at 0.999: a detection no particle explains within it contradicts the two poses
+ROBOT_GATE = chi2_quantile(0.999, 2)  # a detection no particle explains within it contradicts the two poses
 
 
 def weigh(slam: FastSlam, robot: RobotState, event: ScanEvent, r: np.ndarray) -> None:
