@@ -188,28 +188,36 @@ def test_the_drift_prior_decides_between_corrections_that_explain_as_much():
     assert reacquire.search(points, landmarks, centre, 0.0, 2.0, rule, wide) is None
 
 
-def lost_robot_run(seed: int, reacquire_on: bool) -> tuple[float, float, int, FastSlam]:
-    """One robot maps the MR.CLAM-like arena for 30 s; then its estimate is thrown off by 25° and 0.5 m, as a
-    blind turn on slipping wheels would, with a drift that says so; it drives on for 30 s. (final position error,
-    heading error, landmarks mapped, the filter)."""
-    data = simulate("arena", robots=1, seed=seed, duration=60.0)
+def thrown_off_run(data, slam: FastSlam, drift: np.ndarray | None) -> tuple[float, float]:
+    """Feed ``data`` to ``slam``; 30 s after r1's first scan throw its estimate 25° and 0.5 m off (a blind turn on
+    slipping wheels, or a wrong correction) with ``drift`` as its drift. (r1's final position error, heading error)."""
     log = data.robots["r1"]
-    slam = FastSlam(FastSlamConfig(particles=30, association="shared", seed=seed, reacquire=reacquire_on), [log.info])
     thrown = False
     for event in data.events():
         if not thrown and event.stamp - log.scan_stamp[0] >= 30.0:
             pose, _ = slam.poses()["r1"]
             error = reacquire.Correction(math.radians(25.0), np.array([0.4, -0.3]), pose[:2], 0.0, 0)
-            slam.pose[:, 0] = error.apply(slam.pose[:, 0])
-            slam.robots["r1"].drift = np.diag([0.3**2, 0.3**2, math.radians(25.0) ** 2])
+            column = slam.robots["r1"].index
+            slam.pose[:, column] = error.apply(slam.pose[:, column])
+            slam.robots["r1"].drift = drift
             thrown = True
         if isinstance(event, OdomEvent):
             slam.on_odometry(event)
         elif isinstance(event, ScanEvent):
             slam.on_scan(event)
     pose, _ = slam.poses()["r1"]
-    error = np.hypot(*(pose[:2] - log.truth_pose[-1, :2]))
-    return float(error), abs(wrap_angle(pose[2] - log.truth_pose[-1, 2])), len(slam.landmark_map().means), slam
+    return float(np.hypot(*(pose[:2] - log.truth_pose[-1, :2]))), abs(wrap_angle(pose[2] - log.truth_pose[-1, 2]))
+
+
+def lost_robot_run(seed: int, reacquire_on: bool) -> tuple[float, float, int, FastSlam]:
+    """One robot maps the MR.CLAM-like arena for 30 s; then its estimate is thrown off by 25° and 0.5 m, as a
+    blind turn on slipping wheels would, with a drift that says so; it drives on for 30 s. (final position error,
+    heading error, landmarks mapped, the filter)."""
+    data = simulate("arena", robots=1, seed=seed, duration=60.0)
+    slam = FastSlam(FastSlamConfig(particles=30, association="shared", seed=seed, reacquire=reacquire_on),
+                    [data.robots["r1"].info])
+    error, heading = thrown_off_run(data, slam, np.diag([0.3**2, 0.3**2, math.radians(25.0) ** 2]))
+    return error, heading, len(slam.landmark_map().means), slam
 
 
 def test_a_lost_robot_is_put_back_on_the_map_instead_of_mapping_a_copy():
@@ -266,24 +274,9 @@ def robots_seen_run(on: bool) -> tuple[float, float, FastSlam]:
     """Three robots that see each other map the arena for 30 s; then r1's estimate is thrown 25° and 0.5 m off with a
     drift that says all is well (a wrong correction). (r1's final position error, heading error, the filter)."""
     data = simulate("arena", robots=3, seed=2, duration=60.0)
-    log = data.robots["r1"]
     slam = FastSlam(FastSlamConfig(particles=30, association="shared", seed=2, reacquire_by_robots=on),
                     [robot.info for robot in data.robots.values()])
-    thrown = False
-    for event in data.events():
-        if not thrown and event.stamp - log.scan_stamp[0] >= 30.0:
-            pose, _ = slam.poses()["r1"]
-            error = reacquire.Correction(math.radians(25.0), np.array([0.4, -0.3]), pose[:2], 0.0, 0)
-            column = slam.robots["r1"].index
-            slam.pose[:, column] = error.apply(slam.pose[:, column])
-            slam.robots["r1"].drift = None
-            thrown = True
-        if isinstance(event, OdomEvent):
-            slam.on_odometry(event)
-        elif isinstance(event, ScanEvent):
-            slam.on_scan(event)
-    pose, _ = slam.poses()["r1"]
-    return float(np.hypot(*(pose[:2] - log.truth_pose[-1, :2]))), abs(wrap_angle(pose[2] - log.truth_pose[-1, 2])), slam
+    return (*thrown_off_run(data, slam, None), slam)
 
 
 def test_a_robot_sure_of_a_wrong_pose_is_put_back_when_the_robots_it_sees_contradict_it():
