@@ -54,8 +54,8 @@ import numpy as np
 import scipy.linalg
 
 from central.fastslam import kernels
-from robots.gaussian import ekf_update
-from robots.models import wrap_angle
+from robots.gaussian import chi2_quantile, ekf_update
+from robots.models import se2_compose, se2_inverse, wrap_angle
 
 if TYPE_CHECKING:
     from central.fastslam.config import FastSlamConfig
@@ -63,6 +63,7 @@ if TYPE_CHECKING:
     from central.fastslam.lifecycle import RobotState
 
 TURN_STEP = math.radians(1.5)  # the turns tried, this far apart
+ROBOT_GATE = chi2_quantile(0.999, 2)  # a robot detection beyond it (d²) contradicts the two robots' poses
 POINT_QUANTUM = 0.05  # m: the same landmark seen again from about the same place votes once, with its count
 SHIFTS_PER_TURN = 4  # the best-voted shifts of each turn scored in full
 DISTINCT_TURN = math.radians(8.0)  # a correction this far in turn, or ...
@@ -104,6 +105,8 @@ class BlindWindow:
     stamps: list = field(default_factory=list)
     points: list = field(default_factory=list)
     robots: list = field(default_factory=list)  # (stamp, [point, the seen robot's position]) of robot detections
+    reckoned: np.ndarray | None = None  # the robot's estimate at the last add, before that scan's odometry
+    odometry: np.ndarray = field(default_factory=lambda: np.zeros(3))  # Δ̄ applied to the robot since (its frame)
 
     def add(self, stamp: float, points: np.ndarray, window_s: float) -> None:
         self.stamps.append(stamp)
@@ -114,9 +117,31 @@ class BlindWindow:
         del self.stamps[:old], self.points[:old]
         drop_before(self.robots, stamp - window_s)
 
+    def follow(self, pose: np.ndarray, pending: np.ndarray | None) -> None:
+        """Keep the window in the frame of the robot's estimate ``pose`` ``(3,)``, which includes the buffered
+        odometry ``pending`` (Δ̄ in the robot's frame): where the estimate moved otherwise than by the odometry
+        applied since the last add (:meth:`moved`) and ``pending``, the kept points move with it. In one filter over
+        the fleet the other robots' scans and the robot detections resample the particles, and with them a held
+        robot's pose; a correction found for points placed from the pose before would be applied to the pose after
+        (MR.CLAM: a robot its robot detections had brought back within 3° was turned 35° off by its window)."""
+        before = pose if pending is None else se2_compose(pose, se2_inverse(pending))
+        if self.reckoned is not None:
+            expected = se2_compose(self.reckoned, self.odometry)
+            turn, shift = wrap_angle(before[2] - expected[2]), before[:2] - expected[:2]
+            self.points = [turned(points, expected[:2], turn) + shift for points in self.points]
+            self.robots = [(stamp, np.r_[turned(pair[:2], expected[:2], turn) + shift, pair[2:]])
+                           for stamp, pair in self.robots]
+        self.reckoned, self.odometry = np.array(before, float), np.zeros(3)
+
+    def moved(self, delta: np.ndarray) -> None:
+        """The robot's particles were moved by the odometry Δ̄ ``delta`` (its frame): not a jump of its estimate."""
+        self.odometry = se2_compose(self.odometry, delta)
+
     def __setstate__(self, state: dict) -> None:
-        """Restore a pickled window (a checkpoint), also one written before it kept robot detections."""
+        """Restore a pickled window (a checkpoint), also one written before it kept robot detections or its pose."""
         state.setdefault("robots", [])
+        state.setdefault("reckoned", None)
+        state.setdefault("odometry", np.zeros(3))
         self.__dict__.update(state)
 
     def robot_pairs(self) -> np.ndarray | None:
@@ -210,7 +235,7 @@ def note_robot_detection(robot: RobotState, stamp: float, seen: str, explained: 
 
 def contradicted(robot: RobotState, stamp: float, window_s: float, least: int) -> bool:
     """Whether the robot's own detections of other robots over the last ``window_s`` say its pose is wrong: at
-    least ``least`` of them no particle explains (:data:`central.fastslam.robot_detections.ROBOT_GATE`), of two
+    least ``least`` of them no particle explains (:data:`ROBOT_GATE`), of two
     robots at least, and four in five of them unexplained. A robot that took a wrong correction matches the copies
     it maps and its drift says it is sure; the robots it sees say otherwise (MR.CLAM Dataset 1, seed 0, against
     the run with barcodes: 91 % of the detections made by a robot more than 1 m or 20° off lie beyond the gate, 3 %
@@ -221,11 +246,11 @@ def contradicted(robot: RobotState, stamp: float, window_s: float, least: int) -
     return len(unexplained) >= least and len(set(unexplained)) >= 2 and len(unexplained) >= 0.8 * len(checks)
 
 
-def widened(drift: np.ndarray | None, config: FastSlamConfig) -> np.ndarray:
-    """The drift of a robot its detections of others contradict: its own plus a third of the search's limits
-    (``reacquire_max_shift_m``, ``reacquire_max_turn``) as σ, so that it is lost and searched for that far."""
+def widened(drift: np.ndarray | None, max_shift: float, max_turn: float) -> np.ndarray:
+    """The drift (or pose covariance) of a robot its detections of others contradict: its own plus a third of the
+    search's limits (``max_shift``, ``max_turn``) as σ, so that it is lost and searched for that far."""
     out = np.zeros((3, 3)) if drift is None else np.array(drift, float)
-    return out + np.diag([(config.reacquire_max_shift_m / SIGMAS) ** 2] * 2 + [(config.reacquire_max_turn / SIGMAS) ** 2])
+    return out + np.diag([(max_shift / SIGMAS) ** 2] * 2 + [(max_turn / SIGMAS) ** 2])
 
 
 def search(points: np.ndarray, landmarks: np.ndarray, centre: np.ndarray, turn_limit: float, shift_limit: float,
@@ -380,9 +405,11 @@ def refine(points: np.ndarray, weights: np.ndarray, landmarks: np.ndarray, centr
                       reached)
 
 
-def step(slam: FastSlam, robot: RobotState, pose: np.ndarray, z: np.ndarray, landmarks) -> str:
-    """What to do with the scan ``z`` of ``robot`` (predicted mean ``pose``): ``"associate"`` it (the robot is not
-    lost), ``"hold"`` it for re-acquisition, or associate it from the pose just ``"corrected"``.
+def step(slam: FastSlam, robot: RobotState, pose: np.ndarray, z: np.ndarray, landmarks,
+         pending: np.ndarray | None = None) -> str:
+    """What to do with the scan ``z`` of ``robot`` (predicted mean ``pose``, which includes the buffered odometry
+    ``pending``): ``"associate"`` it (the robot is not lost), ``"hold"`` it for re-acquisition, or associate it from
+    the pose just ``"corrected"``.
     ``landmarks(point, radius)`` gives the means of the confirmed landmarks within ``radius`` of ``point`` (called
     only for a search)."""
     config = slam.config
@@ -390,7 +417,7 @@ def step(slam: FastSlam, robot: RobotState, pose: np.ndarray, z: np.ndarray, lan
     if robot.blind is None:
         if config.reacquires_by_robots and contradicted(robot, stamp, config.reacquire_robots_window_s,
                                                        config.reacquire_robots_min):
-            robot.drift = widened(robot.drift, config)
+            robot.drift = widened(robot.drift, config.reacquire_max_shift_m, config.reacquire_max_turn)
             robot.robot_checks.clear()
             slam.counts["reacquire_contradicted"] += 1
         if not lost(config, robot.drift):
@@ -398,6 +425,7 @@ def step(slam: FastSlam, robot: RobotState, pose: np.ndarray, z: np.ndarray, lan
         robot.blind = BlindWindow()
         slam.counts["reacquire_started"] += 1
     window = robot.blind
+    window.follow(pose, pending)
     window.add(stamp, robot.sensor.inverse(pose, z), config.reacquire_window_s)
     if window.due(stamp, config.reacquire_every_s):
         drift = robot.drift  # a held robot matches nothing: only a correction resets its drift

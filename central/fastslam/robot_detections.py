@@ -19,16 +19,22 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from central.fastslam import motion, reacquire
+from central.fastslam import motion, reacquire, resampling
 from central.fastslam.lifecycle import RobotState
-from robots.gaussian import LOG_2PI, chi2_quantile, inv2, quad2, sandwich, sandwich2
+from robots.gaussian import LOG_2PI, inv2, quad2, sandwich, sandwich2
 from robots.models import compose_jacobian, se2_compose
 from schemas.contract import ScanEvent
 
 if TYPE_CHECKING:
     from central.fastslam.core import FastSlam
 
-ROBOT_GATE = chi2_quantile(0.999, 2)  # a detection no particle explains within it contradicts the two poses
+
+def window_point(sensor, pose: np.ndarray, target: np.ndarray, w: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """A held robot's detection ``z`` (range, bearing) of another robot as a point of its re-acquisition window:
+    ``[seen x, seen y, robot x, robot y]``, the detection placed from the observer's weighted mean pose (circular
+    mean heading) beside the detected robot's weighted mean position. ``pose`` ``(P, 3)``, ``target`` ``(P, 2)``."""
+    seen = sensor.inverse(resampling.weighted_pose(pose, w)[0], z[None, :])[0]
+    return np.r_[seen, w @ target]
 
 
 def weigh(slam: FastSlam, robot: RobotState, event: ScanEvent, r: np.ndarray) -> None:
@@ -61,9 +67,9 @@ def weigh(slam: FastSlam, robot: RobotState, event: ScanEvent, r: np.ndarray) ->
         d2 = quad2(nu, s_inv)
         slam.logw += -0.5 * d2 - 0.5 * np.log(np.maximum(det, 1e-300)) - LOG_2PI
         if slam.config.reacquires_by_robots:
-            reacquire.note_robot_detection(robot, float(event.stamp), other_id, bool(d2.min() <= ROBOT_GATE),
+            reacquire.note_robot_detection(robot, float(event.stamp), other_id, bool(d2.min() <= reacquire.ROBOT_GATE),
                                            slam.config.reacquire_robots_window_s)
             if robot.blind is not None:  # held: the detection is a point of its window, with its own robot
-                seen = robot.sensor.inverse(pose.mean(0), np.array([[rng_, brg]]))[0]
-                robot.blind.robots.append((float(event.stamp), np.r_[seen, target[:, :2].mean(0)]))
+                point = window_point(robot.sensor, pose, target[:, :2], slam.weights(), np.array([rng_, brg]))
+                robot.blind.robots.append((float(event.stamp), point))
         slam.counts["robot_detections_used"] += 1

@@ -95,7 +95,9 @@ def associate(slam: FastSlam, robot: RobotState, z: np.ndarray, r: np.ndarray) -
     ids = np.full(m, -1, np.int64)
     pose, spread, drift = pose_belief(slam, robot)
     if slam.config.reacquire:
-        step = reacquire.step(slam, robot, pose, z, lambda point, radius: confirmed_near(slam, point, radius))
+        pending = motion.pending_motion(robot, slam.config)
+        step = reacquire.step(slam, robot, pose, z, lambda point, radius: confirmed_near(slam, point, radius),
+                              None if pending is None else pending[0])
         if step == "hold":
             return ids
         if step == "corrected":

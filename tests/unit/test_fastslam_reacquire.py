@@ -10,10 +10,10 @@ import pickle
 import numpy as np
 import pytest
 
-from central.fastslam import kernels, reacquire
+from central.fastslam import kernels, reacquire, robot_detections
 from central.fastslam.config import FastSlamConfig
 from central.fastslam.core import FastSlam
-from robots.models import se2_compose, wrap_angle
+from robots.models import RangeBearingSensor, se2_compose, wrap_angle
 from robots.simulator import simulate
 from schemas.contract import OdomEvent, ScanEvent
 
@@ -246,7 +246,7 @@ def test_detections_of_other_robots_contradict_a_robot_only_when_most_are_unexpl
     robot.robot_checks = [(t, "r2" if t % 2 else "r3", t < 6) for t in range(12)]
     assert not reacquire.contradicted(robot, 12.0, 20.0, 6)  # 6 unexplained of 12
     config = FastSlamConfig(association="shared")
-    wide = reacquire.widened(None, config)
+    wide = reacquire.widened(None, config.reacquire_max_shift_m, config.reacquire_max_turn)
     assert reacquire.lost(config, wide) and math.sqrt(wide[2, 2]) * reacquire.SIGMAS == pytest.approx(config.reacquire_max_turn)
 
 
@@ -268,6 +268,40 @@ def test_robot_detections_in_the_window_decide_between_corrections_the_landmarks
     del restored.__dict__["robots"]  # a window pickled before it kept robot detections
     restored.__setstate__(dict(restored.__dict__))
     assert restored.robot_pairs() is None and window.robot_pairs().shape == (4, 4)
+
+
+def test_a_held_robots_detection_of_a_robot_is_placed_from_its_weighted_mean_pose():
+    """Particles straddling ±π average to heading π, not 0 (the arithmetic mean would put the point behind the
+    robot), and the weights decide between them: a particle of weight zero moves neither end."""
+    sensor = RangeBearingSensor()
+    pose = np.array([[1.0, 2.0, math.pi - 0.01], [1.0, 2.0, -math.pi + 0.01], [9.0, 9.0, 0.0]])
+    target = np.array([[-1.0, 2.0], [-1.0, 2.0], [5.0, 5.0]])
+    point = robot_detections.window_point(sensor, pose, target, np.array([0.5, 0.5, 0.0]), np.array([2.0, 0.0]))
+    assert np.allclose(point, [-1.0, 2.0, -1.0, 2.0], atol=1e-9)
+
+
+def test_a_held_window_moves_with_the_robots_estimate_but_not_with_its_odometry():
+    """Points placed from one pose stay put while the estimate moves by the odometry, applied between scans or
+    buffered at the scan; when the estimate jumps (the shared particles resampled), every point and every robot
+    detection's point jumps with it, the seen robots' positions do not."""
+    sensor, z = RangeBearingSensor(), np.array([[2.0, 0.3], [4.0, -1.0]])
+    before, step = np.array([1.0, 2.0, 0.4]), np.array([0.5, 0.1, 0.2])
+    window = reacquire.BlindWindow()
+    window.follow(before, None)
+    window.add(0.0, sensor.inverse(before, z), 30.0)
+    window.robots.append((0.0, np.r_[sensor.inverse(before, z[:1])[0], 7.0, 8.0]))
+    window.moved(step)  # applied between two scans (an empty scan, a full buffer)
+    window.follow(se2_compose(se2_compose(before, step), step), step)  # the next scan, one step buffered
+    assert np.allclose(window.points[0], sensor.inverse(before, z))
+    window.moved(step)
+    after = np.array([1.3, 1.6, -0.3])  # the pose the points were seen from, as the resampled estimate has it
+    window.follow(se2_compose(se2_compose(se2_compose(after, step), step), step), step)
+    assert np.allclose(window.points[0], sensor.inverse(after, z))
+    assert np.allclose(window.robots[0][1], np.r_[sensor.inverse(after, z[:1])[0], 7.0, 8.0])
+    restored = reacquire.BlindWindow(robots=[])
+    del restored.__dict__["reckoned"], restored.__dict__["odometry"]  # a window pickled before it kept its pose
+    restored.__setstate__(dict(restored.__dict__))
+    assert restored.reckoned is None and np.array_equal(restored.odometry, np.zeros(3))
 
 
 def robots_seen_run(on: bool) -> tuple[float, float, FastSlam]:
