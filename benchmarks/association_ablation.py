@@ -42,6 +42,8 @@ Steps (D-SLAM, ``--association unknown``: the association service's ``auto``; de
   the other data sets announce none), summed since the last localization, added to the association's gate;
 - ``dslam-reacquire``: ... and re-acquisition of a lost robot (``reacquire``: position std beyond 1 m, detections
   held until one rigid correction against the map is clear): the default;
+- ``dslam-no-by-robots``: the default without the robots' say in re-acquisition (``reacquire_by_robots``: a robot
+  its detections of two other robots contradict is lost, and those detections vote in its search; the default before);
 - ``dslam-unique``: the default with ``unique_pairs``.
 
 Data: MR.CLAM 6 (five robots in one filter), Victoria Park (GPS), ACFR car park (GPS and surveyed beacons).
@@ -89,6 +91,7 @@ STEPS: dict[str, tuple[str, str, dict]] = {
     "dslam-local-map": ("dslam", "unknown", {"turn_slip": False, "reacquire": False}),
     "dslam-turn-slip": ("dslam", "unknown", {"reacquire": False}),
     "dslam-reacquire": ("dslam", "unknown", {}),
+    "dslam-no-by-robots": ("dslam", "unknown", {"reacquire_by_robots": False}),
     "shared-jcbb-unique": ("fastslam", "unknown", {"unique_pairs": True}),
     "shared-jcbb-turn-slip": ("fastslam", "unknown", {"turn_slip": True}),
     "shared-jcbb-turn-gain": ("fastslam", "unknown", {"turn_gain_std": 0.04, "turn_gain_walk": 0.002}),

@@ -18,7 +18,9 @@ Cases (FastSLAM, 100 particles, unless said):
 - ``unknown-none-no-meetings``, ``known-none-no-meetings``, ``dslam-unknown-none-no-meetings``: the placement
   without the robots' detections of each other (``--no-robot-meetings``; on by default since they were added);
 - ``unknown-none-no-prior``, ``unknown-none-rigid-only``: ``unknown-none`` with FastSLAM's re-acquisition
-  without the drift's prior on its corrections, and with the rigid correction alone (the default before).
+  without the drift's prior on its corrections, and with the rigid correction alone (the default before);
+- ``unknown-none-no-by-robots``, ``dslam-unknown-none-no-by-robots``: FastSLAM's or D-SLAM's re-acquisition
+  without the robots' say (``reacquire_by_robots=false``, the default before).
 
 The data bound the placement delays stand against (``data_bound_s``, no estimator): after its first scan,
 how long each robot takes to have seen two distinct landmarks that the anchor (the first robot to scan) had
@@ -69,6 +71,7 @@ CASES: dict[str, tuple] = {  # estimator, association, start poses[, settings]
     "dslam-unknown-known": ("dslam", "unknown", "known"),
     "dslam-unknown-none": ("dslam", "unknown", "none"),
     "dslam-unknown-none-no-meetings": ("dslam", "unknown", "none", {"robot_meetings": False}),
+    "dslam-unknown-none-no-by-robots": ("dslam", "unknown", "none", {"reacquire_by_robots": False}),
 }
 
 

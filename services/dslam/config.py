@@ -119,5 +119,22 @@ class DslamConfig(CoreConfig):
     reacquire_margin: float = Field(
         3.0, ge=0.0, description="... and no distinct correction may come within this many detections of it")
     reacquire_max_turn: float = Field(0.785, ge=0.0, description="... turning it by at most this (rad)")
+    reacquire_by_robots: bool = Field(
+        True, description="... and a robot whose detections of other robots contradict its pose (reacquire_robots_min "
+        "of them in reacquire_robots_window_s beyond the 99.9 % gate of the two robots' covariances, of two robots at "
+        "least, four in five) is lost too, searched within reacquire_robots_shift_m and reacquire_max_turn, its "
+        "robot detections voting in the search (as FastSLAM's reacquire_by_robots, central/fastslam/reacquire.py)")
+    reacquire_robots_window_s: float = Field(10.0, gt=0.0, description="... over this many seconds")
+    reacquire_robots_min: int = Field(6, ge=1, description="... this many unexplained detections of robots")
+    reacquire_robots_shift_m: float = Field(2.0, gt=0.0, description="... shifting a contradicted robot by at most this (m)")
+    reacquire_robots_min_landmarks: int = Field(
+        2, ge=2, description="... its correction reaching this many distinct landmarks (its robot detections vote too; "
+        "MR.CLAM's windows rarely reach reacquire_min_landmarks)")
+    robot_detection_noise_scale: float = Field(
+        4.0, gt=0.0, description="... a robot detection's noise: the scan's covariance times this (a robot is a wide "
+        "target; FastSLAM's robot_detection_noise_scale)")
+    robot_detection_position_sd: float = Field(
+        0.1, ge=0.0, description="... plus this much relative position between the two robots (m)")
+    robot_detection_max_dt: float = Field(0.1, ge=0.0, description="... only when the other robot's pose is this recent (s)")
     ci_criterion: Literal["trace", "det"] = Field("trace", description="covariance intersection minimises the trace or the determinant")
     marginals_limit: int = Field(3000, ge=0, description="maps up to this many landmarks report every marginal covariance exactly")

@@ -34,7 +34,10 @@ Re-acquisition (not in the paper; ``reacquire``): without ids, a robot whose
 position std passes ``reacquire_position_sd`` is lost. Its scans neither
 localize it nor map: their detections are held, placed from its dead-reckoned
 pose, until one rigid correction of them against the map is clear (the Hough
-vote of :mod:`central.fastslam.reacquire`).
+vote of :mod:`central.fastslam.reacquire`). A robot sure of a wrong pose is
+found by the robots it sees (``reacquire_by_robots``): when most of its
+detections of two other robots lie beyond the gate of the two poses, it is
+lost too, and those detections vote in its search.
 """
 
 from __future__ import annotations
@@ -103,11 +106,18 @@ class RobotState:
     turn_slip: float = 0.0  # heading variance turned since the last full-rank localization: widens the gate only
     placed_at: float = float("-inf")  # the stamp of the pose it was placed at: its events before then are past
     blind: reacquire.BlindWindow | None = None  # a lost robot's held detections (re-acquisition)
+    contradicted: bool = False  # its detections of other robots contradict its pose: lost until a correction
+    robot_checks: list = field(default_factory=list)  # (stamp, robot seen, explained): reacquire.contradicted
     deferred: tuple = ()  # scans kept, without a pose, until the columns of their mapped landmarks are solved
     wanted: tuple = ()  # ... those landmarks (DSlam.column_prefetch solves them first)
 
     def __post_init__(self) -> None:
         self.model, self.sensor = robot_models(self.info)
+
+    def __setstate__(self, state: dict) -> None:
+        """Restore a pickled robot (a checkpoint), also one written before it kept its robot detections."""
+        state.setdefault("robot_checks", [])
+        self.__dict__.update(state)
 
     @property
     def known_start(self) -> bool:
@@ -348,6 +358,7 @@ class DSlam:
         noise = np.asarray(event.noise_cov, float)
         robot.stamp = event.stamp
         self.counts["scans"] += 1
+        self._check_robots(robot, event, noise)
         if self._held(robot, obs, noise):
             return
         labels = self._associate(robot, obs, noise, ids)
@@ -379,8 +390,8 @@ class DSlam:
         found moves the robot (its covariance then that of the correction's grid) and the scan goes on as usual."""
         s = self.config
         if (not s.reacquire or s.association == "known" or robot.pose is None
-                or robot.position_std() <= s.reacquire_position_sd):
-            robot.blind = None
+                or (robot.position_std() <= s.reacquire_position_sd and not robot.contradicted)):
+            robot.blind, robot.contradicted = None, False
             return False
         if robot.blind is None:
             robot.blind = reacquire.BlindWindow()
@@ -390,19 +401,55 @@ class DSlam:
         window.add(robot.stamp, robot.sensor.inverse(robot.pose, obs), s.reacquire_window_s)
         inlier = s.reacquire_inlier_sigmas * float(np.sqrt(max(noise[0, 0], 0.0)))
         if inlier > 0.0 and window.due(robot.stamp, s.reacquire_every_s):  # no radius from a noise of 0
-            rule = reacquire.SearchRule(s.reacquire_min_detections, inlier, 4.0 * inlier, s.reacquire_margin,
-                                        s.reacquire_min_landmarks)
+            least = s.reacquire_robots_min_landmarks if robot.contradicted else s.reacquire_min_landmarks
+            rule = reacquire.SearchRule(s.reacquire_min_detections, inlier, 4.0 * inlier, s.reacquire_margin, least)
             correction = reacquire.search_window(
                 window, robot.pose[:2], float(np.sqrt(robot.cov[2, 2] + robot.turn_slip)), robot.position_std(),
                 s.reacquire_max_turn, math.inf, self._landmarks_near, rule)
             if correction is not None:
                 robot.pose = correction.apply(robot.pose)
                 robot.cov = np.diag([inlier ** 2, inlier ** 2, reacquire.TURN_STEP ** 2])
-                robot.blind, robot.turn_slip, robot.disagreements = None, 0.0, 0
+                robot.blind, robot.turn_slip, robot.disagreements, robot.contradicted = None, 0.0, 0, False
                 self.counts["reacquired"] += 1
                 return False
         self.counts["detections_blind"] += obs.shape[0]
         return True
+
+    def _check_robots(self, robot: RobotState, event: ScanEvent, noise: np.ndarray) -> None:
+        """The robot's detections of other robots (``reacquire_by_robots``, without ids): each is explained when it
+        lies within the 99.9 % gate of the two robots' covariances, the scan's noise times
+        ``robot_detection_noise_scale`` and ``robot_detection_position_sd`` of relative position; when most of the
+        last ones are not (:func:`central.fastslam.reacquire.contradicted`) the robot is lost, its covariance
+        widened to ``reacquire_robots_shift_m`` and ``reacquire_max_turn``. While it is held, each detection joins its
+        window with the robot it saw, to vote in the search. They never update a pose or the map."""
+        s = self.config
+        if (not (s.reacquire and s.reacquire_by_robots) or s.association == "known" or robot.pose is None
+                or not event.robot_ids):
+            return
+        r = noise * s.robot_detection_noise_scale
+        for other_id, rng_, brg in zip(event.robot_ids, np.asarray(event.robot_ranges, float),
+                                       np.asarray(event.robot_bearings, float)):
+            other = self.robots.get(other_id)
+            if (other is None or other is robot or other.pose is None
+                    or abs(other.stamp - event.stamp) > s.robot_detection_max_dt):
+                self.counts["robot_detections_unused"] += 1
+                continue
+            z = np.array([rng_, brg])
+            h_pose, h_other = robot.sensor.jacobians(robot.pose, other.pose[:2])
+            other_cov = other.cov[:2, :2] + s.robot_detection_position_sd ** 2 * np.eye(2)
+            innovation_cov = h_pose @ robot.cov @ h_pose.T + h_other @ other_cov @ h_other.T + r
+            nu = robot.sensor.innovation(z, robot.sensor.observe(robot.pose, other.pose[:2]))
+            explained = bool(nu @ np.linalg.solve(innovation_cov, nu) <= reacquire.ROBOT_GATE)
+            reacquire.note_robot_detection(robot, event.stamp, other_id, explained, s.reacquire_robots_window_s)
+            if robot.blind is not None:
+                robot.blind.robots.append((event.stamp, np.r_[robot.sensor.inverse(robot.pose, z), other.pose[:2]]))
+            self.counts["robot_detections_used"] += 1
+        if not robot.contradicted and reacquire.contradicted(robot, event.stamp, s.reacquire_robots_window_s,
+                                                             s.reacquire_robots_min):
+            robot.cov = reacquire.widened(robot.cov, s.reacquire_robots_shift_m, s.reacquire_max_turn)
+            robot.contradicted, robot.local = True, None
+            robot.robot_checks.clear()
+            self.counts["reacquire_contradicted"] += 1
 
     def _landmarks_near(self, point: np.ndarray, radius: float) -> np.ndarray:
         """Means ``(K, 2)`` of the mapped landmarks within ``radius`` of ``point``."""

@@ -824,7 +824,8 @@ class InformationMap:
         ``index`` their map indices, ``new`` the rows of features to add. Returns
         (indices given to the new features, map indices in z_map order, z_map,
         R_map) or None when fewer than two mapped landmarks (far enough apart) are
-        seen, or when z_map fails the χ² test at ``gate_probability``.
+        seen, when a feature lies on the first reference (z_map not finite), or
+        when z_map fails the χ² test at ``gate_probability``.
         """
         points, covs = scan_points(observations, noise)
         m = points.shape[0]
@@ -854,7 +855,10 @@ class InformationMap:
         others = [k for k in mapped.tolist() if k not in (first, second)]
         order = np.array([first, second, *others, *new.tolist()], np.int64)
         rows = np.stack([2 * order, 2 * order + 1], -1).ravel()
-        z_map, r_map = recast_points(points[order], cov[np.ix_(rows, rows)])
+        with np.errstate(divide="ignore", invalid="ignore"):  # checked just below
+            z_map, r_map = recast_points(points[order], cov[np.ix_(rows, rows)])
+        if not (np.all(np.isfinite(z_map)) and np.all(np.isfinite(r_map))):
+            return None  # a feature on the first reference has no bearing from it: refused, never NaN in the map
         old = np.array([where[first], where[second], *[where[k] for k in others]], np.int64)
         positions = np.zeros((0, 2))
         if new.size:

@@ -1,6 +1,7 @@
 """The D-SLAM estimator end to end on simulated data: exactness without noise, consistency, several robots, clutter."""
 
 import dataclasses
+import pickle
 
 import numpy as np
 import pytest
@@ -281,3 +282,45 @@ def test_without_re_acquisition_the_kidnapped_robot_maps_from_where_it_wrongly_i
     assert estimator.counts["reacquire_started"] == 0 and estimator.counts["detections_blind"] == 0
     pose, _ = estimator.poses()["r1"]
     assert np.hypot(*(pose[:2] - truth[:2])) > 1.0
+
+
+def thrown_off(by_robots: bool) -> tuple[float, float, DSlam]:
+    """Three robots that see each other map the arena without ids; halfway r1's estimate is thrown 25° and 0.5 m
+    off with its covariance unchanged (sure of a wrong pose). (r1's final position error, heading error, the
+    estimator)."""
+    data = simulate("arena", robots=3, seed=2, duration=60.0)
+    estimator = DSlam(DslamConfig(association="jcbb", reacquire_by_robots=by_robots))
+    for log in data.robots.values():
+        estimator.add_robot(log.info)
+    events = list(data.events())
+    half = len(events) // 2
+    feed(estimator, events[:half])
+    robot = estimator.robots["r1"]
+    robot.pose = np.r_[robot.pose[:2] + [0.4, -0.3], wrap_angle(robot.pose[2] + np.deg2rad(25.0))]
+    feed(estimator, events[half:])
+    log = data.robots["r1"]
+    truth = log.truth_at(np.array([log.scan_stamp[-1]]))[0]
+    pose, _ = estimator.poses()["r1"]
+    return float(np.hypot(*(pose[:2] - truth[:2]))), abs(wrap_angle(pose[2] - truth[2])), estimator
+
+
+def test_a_robot_sure_of_a_wrong_pose_is_put_back_when_the_robots_it_sees_contradict_it():
+    """Its covariance says nothing is wrong, so only its detections of the other two robots can: with
+    ``reacquire_by_robots`` (the default) they count it as lost and one correction of its held detections puts it
+    back; without, it stays off."""
+    error, heading, estimator = thrown_off(True)
+    assert estimator.counts["reacquire_contradicted"] >= 1 and estimator.counts["reacquired"] >= 1
+    assert error < 0.2 and heading < np.deg2rad(5.0)
+    plain_error, _, plain = thrown_off(False)
+    assert plain.counts["reacquire_started"] == 0 and plain_error > 0.5
+
+
+def test_a_robot_checkpointed_before_it_kept_robot_detections_restores():
+    """A checkpoint written before ``reacquire_by_robots`` holds robots without their robot detections."""
+    estimator = DSlam()
+    estimator.add_robot(simulate("arena", robots=1, seed=0, duration=1.0).robots["r1"].info)
+    state = dict(pickle.loads(pickle.dumps(estimator.robots["r1"])).__dict__)
+    del state["robot_checks"], state["contradicted"]
+    restored = object.__new__(type(estimator.robots["r1"]))
+    restored.__setstate__(state)
+    assert restored.robot_checks == [] and restored.contradicted is False

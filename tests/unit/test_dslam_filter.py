@@ -189,3 +189,23 @@ def test_maintain_checks_the_mean_every_few_scans_and_after_untracked_updates():
     m.track_columns = False
     m.update_absolute([0], np.array([[1.5, 2.5]]), np.zeros((0, 2)), np.eye(2))
     assert m.maintain() > 0  # an update the columns did not follow: checked at once
+
+
+def test_a_feature_on_the_first_reference_is_refused_and_leaves_the_map_finite():
+    """z_map gives each feature's bearing and distance from the first reference (eq. 3): a feature on it has no
+    bearing, its recast is not finite, and the update is refused rather than putting NaN into the map (seen on
+    MR.CLAM Dataset 1 through a local map). The same points with the feature elsewhere update it."""
+    def seeded() -> InformationMap:
+        info = InformationMap()
+        info.update_absolute(np.zeros(0, np.int64), np.zeros((0, 2)), np.array([[1.0, 0.0], [2.0, 0.0], [1.5, 1.0]]),
+                             np.eye(6) * 0.01)
+        return info
+    info = seeded()
+    before = info.matrix.tocsr().toarray().copy()
+    on_reference = np.array([[1.0, 0.0], [2.0, 0.0], [1.0, 0.0]])
+    assert info.update_points(on_reference, np.eye(6) * 0.01, np.arange(3), np.arange(3), np.zeros(0, np.int64),
+                              0.3, 0.99) is None
+    assert np.array_equal(info.matrix.tocsr().toarray(), before) and np.all(np.isfinite(info.means))
+    info = seeded()
+    assert info.update_points(np.array([[1.0, 0.0], [2.0, 0.0], [1.5, 1.0]]), np.eye(6) * 0.01, np.arange(3),
+                              np.arange(3), np.zeros(0, np.int64), 0.3, 0.99) is not None
