@@ -121,8 +121,8 @@ class DslamConfig(CoreConfig):
     reacquire_max_turn: float = Field(0.785, ge=0.0, description="... turning it by at most this (rad)")
     reacquire_by_robots: bool = Field(
         True, description="... and a robot whose detections of other robots contradict its pose (reacquire_robots_min "
-        "of them in reacquire_robots_window_s beyond the 99.9 % gate of the two robots' covariances, of two robots at "
-        "least, four in five) is lost too, searched within reacquire_robots_shift_m and reacquire_max_turn, its "
+        "of them in reacquire_robots_window_s beyond the chi-square 0.999 gate of the two robots' covariances, of two "
+        "robots at least, four in five) is lost too, searched within reacquire_robots_shift_m and reacquire_max_turn, its "
         "robot detections voting in the search (as FastSLAM's reacquire_by_robots, central/fastslam/reacquire.py)")
     reacquire_robots_window_s: float = Field(10.0, gt=0.0, description="... over this many seconds")
     reacquire_robots_min: int = Field(6, ge=1, description="... this many unexplained detections of robots")

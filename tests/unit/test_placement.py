@@ -138,11 +138,12 @@ def test_robots_that_see_each_other_are_placed_in_a_symmetric_world_without_ids(
         how = sorted(record["how"] for record in run.extra["placement"].values())
         assert how[0] == "anchor" and set(how[1:]) <= {"meetings", "mcl"} and "meetings" in how, how
         truth_errors.append(max(fleet_alignment(run.trajectories, truth)["ate_rmse_m"].values()))
-        blind = run_estimator(data, RunOptions(estimator, association, particles, 0), start_poses="none",
-                              robot_meetings=False)
+        blind = run_estimator(data, RunOptions(estimator, association, particles, 0, {"reacquire_by_robots": False}),
+                              start_poses="none", robot_meetings=False)
         blind_errors.append(max(fleet_alignment(blind.trajectories, truth)["ate_rmse_m"].values()))
     assert max(truth_errors) < 0.3, truth_errors
-    assert min(blind_errors) > 1.0, blind_errors  # without them a robot lands on a twin, in every seed
+    assert min(blind_errors) > 1.0, blind_errors  # without them (nor their say in re-acquisition, which may bring
+    # a robot part of the way back) a robot lands on a twin, in every seed
 
 
 def test_placement_check_asks_again_only_after_a_run_of_far_localized_poses():
