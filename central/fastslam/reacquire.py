@@ -234,12 +234,12 @@ def note_robot_detection(robot: RobotState, stamp: float, seen: str, explained: 
 
 
 def contradicted(robot: RobotState, stamp: float, window_s: float, least: int) -> bool:
-    """Whether the robot's own detections of other robots over the last ``window_s`` say its pose is wrong: at
-    least ``least`` of them unexplained (beyond :data:`ROBOT_GATE` for every particle in FastSLAM, for the two
-    poses' Gaussians in D-SLAM), of two robots at least, and four in five of them unexplained. A robot that took a wrong correction matches the copies
-    it maps and its drift says it is sure; the robots it sees say otherwise (MR.CLAM Dataset 1, seed 0, against
-    the run with barcodes: 91 % of the detections made by a robot more than 1 m or 20° off lie beyond the gate, 3 %
-    of those between two robots that are not; Dataset 6 against Vicon: 77 % and 7 %)."""
+    """Whether the robot's own detections of other robots over the last ``window_s`` say its pose is wrong: at least
+    ``least`` of them unexplained (beyond :data:`ROBOT_GATE` for every particle in FastSLAM, for the two poses'
+    Gaussians in D-SLAM), of two robots at least, and four in five of them unexplained. A robot that took a wrong
+    correction matches the copies it maps and its drift says it is sure; the robots it sees say otherwise (MR.CLAM
+    Dataset 1, seed 0, against the run with barcodes: 91 % of the detections made by a robot more than 1 m or 20°
+    off lie beyond the gate, 3 % of those between two robots that are not; Dataset 6 against Vicon: 77 % and 7 %)."""
     checks = robot.robot_checks
     drop_before(checks, stamp - window_s)
     unexplained = [seen for _, seen, explained in checks if not explained]

@@ -447,7 +447,7 @@ class DSlam:
         if not robot.contradicted and reacquire.contradicted(robot, event.stamp, s.reacquire_robots_window_s,
                                                              s.reacquire_robots_min):
             robot.cov = reacquire.widened(robot.cov, s.reacquire_robots_shift_m, s.reacquire_max_turn)
-            robot.contradicted, robot.local = True, None
+            robot.contradicted = True  # held from this scan on (_held), its local map dropped there
             robot.robot_checks.clear()
             self.counts["reacquire_contradicted"] += 1
 
