@@ -85,6 +85,8 @@ STEPS: dict[str, tuple[str, str, dict]] = {
     "shared-jcbb-robot-sd-0.4": ("fastslam", "unknown", {"robot_detection_position_sd": 0.4}),
     "shared-jcbb-confirm-tol-1": ("fastslam", "unknown", {"reacquire_confirm_tolerance": 1.0}),
     "shared-jcbb-no-by-robots": ("fastslam", "unknown", {"reacquire_by_robots": False}),
+    "shared-jcbb-robots-veto": ("fastslam", "unknown", {"reacquire_robots_veto": 3}),
+    "shared-jcbb-no-robots-fit": ("fastslam", "unknown", {"reacquire_robots_fit_min": 10**6}),
     "dslam-per-scan": ("dslam", "unknown", {"local_map_max_std": 0.0, "gate_pose_floor": (0.0, 0.0, 0.0),
                                             "turn_slip": False, "reacquire": False}),
     "dslam-floor": ("dslam", "unknown", {"local_map_max_std": 0.0, "turn_slip": False, "reacquire": False}),

@@ -113,6 +113,17 @@ class FastSlamConfig(CoreConfig):
         "out 0.364 / 0.548 m, without start poses 0.43 / 0.91 m (README)")
     reacquire_robots_window_s: float = Field(10.0, gt=0.0, description="... over this many seconds")
     reacquire_robots_min: int = Field(6, ge=1, description="... this many unexplained detections of robots")
+    reacquire_robots_veto: int = Field(
+        0, ge=0, description="... a held robot with this many detections of other robots in its window takes no "
+        "correction that brings fewer than half of them near their robots (0: off)")
+    reacquire_robots_fit_min: int = Field(
+        8, ge=3, description="... a held robot whose detections of other robots, this many at least, are brought onto "
+        "those robots by one rigid correction beyond the search's caps (any turn) takes it")
+    reacquire_robots_fit_spread_m: float = Field(
+        1.0, gt=0.0, description="... when the detections are spread this far (RMS, m): the turn is then fixed")
+    reacquire_robots_fit_residual_m: float = Field(
+        0.25, gt=0.0, description="... and each ends this near its robot (m), while the pose as it is leaves most "
+        "farther (a robot held because the robots contradicted it)")
     reacquire_drift_update: bool = Field(
         True, description="... a match conditions the drift on the matched detections (a Kalman update: one landmark "
         "leaves the turn about it free) instead of starting it from zero (False, the default before). MR.CLAM without "
@@ -163,7 +174,8 @@ class FastSlamConfig(CoreConfig):
                           confirm_max_turn=self.reacquire_confirm_max_turn,
                           confirm_max_shift=self.reacquire_confirm_max_shift_m,
                           prior_weight=self.reacquire_prior_weight,
-                          confirm_tolerance=self.reacquire_confirm_tolerance)
+                          confirm_tolerance=self.reacquire_confirm_tolerance,
+                          robots_veto=self.reacquire_robots_veto if self.reacquires_by_robots else 0)
 
     @property
     def reacquires_by_robots(self) -> bool:

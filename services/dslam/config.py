@@ -130,6 +130,17 @@ class DslamConfig(CoreConfig):
     reacquire_robots_min_landmarks: int = Field(
         2, ge=2, description="... its correction reaching this many distinct landmarks (its robot detections vote too; "
         "MR.CLAM's windows rarely reach reacquire_min_landmarks)")
+    reacquire_robots_veto: int = Field(
+        3, ge=0, description="... a held robot with this many detections of other robots in its window takes no "
+        "correction that brings fewer than half of them near their robots (0: off)")
+    reacquire_robots_fit_min: int = Field(
+        8, ge=3, description="... a held robot whose detections of other robots, this many at least, are brought onto "
+        "those robots by one rigid correction beyond the search's caps (any turn) takes it (as FastSLAM's)")
+    reacquire_robots_fit_spread_m: float = Field(
+        1.0, gt=0.0, description="... when the detections are spread this far (RMS, m): the turn is then fixed")
+    reacquire_robots_fit_residual_m: float = Field(
+        0.25, gt=0.0, description="... and each ends this near its robot (m), while the pose as it is leaves most "
+        "farther (a robot held because the robots contradicted it)")
     robot_detection_noise_scale: float = Field(
         4.0, gt=0.0, description="... a robot detection's noise: the scan's covariance times this (a robot is a wide "
         "target; FastSLAM's robot_detection_noise_scale)")

@@ -394,18 +394,25 @@ class DSlam:
             robot.blind, robot.contradicted = None, False
             return False
         if robot.blind is None:
-            robot.blind = reacquire.BlindWindow()
+            robot.blind = reacquire.BlindWindow(contradicted=robot.contradicted)
             self.counts["reacquire_started"] += 1
         robot.local = None
         window = robot.blind
         window.add(robot.stamp, robot.sensor.inverse(robot.pose, obs), s.reacquire_window_s)
         inlier = s.reacquire_inlier_sigmas * float(np.sqrt(max(noise[0, 0], 0.0)))
         if inlier > 0.0 and window.due(robot.stamp, s.reacquire_every_s):  # no radius from a noise of 0
-            least = s.reacquire_robots_min_landmarks if robot.contradicted else s.reacquire_min_landmarks
-            rule = reacquire.SearchRule(s.reacquire_min_detections, inlier, 4.0 * inlier, s.reacquire_margin, least)
-            correction = reacquire.search_window(
-                window, robot.pose[:2], float(np.sqrt(robot.cov[2, 2] + robot.turn_slip)), robot.position_std(),
-                s.reacquire_max_turn, math.inf, self._landmarks_near, rule)
+            correction = reacquire.beyond_caps(
+                window, robot.pose[:2], s.reacquire_max_turn, s.reacquire_robots_shift_m, s.reacquire_robots_fit_min,
+                s.reacquire_robots_fit_spread_m, s.reacquire_robots_fit_residual_m) if s.reacquire_by_robots else None
+            if correction is not None:
+                self.counts["reacquired_by_robots"] += 1
+            else:
+                least = s.reacquire_robots_min_landmarks if robot.contradicted else s.reacquire_min_landmarks
+                rule = reacquire.SearchRule(s.reacquire_min_detections, inlier, 4.0 * inlier, s.reacquire_margin, least,
+                                            robots_veto=s.reacquire_robots_veto if s.reacquire_by_robots else 0)
+                correction = reacquire.search_window(
+                    window, robot.pose[:2], float(np.sqrt(robot.cov[2, 2] + robot.turn_slip)), robot.position_std(),
+                    s.reacquire_max_turn, math.inf, self._landmarks_near, rule)
             if correction is not None:
                 robot.pose = correction.apply(robot.pose)
                 robot.cov = np.diag([inlier ** 2, inlier ** 2, reacquire.TURN_STEP ** 2])

@@ -284,19 +284,19 @@ def test_without_re_acquisition_the_kidnapped_robot_maps_from_where_it_wrongly_i
     assert np.hypot(*(pose[:2] - truth[:2])) > 1.0
 
 
-def thrown_off(by_robots: bool) -> tuple[float, float, DSlam]:
-    """Three robots that see each other map the arena without ids; halfway r1's estimate is thrown 25° and 0.5 m
-    off with its covariance unchanged (sure of a wrong pose). (r1's final position error, heading error, the
+def thrown_off(by_robots: bool, turn_deg: float = 25.0, **settings) -> tuple[float, float, DSlam]:
+    """Three robots that see each other map the arena without ids; halfway r1's estimate is thrown ``turn_deg`` and
+    0.5 m off with its covariance unchanged (sure of a wrong pose). (r1's final position error, heading error, the
     estimator)."""
     data = simulate("arena", robots=3, seed=2, duration=60.0)
-    estimator = DSlam(DslamConfig(association="jcbb", reacquire_by_robots=by_robots))
+    estimator = DSlam(DslamConfig(association="jcbb", reacquire_by_robots=by_robots, **settings))
     for log in data.robots.values():
         estimator.add_robot(log.info)
     events = list(data.events())
     half = len(events) // 2
     feed(estimator, events[:half])
     robot = estimator.robots["r1"]
-    robot.pose = np.r_[robot.pose[:2] + [0.4, -0.3], wrap_angle(robot.pose[2] + np.deg2rad(25.0))]
+    robot.pose = np.r_[robot.pose[:2] + [0.4, -0.3], wrap_angle(robot.pose[2] + np.deg2rad(turn_deg))]
     feed(estimator, events[half:])
     log = data.robots["r1"]
     truth = log.truth_at(np.array([log.scan_stamp[-1]]))[0]
@@ -313,6 +313,16 @@ def test_a_robot_sure_of_a_wrong_pose_is_put_back_when_the_robots_it_sees_contra
     assert error < 0.2 and heading < np.deg2rad(5.0)
     plain_error, _, plain = thrown_off(False)
     assert plain.counts["reacquire_started"] == 0 and plain_error > 0.5
+
+
+def test_a_robot_half_a_turn_off_is_put_back_by_the_robots_it_sees():
+    """160° is beyond any search of the landmarks (``reacquire_max_turn``): the rigid fit of its detections of the
+    other robots onto them puts it back; without that fit (a minimum of pairs never reached) it stays off."""
+    error, heading, estimator = thrown_off(True, 160.0)
+    assert estimator.counts["reacquired_by_robots"] >= 1
+    assert error < 0.2 and heading < np.deg2rad(5.0)
+    plain_error, plain_heading, plain = thrown_off(True, 160.0, reacquire_robots_fit_min=10**6)
+    assert plain.counts["reacquired_by_robots"] == 0 and plain_error > 1.0 and plain_heading > np.deg2rad(45.0)
 
 
 def test_a_robot_checkpointed_before_it_kept_robot_detections_restores():

@@ -188,15 +188,16 @@ def test_the_drift_prior_decides_between_corrections_that_explain_as_much():
     assert reacquire.search(points, landmarks, centre, 0.0, 2.0, rule, wide) is None
 
 
-def thrown_off_run(data, slam: FastSlam, drift: np.ndarray | None) -> tuple[float, float]:
-    """Feed ``data`` to ``slam``; 30 s after r1's first scan throw its estimate 25° and 0.5 m off (a blind turn on
-    slipping wheels, or a wrong correction) with ``drift`` as its drift. (r1's final position error, heading error)."""
+def thrown_off_run(data, slam: FastSlam, drift: np.ndarray | None, turn_deg: float = 25.0) -> tuple[float, float]:
+    """Feed ``data`` to ``slam``; 30 s after r1's first scan throw its estimate ``turn_deg`` and 0.5 m off (a blind
+    turn on slipping wheels, or a wrong correction) with ``drift`` as its drift. (r1's final position error, heading
+    error)."""
     log = data.robots["r1"]
     thrown = False
     for event in data.events():
         if not thrown and event.stamp - log.scan_stamp[0] >= 30.0:
             pose, _ = slam.poses()["r1"]
-            error = reacquire.Correction(math.radians(25.0), np.array([0.4, -0.3]), pose[:2], 0.0, 0)
+            error = reacquire.Correction(math.radians(turn_deg), np.array([0.4, -0.3]), pose[:2], 0.0, 0)
             column = slam.robots["r1"].index
             slam.pose[:, column] = error.apply(slam.pose[:, column])
             slam.robots["r1"].drift = drift
@@ -300,17 +301,20 @@ def test_a_held_window_moves_with_the_robots_estimate_but_not_with_its_odometry(
     assert np.allclose(window.robots[0][1], np.r_[sensor.inverse(after, z[:1])[0], 7.0, 8.0])
     restored = reacquire.BlindWindow(robots=[])
     del restored.__dict__["reckoned"], restored.__dict__["odometry"]  # a window pickled before it kept its pose
+    del restored.__dict__["contradicted"]  # ... or why it was held
     restored.__setstate__(dict(restored.__dict__))
     assert restored.reckoned is None and np.array_equal(restored.odometry, np.zeros(3))
+    assert restored.contradicted is False
 
 
-def robots_seen_run(on: bool) -> tuple[float, float, FastSlam]:
-    """Three robots that see each other map the arena for 30 s; then r1's estimate is thrown 25° and 0.5 m off with a
-    drift that says all is well (a wrong correction). (r1's final position error, heading error, the filter)."""
+def robots_seen_run(on: bool, turn_deg: float = 25.0, **settings) -> tuple[float, float, FastSlam]:
+    """Three robots that see each other map the arena for 30 s; then r1's estimate is thrown ``turn_deg`` and 0.5 m
+    off with a drift that says all is well (a wrong correction). (r1's final position error, heading error, the
+    filter)."""
     data = simulate("arena", robots=3, seed=2, duration=60.0)
-    slam = FastSlam(FastSlamConfig(particles=30, association="shared", seed=2, reacquire_by_robots=on),
+    slam = FastSlam(FastSlamConfig(particles=30, association="shared", seed=2, reacquire_by_robots=on, **settings),
                     [robot.info for robot in data.robots.values()])
-    return (*thrown_off_run(data, slam, None), slam)
+    return (*thrown_off_run(data, slam, None, turn_deg), slam)
 
 
 def test_a_robot_sure_of_a_wrong_pose_is_put_back_when_the_robots_it_sees_contradict_it():
@@ -324,6 +328,74 @@ def test_a_robot_sure_of_a_wrong_pose_is_put_back_when_the_robots_it_sees_contra
     assert error < 0.2 and heading < math.radians(4.0)
     plain_error, plain_heading, plain = robots_seen_run(False)
     assert plain.counts["reacquire_started"] == 0 and plain_error > 0.5 and plain_heading > math.radians(8.0)
+
+
+def test_a_robot_half_a_turn_off_is_put_back_by_the_robots_it_sees():
+    """160° is beyond any search of the landmarks (``reacquire_max_turn``). With ``reacquire_robots_veto`` (off by
+    default in FastSLAM, on in D-SLAM) the corrections within it that the landmarks offer are refused while they
+    leave most of its robot detections off their robots, until the rigid fit of those detections onto the robots
+    puts it back; without the fit it stays off."""
+    error, heading, slam = robots_seen_run(True, 160.0, reacquire_robots_veto=3)
+    assert slam.counts["reacquired_by_robots"] >= 1
+    assert error < 0.2 and heading < math.radians(4.0)
+    plain_error, plain_heading, plain = robots_seen_run(True, 160.0, reacquire_robots_veto=3,
+                                                        reacquire_robots_fit_min=10**6)
+    assert plain.counts["reacquired_by_robots"] == 0 and plain_error > 1.0 and plain_heading > math.radians(45.0)
+
+
+def test_the_robots_fit_takes_any_turn_and_refuses_what_the_pairs_cannot_fix():
+    """Detections of robots seen from a pose 150° and 1 m off: the least-squares fit gives the correction back. Too
+    few pairs, pairs bunched in one spot (the turn is free) or a pair the fit leaves far from its robot: no fit.
+    :func:`reacquire.beyond_caps` takes it only for a window the robots contradicted, beyond the search's caps,
+    and when the pose as it is leaves most pairs off their robots."""
+    rng = np.random.default_rng(4)
+    robots_at = rng.uniform(-3.0, 3.0, (8, 2))
+    centre = np.array([0.5, -0.5])
+    truth = reacquire.Correction(math.radians(150.0), np.array([1.0, 0.3]), centre, 0.0, 0)
+    undo = math.radians(-150.0)
+    seen = reacquire.turned(robots_at - truth.shift, centre, undo) + rng.normal(0.0, 0.03, (8, 2))
+    pairs = np.column_stack([seen, robots_at])
+    fit = reacquire.robots_fit(pairs, centre, 6, 0.5, 0.4)
+    assert fit is not None and abs(wrap_angle(fit.turn - truth.turn)) < math.radians(2.0)
+    assert np.allclose(fit.apply(np.r_[seen[0], 0.0])[:2], robots_at[0], atol=0.1)
+    assert reacquire.robots_fit(pairs[:5], centre, 6, 0.5, 0.4) is None
+    bunched = np.column_stack([seen[:1].repeat(8, 0) + rng.normal(0.0, 0.05, (8, 2)), robots_at[:1].repeat(8, 0)])
+    assert reacquire.robots_fit(bunched, centre, 6, 0.5, 0.4) is None
+    wrong = pairs.copy()
+    wrong[0, 2:] += [2.0, 0.0]
+    assert reacquire.robots_fit(wrong, centre, 6, 0.5, 0.4) is None
+    window = reacquire.BlindWindow(contradicted=True, robots=[(0.0, pair) for pair in pairs])
+    assert reacquire.beyond_caps(window, centre, math.radians(45.0), 2.0, 6, 0.5, 0.4) is not None
+    assert reacquire.beyond_caps(window, centre, math.pi, 5.0, 6, 0.5, 0.4) is None  # within the caps
+    held_for_drift = reacquire.BlindWindow(robots=window.robots)
+    assert reacquire.beyond_caps(held_for_drift, centre, math.radians(45.0), 2.0, 6, 0.5, 0.4) is None
+
+    def about_centre(near: int, far: int) -> reacquire.BlindWindow:
+        """Robots seen from a pose turned 150° about its own position: those seen near it are explained either way."""
+        at = np.vstack([centre + rng.normal(0.0, 0.04, (near, 2)), rng.uniform(-3.0, 3.0, (far, 2))])
+        seen_from = reacquire.turned(at, centre, undo)
+        return reacquire.BlindWindow(contradicted=True, robots=[(0.0, np.r_[p, q]) for p, q in zip(seen_from, at)])
+
+    assert reacquire.beyond_caps(about_centre(3, 6), centre, math.radians(45.0), 2.0, 6, 0.5, 0.25) is not None
+    assert reacquire.beyond_caps(about_centre(5, 4), centre, math.radians(45.0), 2.0, 6, 0.5, 0.25) is None
+
+
+def test_a_correction_that_leaves_the_robots_off_is_refused():
+    """Landmarks alone take the shift of 1.2 m; four robot detections that the shift leaves off their robots veto
+    it once the window holds ``robots_veto`` of them."""
+    landmarks = np.array([[3.0, 0.0], [3.0, 1.2], [6.0, 0.5]])
+    rng = np.random.default_rng(2)
+    points = np.repeat(landmarks + [0.0, 1.2], 4, axis=0) + rng.normal(0.0, 0.02, (12, 2))
+    centre = np.zeros(2)
+    robot_at = np.array([[1.0, -1.0], [1.2, -0.8], [1.4, -0.6], [1.6, -0.4]])
+    pairs = np.column_stack([robot_at + rng.normal(0.0, 0.05, (4, 2)), robot_at])  # the robots say: no shift
+    rule = CONFIG.reacquire_rule
+    assert reacquire.search(points, landmarks, centre, 0.0, 2.0, dataclasses.replace(rule, robots_veto=0),
+                            robot_pairs=pairs) is not None
+    assert reacquire.search(points, landmarks, centre, 0.0, 2.0, dataclasses.replace(rule, robots_veto=3),
+                            robot_pairs=pairs) is None
+    assert reacquire.search(points, landmarks, centre, 0.0, 2.0, dataclasses.replace(rule, robots_veto=5),
+                            robot_pairs=pairs) is not None
 
 
 def test_drift_grows_while_blind_and_levels_off_while_matching():
