@@ -55,7 +55,7 @@ import scipy.linalg
 
 from central.fastslam import kernels
 from robots.gaussian import chi2_quantile, ekf_update
-from robots.models import se2_compose, se2_inverse, wrap_angle
+from robots.models import fit_se2, se2_compose, se2_inverse, wrap_angle
 
 if TYPE_CHECKING:
     from central.fastslam.config import FastSlamConfig
@@ -310,14 +310,11 @@ def robots_fit(pairs: np.ndarray | None, centre: np.ndarray, min_pairs: int, min
     if pairs is None or pairs.shape[0] < min_pairs:
         return None
     seen, robots = pairs[:, :2], pairs[:, 2:]
-    seen_mean, robots_mean = seen.mean(0), robots.mean(0)
-    a, b = seen - seen_mean, robots - robots_mean
-    if math.sqrt(float(np.mean(np.sum(a * a, 1)))) < min_spread:
+    if math.sqrt(float(np.mean(np.sum((seen - seen.mean(0)) ** 2, 1)))) < min_spread:
         return None
-    cross = float(np.sum(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]))
-    turn = math.atan2(cross, float(np.sum(a * b)))
+    turn = float(fit_se2(seen, robots)[2])
     moved = turned(seen, centre, turn)
-    shift = robots_mean - moved.mean(0)
+    shift = robots.mean(0) - moved.mean(0)
     if np.max(np.hypot(*(moved + shift - robots).T)) > max_residual:
         return None
     return Correction(turn, shift, np.asarray(centre, float).copy(), float(pairs.shape[0]), 0)
