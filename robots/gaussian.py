@@ -148,16 +148,38 @@ def turn_slip(var_per_rad: float, turn: float) -> float:
     return var_per_rad * abs(math.remainder(float(turn), 2.0 * math.pi))
 
 
+def block_diagonal(blocks: np.ndarray) -> np.ndarray:
+    """The block-diagonal matrix of ``blocks`` ``(n, a, b)``: ``(n·a, n·b)``, as ``scipy.linalg.block_diag(*blocks)``
+    builds it, without its per-call checks (they cost more than the update itself, once per scan)."""
+    blocks = np.asarray(blocks, float)
+    n, a, b = blocks.shape
+    out = np.zeros((n * a, n * b))
+    index = np.arange(n)
+    out.reshape(n, a, n, b)[index, :, index, :] = blocks
+    return out
+
+
 def ekf_update(x: np.ndarray, P: np.ndarray, nu: np.ndarray, h: np.ndarray, r: np.ndarray,
                angle_index: int = 2) -> tuple[np.ndarray, np.ndarray]:
     """One batch EKF update in Joseph form: (x, P) after innovations ``nu`` with Jacobian ``h`` and noise ``r``."""
-    ph = P @ h.T
-    gain = np.linalg.solve(h @ ph + r, ph.T).T
+    gain, P = _joseph(P, h, r)
     x = x + gain @ nu
     x[angle_index] = wrap_angle(x[angle_index])
-    i_kh = np.eye(x.shape[0]) - gain @ h
+    return x, P
+
+
+def ekf_covariance_update(P: np.ndarray, h: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """The covariance of :func:`ekf_update` alone (the same arithmetic), for a covariance tracked without a mean."""
+    return _joseph(P, h, r)[1]
+
+
+def _joseph(P: np.ndarray, h: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(Kalman gain, covariance after the update in Joseph form, symmetrised)."""
+    ph = P @ h.T
+    gain = np.linalg.solve(h @ ph + r, ph.T).T
+    i_kh = np.eye(P.shape[0]) - gain @ h
     P = i_kh @ P @ i_kh.T + gain @ r @ gain.T
-    return x, 0.5 * (P + P.T)
+    return gain, 0.5 * (P + P.T)
 
 
 def ekf_augment(x: np.ndarray, P: np.ndarray, sensor, z: np.ndarray, noise: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -51,10 +51,9 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import numpy as np
-import scipy.linalg
 
 from central.fastslam import kernels
-from robots.gaussian import chi2_quantile, ekf_update
+from robots.gaussian import block_diagonal, chi2_quantile, ekf_covariance_update
 from robots.models import fit_se2, se2_compose, se2_inverse, wrap_angle
 
 if TYPE_CHECKING:
@@ -211,7 +210,7 @@ def condition(drift: np.ndarray, h_x: np.ndarray, noise: np.ndarray) -> np.ndarr
     every match (MR.CLAM: a robot 49° off matched one landmark and went on for a minute as if its heading were
     known)."""
     h = h_x.reshape(-1, 3)
-    return ekf_update(np.zeros(3), drift, np.zeros(h.shape[0]), h, scipy.linalg.block_diag(*noise))[1]
+    return ekf_covariance_update(drift, h, block_diagonal(noise))
 
 
 def lost(config: FastSlamConfig, drift: np.ndarray | None) -> bool:

@@ -51,7 +51,7 @@ from typing import Callable
 import numpy as np
 import scipy.linalg
 
-from robots.gaussian import chi2_quantile, inv2, turn_slip, valid_placement
+from robots.gaussian import block_diagonal, chi2_quantile, inv2, turn_slip, valid_placement
 from robots.models import in_field_of_view, robot_models, wrap_angle
 from central.fastslam import reacquire
 from schemas.association import AMBIGUOUS, NEW, AssociationReply, AssociationRequest
@@ -670,7 +670,7 @@ class DSlam:
         positions = robot.sensor.inverse(robot.pose, obs[rows])
         g_pose, g_obs = robot.sensor.inverse_jacobians(robot.pose, obs[rows])
         g = g_pose.reshape(-1, 3)
-        cov = g @ robot.cov @ g.T + scipy.linalg.block_diag(*(g_obs @ noise @ np.swapaxes(g_obs, 1, 2)))
+        cov = g @ robot.cov @ g.T + block_diagonal(g_obs @ noise @ np.swapaxes(g_obs, 1, 2))
         old = refs[old_rows]
         added = self.map.update_absolute(old, positions[: old_rows.size], positions[old_rows.size:], cov)
         self._register([int(refs[k]) for k in confirmed], added)
@@ -765,7 +765,7 @@ class DSlam:
             raise ValueError("landmark keys repeat or are already in the map")
         for start in range(0, keys.size, chunk):
             part = slice(start, start + chunk)
-            index = self.map.update_absolute([], np.zeros((0, 2)), means[part], scipy.linalg.block_diag(*covs[part]))
+            index = self.map.update_absolute([], np.zeros((0, 2)), means[part], block_diagonal(covs[part]))
             self._register(keys[part].tolist(), index)
         if keys.size:
             self.map.recover()

@@ -142,3 +142,29 @@ def test_se2_inverse_and_between():
 def test_field_of_view_mask():
     obs = np.array([[1.0, 0.0], [1.0, 0.61], [7.0, 0.0], [0.1, 0.0]])
     assert in_field_of_view(obs, max_range=6.0, fov=1.2, min_range=0.3).tolist() == [True, False, False, False]
+
+
+def test_block_diagonal_is_scipys_block_diag():
+    import scipy.linalg
+
+    from robots.gaussian import block_diagonal
+
+    rng = np.random.default_rng(3)
+    for shape in [(1, 2, 2), (4, 2, 2), (3, 2, 3), (5, 3, 3)]:
+        blocks = rng.normal(size=shape)
+        assert np.array_equal(block_diagonal(blocks), scipy.linalg.block_diag(*blocks))
+
+
+def test_covariance_update_is_the_ekf_updates_covariance():
+    from robots.gaussian import ekf_covariance_update, ekf_update
+
+    rng = np.random.default_rng(4)
+    a = rng.normal(size=(3, 3))
+    prior = a @ a.T + 0.1 * np.eye(3)
+    h = rng.normal(size=(4, 3))
+    noise = np.diag([0.1, 0.01, 0.2, 0.02])
+    x, full = ekf_update(np.zeros(3), prior, rng.normal(size=4), h, noise)
+    alone = ekf_covariance_update(prior, h, noise)
+    assert np.array_equal(alone, full)
+    # the information form says the same: P⁺⁻¹ = P⁻¹ + Hᵀ R⁻¹ H
+    assert np.allclose(np.linalg.inv(alone), np.linalg.inv(prior) + h.T @ np.linalg.inv(noise) @ h)
