@@ -230,3 +230,33 @@ def test_the_run_summary_judges_a_map_in_the_anchors_frame_after_the_fleets_tran
     buffer = io.StringIO()
     print_results(output, Console(file=buffer, width=200))
     assert "map RMSE - m; landmarks estimated 9, matched 0" in buffer.getvalue()
+
+
+@pytest.mark.parametrize("signatures", [True, False])
+def test_mcl_starts_on_three_landmarks_with_ids_and_waits_for_six_without(signatures):
+    from schemas.contract import MapView
+    from services.mcl.config import MclConfig
+    from services.placement import FleetPlacer
+
+    class Mapper:  # an estimator whose map grows by one landmark each time it is read
+        robot_count = 1
+        landmarks = 0
+
+        def landmark_map(self):
+            means = np.column_stack([np.arange(self.landmarks, dtype=float), np.zeros(self.landmarks)])
+            return MapView(means, np.tile(0.01 * np.eye(2), (self.landmarks, 1, 1)), np.arange(self.landmarks))
+
+        def is_waiting(self, robot_id):
+            return True
+
+    data = simulate("arena", robots=1, seed=0, duration=1.0)
+    info = data.robots["r1"].info
+    mapper = Mapper()
+    placer = FleetPlacer(mapper, [info], MclConfig(seed=0), use_signatures=signatures)
+    ready = []
+    for count in range(1, 9):
+        mapper.landmarks = count
+        placer._refresh_map(stamp=10.0 * count)
+        ready.append(placer.map_ready)
+    first = ready.index(True) + 1
+    assert first == (3 if signatures else 6) and all(ready[first - 1:])
