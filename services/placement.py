@@ -24,8 +24,9 @@
   with starts the localization again from where the meeting puts it, and a pose MCL calls localized that
   contradicts one of its meetings is refused (:mod:`services.mcl.meeting`). Without landmark ids a map can be nearly symmetric (MR.CLAM under a half
   turn), and early in a run the anchor's map too small for MCL; the robots' own ids are neither;
-- MCL starts on a robot once the map holds ``min_landmarks`` (3) landmarks with ids, ``min_landmarks_unsigned``
-  (6) without: on three to five of MR.CLAM's landmark clusters MCL placed robots 46–155° off.
+- MCL starts on a robot once the map holds ``MclConfig.map_min_landmarks`` (3) landmarks with ids,
+  ``map_min_landmarks_unsigned`` (6) without, as the MCL service does live: on three to five of MR.CLAM's
+  landmark clusters MCL placed robots 46–155° off (Dataset 1 seeds 1, 4, 8; Dataset 6 seed 25).
 
 Each robot's :class:`Placement` says when and how it was placed, or why not.
 """
@@ -157,16 +158,12 @@ class FleetPlacer:
     """Hold back the events of robots the estimator has not placed, anchor the first, localize the others."""
 
     def __init__(self, estimator, infos: list[RobotInfo], config: MclConfig, use_signatures: bool,
-                 map_refresh_s: float = 5.0, min_landmarks: int = 3, min_landmarks_unsigned: int = 6,
-                 meetings: bool = True):
+                 map_refresh_s: float = 5.0, meetings: bool = True):
         self.estimator = estimator
         self.use_signatures = use_signatures
         self.meetings = meetings
         self.map_refresh_s = map_refresh_s
-        # without ids a few landmarks fit more than one pose: MR.CLAM's six clusters nearly repeat under a half turn,
-        # and on a map of three to five of them MCL placed robots 46-155 degrees off (Dataset 1 seeds 1, 4, 8 and
-        # Dataset 6 seed 25); with ids three landmarks tell where the robot is
-        self.min_landmarks = min_landmarks if use_signatures else min_landmarks_unsigned
+        self.min_landmarks = config.map_min_landmarks if use_signatures else config.map_min_landmarks_unsigned
         self.infos = {info.robot_id: info for info in infos}
         self.localizers = MclFleet(config, use_start_pose=False)  # a robot joins it at its first scan with a map
         self.map_stamp = -np.inf

@@ -79,6 +79,11 @@ class MclConfig(CoreConfig):
         "it contradicts starts global localization again. Resampling can collapse the particles on one arc of the "
         "circle a single landmark allows, which passes the tests above (MR.CLAM: a robot that sees one landmark for "
         "30 s); 0: off")
+    map_min_landmarks: int = Field(3, ge=1, description="global localization starts once the map holds this many "
+                                   "landmarks with ids (signatures)")
+    map_min_landmarks_unsigned: int = Field(
+        6, ge=1, description="... and this many without ids: a few landmarks without ids fit more than one pose "
+        "(MR.CLAM's clusters nearly repeat under a half turn; on three to five of them MCL placed robots 46-155 deg off)")
     kidnap_quality: float = Field(0.05, gt=0, lt=1, description="the expected match quality below which the robot may be lost")
     kidnap_scans: int = Field(3, ge=1, description="lost after this many scans in a row below kidnap_quality")
     kidnap_recovery: bool = Field(True, description="when lost, start global localization again from the scan")

@@ -381,3 +381,22 @@ def test_a_hypothesis_collapsed_on_one_landmark_circle_is_not_localized_and_a_co
             assert mcl.localized
             assert np.hypot(*(mcl.best()[0][:2] - truth[:2])) < 0.2
     assert localized == {0.0: True, 0.3: False}
+
+
+@pytest.mark.parametrize("source, signed, least", [("dslam", False, 6), ("central", True, 3), ("central", False, 6)])
+def test_the_service_localizes_against_a_map_only_once_it_can_tell_poses_apart(source, signed, least):
+    """Live as offline (``services.placement``): 3 landmarks with ids, 6 without (D-SLAM numbers its own)."""
+    from types import SimpleNamespace
+
+    from schemas.config import MclSettings
+    from services.mcl.service import MclService
+
+    service = MclService(MclSettings(source=source, map_period_s=0.0))
+    taken = []
+    for count in range(1, 9):
+        landmarks = np.column_stack([np.arange(count, dtype=float), np.zeros(count)])
+        ids = list(range(count)) if signed else None
+        service._on_map(SimpleNamespace(landmarks=landmarks, landmark_ids=ids, robots=[]))
+        taken.append(service.fleet.landmarks is not None and service.fleet.landmarks.shape[0] == count)
+    assert taken == [count >= least for count in range(1, 9)]
+    assert service.extra["maps_too_small"] == least - 1
