@@ -30,6 +30,8 @@ Steps (FastSLAM, 100 particles, scans' ids ignored):
   many pairings does without (``unique_pairs``);
 - ``shared-jcbb-turn-slip``: ``shared-jcbb`` with the heading variance per radian turned the robots announce
   (``turn_slip``: MR.CLAM's 0.015; the other data sets announce none);
+- ``shared-jcbb-motion-1``, ``shared-jcbb-motion-0.25``: ``shared-jcbb`` with the robots' odometry covariance scaled
+  by 1 or 0.25 (``motion_noise_scale``) in the particles' draws and the drift;
 - ``shared-jcbb-turn-gain``: ``shared-jcbb`` with a turn gain per particle and robot (``turn_gain_std=0.04``,
   ``turn_gain_walk=0.002``): particles carry hypotheses of how much each robot's odometry over-counts its turns.
 
@@ -97,6 +99,8 @@ STEPS: dict[str, tuple[str, str, dict]] = {
     "shared-jcbb-unique": ("fastslam", "unknown", {"unique_pairs": True}),
     "shared-jcbb-turn-slip": ("fastslam", "unknown", {"turn_slip": True}),
     "shared-jcbb-turn-gain": ("fastslam", "unknown", {"turn_gain_std": 0.04, "turn_gain_walk": 0.002}),
+    "shared-jcbb-motion-1": ("fastslam", "unknown", {"motion_noise_scale": 1.0}),
+    "shared-jcbb-motion-0.25": ("fastslam", "unknown", {"motion_noise_scale": 0.25}),
     "dslam-unique": ("dslam", "unknown", {"unique_pairs": True}),
 }
 DETERMINISTIC = {"dslam"}  # estimators without random draws: one seed is every seed

@@ -38,7 +38,7 @@ def take_control(slam: FastSlam, robot: RobotState, event: OdomEvent) -> bool:
         if not valid_cov2(cov):
             slam.rejected["bad_odometry"] += 1
             return False
-        robot.checked_cov, robot.scaled_cov = event.control_cov, cov * slam.config.motion_noise_scale
+        robot.checked_cov, robot.scaled_cov = event.control_cov, cov * slam.config.motion_scale
     if stamp < robot.last_odom_stamp:
         slam.rejected["time_backwards"] += 1
         return False

@@ -621,6 +621,20 @@ def test_robot_detection_position_sd_defaults_to_a_decimetre_without_ids_and_non
     assert FastSlamConfig(association="known", robot_detection_position_sd=0.3).robot_detection_relative_sd == 0.3
 
 
+def test_motion_noise_scale_defaults_to_a_quarter_without_ids_and_one_with_them():
+    """None resolves by the association (Victoria Park without ids: the cloud spreads by the announced noise); a
+    value set wins, and it scales the covariance the particles draw from."""
+    assert FastSlamConfig(association="shared").motion_scale == 0.25
+    assert FastSlamConfig(association="known").motion_scale == 1.0
+    assert FastSlamConfig(association="shared", motion_noise_scale=2.0).motion_scale == 2.0
+    data = simulate("arena", robots=1, seed=0, duration=2.0)
+    event = next(e for e in data.events() if isinstance(e, OdomEvent))
+    for association, scale in (("shared", 0.25), ("known", 1.0)):
+        slam = FastSlam(FastSlamConfig(particles=5, association=association, seed=0), [data.robots["r1"].info])
+        slam.on_odometry(event)
+        np.testing.assert_allclose(slam.robots["r1"].scaled_cov, scale * np.asarray(event.control_cov))
+
+
 def test_turn_gains_learn_how_much_a_robot_over_counts_its_turns():
     """Odometry that reports 8 % more turn than the robot made: with turn gains the particles that turn by about
     1/1.08 of it survive, and the heading stays closer to the truth than without them; with them off every gain

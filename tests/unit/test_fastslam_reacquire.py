@@ -407,7 +407,8 @@ def test_drift_grows_while_blind_and_levels_off_while_matching():
     info = data.robots["r1"].info
     drifts = {}
     for blind, update in ((True, True), (False, True), (False, False)):
-        config = FastSlamConfig(particles=10, association="shared", seed=0, confirm_hits=1, reacquire_drift_update=update)
+        config = FastSlamConfig(particles=10, association="shared", seed=0, confirm_hits=1, reacquire_drift_update=update,
+                                motion_noise_scale=1.0)
         slam = FastSlam(config, [info])
         robot, seen = slam.robots["r1"], []
         for event in data.events():
