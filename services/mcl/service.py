@@ -214,11 +214,12 @@ class MclService(ServiceShell):
         # ids are signatures only where they are the scans' own landmark ids: the central map's (it carries ids with
         # known association) and the world truth's; D-SLAM numbers the features it discovers itself
         ids = None if self.source == "dslam" else getattr(message, "landmark_ids", None)
-        least = self.settings.map_min_landmarks if ids is not None and len(ids) else self.settings.map_min_landmarks_unsigned
+        signed = ids is not None and len(ids) > 0
+        least = self.settings.map_min_landmarks if signed else self.settings.map_min_landmarks_unsigned
         if self.fleet.landmarks is None and landmarks.shape[0] < least:  # too few to tell poses apart: robots wait
             if not self.extra.get("maps_too_small"):
                 log.info("the %s map holds %d landmarks %s ids: robots wait for %d", self.source, landmarks.shape[0],
-                         "with" if ids is not None and len(ids) else "without", least)
+                         "with" if signed else "without", least)
             self.count_extra("maps_too_small")
             return
         self.map_applied = now

@@ -163,7 +163,7 @@ def test_covariance_update_is_the_ekf_updates_covariance():
     prior = a @ a.T + 0.1 * np.eye(3)
     h = rng.normal(size=(4, 3))
     noise = np.diag([0.1, 0.01, 0.2, 0.02])
-    x, full = ekf_update(np.zeros(3), prior, rng.normal(size=4), h, noise)
+    _, full = ekf_update(np.zeros(3), prior, rng.normal(size=4), h, noise)
     alone = ekf_covariance_update(prior, h, noise)
     assert np.array_equal(alone, full)
     # the information form says the same: P⁺⁻¹ = P⁻¹ + Hᵀ R⁻¹ H
