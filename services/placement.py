@@ -163,7 +163,7 @@ class FleetPlacer:
         self.use_signatures = use_signatures
         self.meetings = meetings
         self.map_refresh_s = map_refresh_s
-        self.min_landmarks = config.map_min_landmarks if use_signatures else config.map_min_landmarks_unsigned
+        self.min_landmarks = config.map_min(use_signatures)
         self.infos = {info.robot_id: info for info in infos}
         self.localizers = MclFleet(config, use_start_pose=False)  # a robot joins it at its first scan with a map
         self.map_stamp = -np.inf

@@ -13,6 +13,17 @@ from schemas.contract import CoreConfig
 Probability = Field(gt=0.0, lt=1.0)
 
 
+# the robots' fit of a held robot (central.fastslam.reacquire.beyond_caps), the same settings in FastSLAM and D-SLAM
+ROBOTS_FIT_MIN = Field(
+    8, ge=3, description="... a held robot whose detections of other robots, this many at least, are brought onto "
+    "those robots by one rigid correction beyond the search's caps (any turn) takes it")
+ROBOTS_FIT_SPREAD_M = Field(
+    1.0, gt=0.0, description="... when the detections are spread this far (RMS, m): the turn is then fixed")
+ROBOTS_FIT_RESIDUAL_M = Field(
+    0.25, gt=0.0, description="... and each ends this near its robot (m), while the pose as it is leaves most "
+    "farther (a robot held because the robots contradicted it)")
+
+
 class FastSlamConfig(CoreConfig):
     """Every knob of the centralised multi-robot FastSLAM filter, with the reason for its default."""
 
@@ -123,14 +134,9 @@ class FastSlamConfig(CoreConfig):
     reacquire_robots_veto: int = Field(
         0, ge=0, description="... a held robot with this many detections of other robots in its window takes no "
         "correction that brings fewer than half of them near their robots (0: off)")
-    reacquire_robots_fit_min: int = Field(
-        8, ge=3, description="... a held robot whose detections of other robots, this many at least, are brought onto "
-        "those robots by one rigid correction beyond the search's caps (any turn) takes it")
-    reacquire_robots_fit_spread_m: float = Field(
-        1.0, gt=0.0, description="... when the detections are spread this far (RMS, m): the turn is then fixed")
-    reacquire_robots_fit_residual_m: float = Field(
-        0.25, gt=0.0, description="... and each ends this near its robot (m), while the pose as it is leaves most "
-        "farther (a robot held because the robots contradicted it)")
+    reacquire_robots_fit_min: int = ROBOTS_FIT_MIN
+    reacquire_robots_fit_spread_m: float = ROBOTS_FIT_SPREAD_M
+    reacquire_robots_fit_residual_m: float = ROBOTS_FIT_RESIDUAL_M
     reacquire_drift_update: bool = Field(
         True, description="... a match conditions the drift on the matched detections (a Kalman update: one landmark "
         "leaves the turn about it free) instead of starting it from zero (False, the default before). MR.CLAM without "

@@ -7,6 +7,7 @@ from typing import Literal
 
 from pydantic import Field, NonNegativeFloat
 
+from central.fastslam.config import ROBOTS_FIT_MIN, ROBOTS_FIT_RESIDUAL_M, ROBOTS_FIT_SPREAD_M
 from schemas.contract import CoreConfig
 
 
@@ -133,14 +134,9 @@ class DslamConfig(CoreConfig):
     reacquire_robots_veto: int = Field(
         3, ge=0, description="... a held robot with this many detections of other robots in its window takes no "
         "correction that brings fewer than half of them near their robots (0: off)")
-    reacquire_robots_fit_min: int = Field(
-        8, ge=3, description="... a held robot whose detections of other robots, this many at least, are brought onto "
-        "those robots by one rigid correction beyond the search's caps (any turn) takes it (as FastSLAM's)")
-    reacquire_robots_fit_spread_m: float = Field(
-        1.0, gt=0.0, description="... when the detections are spread this far (RMS, m): the turn is then fixed")
-    reacquire_robots_fit_residual_m: float = Field(
-        0.25, gt=0.0, description="... and each ends this near its robot (m), while the pose as it is leaves most "
-        "farther (a robot held because the robots contradicted it)")
+    reacquire_robots_fit_min: int = ROBOTS_FIT_MIN  # FastSLAM's settings (central.fastslam.config)
+    reacquire_robots_fit_spread_m: float = ROBOTS_FIT_SPREAD_M
+    reacquire_robots_fit_residual_m: float = ROBOTS_FIT_RESIDUAL_M
     robot_detection_noise_scale: float = Field(
         4.0, gt=0.0, description="... a robot detection's noise: the scan's covariance times this (a robot is a wide "
         "target; FastSLAM's robot_detection_noise_scale)")

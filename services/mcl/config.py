@@ -96,3 +96,8 @@ class MclConfig(CoreConfig):
     compiled: bool = Field(True, description="scan likelihood and cluster merging by the numba kernels (False: the numpy "
                            "and scipy references)")
     chunk_particles: int = Field(400, ge=1, description="particles weighed at a time (keeps the work in the processor's cache)")
+
+    def map_min(self, signed: bool) -> int:
+        """The landmarks a map needs before global localization starts on it: ``map_min_landmarks`` when its ids are
+        the scans' (signatures), ``map_min_landmarks_unsigned`` otherwise."""
+        return self.map_min_landmarks if signed else self.map_min_landmarks_unsigned

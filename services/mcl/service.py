@@ -215,7 +215,7 @@ class MclService(ServiceShell):
         # known association) and the world truth's; D-SLAM numbers the features it discovers itself
         ids = None if self.source == "dslam" else getattr(message, "landmark_ids", None)
         signed = ids is not None and len(ids) > 0
-        least = self.settings.map_min_landmarks if signed else self.settings.map_min_landmarks_unsigned
+        least = self.settings.map_min(signed)
         if self.fleet.landmarks is None and landmarks.shape[0] < least:  # too few to tell poses apart: robots wait
             if not self.extra.get("maps_too_small"):
                 log.info("the %s map holds %d landmarks %s ids: robots wait for %d", self.source, landmarks.shape[0],
