@@ -144,15 +144,23 @@ def _private_particle(table, p, blocks, refs, pool_mean, pool_cov, free_blocks, 
             continue
         free_count[0] -= 1
         fresh = free_blocks[free_count[0]]
-        if phys < 0:
-            pool_mean[fresh] = 0.0
-            pool_cov[fresh] = 0.0
-        else:
-            pool_mean[fresh] = pool_mean[phys]
-            pool_cov[fresh] = pool_cov[phys]
+        _copy_block(pool_mean, pool_cov, phys, fresh)
+        if phys >= 0:
             refs[phys] -= 1
         refs[fresh] = 1
         table[p, b] = fresh
+
+
+@njit
+def _copy_block(pool_mean, pool_cov, source, target):
+    """Block ``target`` of the pools becomes a copy of block ``source`` (zeros when ``source`` is −1), element by
+    element: numba's slice assignment of a (block, 2, 2) sub-array took a fifth of the FastSLAM 2.0 step with 1000
+    particles on Victoria Park."""
+    for k in range(pool_mean.shape[1]):
+        for i in range(2):
+            pool_mean[target, k, i] = pool_mean[source, k, i] if source >= 0 else 0.0
+            for j in range(2):
+                pool_cov[target, k, i, j] = pool_cov[source, k, i, j] if source >= 0 else 0.0
 
 
 @njit
@@ -212,6 +220,28 @@ def weighted_pose_kernel(pose, w, delta, delta_cov, moved):
     cov[1, 0], cov[2, 0], cov[2, 1] = cov[0, 1], cov[0, 2], cov[1, 2]
     cov += extra
     return mean, 0.5 * (cov + cov.T)
+
+
+@njit
+def pose_belief_kernel(pose, w, delta, delta_cov, moved):
+    """(mean, covariance) of poses ``(P, 3)`` under weights ``w``; with ``moved``, the mean then composed with
+    ``delta`` and the covariance plus J Σ_Δ Jᵀ, J the composition's Jacobian in the increment at the mean's heading
+    (the belief :func:`central.fastslam.shared.pose_belief` associates from: the mean moved, not every particle)."""
+    mean, cov = weighted_pose_kernel(pose, w, delta, delta_cov, False)
+    if not moved:
+        return mean, cov
+    c, s = math.cos(mean[2]), math.sin(mean[2])
+    jac = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    out = np.array([mean[0] + c * delta[0] - s * delta[1], mean[1] + s * delta[0] + c * delta[1],
+                    wrap_angle(mean[2] + delta[2])])
+    for i in range(3):
+        for j in range(3):
+            total = 0.0
+            for k in range(3):
+                for l in range(3):
+                    total += jac[i, k] * delta_cov[k, l] * jac[j, l]
+            cov[i, j] += total
+    return out, cov
 
 
 def weighted_pose(pose: np.ndarray, w: np.ndarray, pending: tuple[np.ndarray, np.ndarray] | None
@@ -708,6 +738,117 @@ def vote(cells: np.ndarray, weights: np.ndarray, landmarks: np.ndarray, centre: 
             for score, t, shift, row in zip(scores, turn_index, shifts, reached)]
 
 
+@njit
+def drift_accumulate_kernel(drift, heading, delta, cov, turn_slip_var):
+    """:func:`central.fastslam.reacquire.accumulate` on a (3, 3) ``drift``: J D Jᵀ + R Σ Rᵀ, J the composition's
+    Jacobian in the pose at ``heading``, R the rotation of ``cov`` (robot frame) into the world, plus
+    ``turn_slip_var`` per radian turned."""
+    c, s = math.cos(heading), math.sin(heading)
+    j02, j12 = -(s * delta[0] + c * delta[1]), c * delta[0] - s * delta[1]
+    rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    jac = np.array([[1.0, 0.0, j02], [0.0, 1.0, j12], [0.0, 0.0, 1.0]])
+    out = np.empty((3, 3))
+    for i in range(3):
+        for j in range(3):
+            total = 0.0
+            for k in range(3):
+                for l in range(3):
+                    total += jac[i, k] * drift[k, l] * jac[j, l] + rot[i, k] * cov[k, l] * rot[j, l]
+            out[i, j] = total
+    out[2, 2] += turn_slip_var * abs(delta[2])
+    return out
+
+
+@njit
+def drift_condition_kernel(drift, h_x, noise):
+    """:func:`central.fastslam.reacquire.condition`: the Kalman update of the (3, 3) covariance ``drift`` by the
+    detections' pose Jacobians ``h_x`` ``(n, 2, 3)`` with noise ``(n, 2, 2)``, one detection after the other (with
+    block-diagonal noise the batch update exactly), each in Joseph form P ← (I − K H) P (I − K H)ᵀ + K N Kᵀ, then
+    symmetrised."""
+    p = drift.copy()
+    ph = np.empty((3, 2))
+    gain = np.empty((3, 2))
+    i_kh = np.empty((3, 3))
+    tmp = np.empty((3, 3))
+    for n in range(h_x.shape[0]):
+        h = h_x[n]
+        for i in range(3):
+            for j in range(2):
+                ph[i, j] = p[i, 0] * h[j, 0] + p[i, 1] * h[j, 1] + p[i, 2] * h[j, 2]
+        s00 = h[0, 0] * ph[0, 0] + h[0, 1] * ph[1, 0] + h[0, 2] * ph[2, 0] + noise[n, 0, 0]
+        s01 = h[0, 0] * ph[0, 1] + h[0, 1] * ph[1, 1] + h[0, 2] * ph[2, 1] + noise[n, 0, 1]
+        s10 = h[1, 0] * ph[0, 0] + h[1, 1] * ph[1, 0] + h[1, 2] * ph[2, 0] + noise[n, 1, 0]
+        s11 = h[1, 0] * ph[0, 1] + h[1, 1] * ph[1, 1] + h[1, 2] * ph[2, 1] + noise[n, 1, 1]
+        det = s00 * s11 - s01 * s10
+        i00, i01, i10, i11 = s11 / det, -s01 / det, -s10 / det, s00 / det
+        for i in range(3):
+            gain[i, 0] = ph[i, 0] * i00 + ph[i, 1] * i10
+            gain[i, 1] = ph[i, 0] * i01 + ph[i, 1] * i11
+        for i in range(3):
+            for j in range(3):
+                i_kh[i, j] = (1.0 if i == j else 0.0) - gain[i, 0] * h[0, j] - gain[i, 1] * h[1, j]
+        for i in range(3):
+            for j in range(3):
+                tmp[i, j] = i_kh[i, 0] * p[0, j] + i_kh[i, 1] * p[1, j] + i_kh[i, 2] * p[2, j]
+        for i in range(3):
+            for j in range(3):
+                kr0 = gain[i, 0] * noise[n, 0, 0] + gain[i, 1] * noise[n, 1, 0]
+                kr1 = gain[i, 0] * noise[n, 0, 1] + gain[i, 1] * noise[n, 1, 1]
+                p[i, j] = tmp[i, 0] * i_kh[j, 0] + tmp[i, 1] * i_kh[j, 1] + tmp[i, 2] * i_kh[j, 2] \
+                    + kr0 * gain[j, 0] + kr1 * gain[j, 1]
+        for i in range(3):
+            for j in range(i + 1, 3):
+                p[i, j] = p[j, i] = 0.5 * (p[i, j] + p[j, i])
+    return p
+
+
+def drift_accumulate(drift: np.ndarray | None, heading: float, delta: np.ndarray, cov: np.ndarray,
+                     turn_slip_var: float) -> np.ndarray:
+    """:func:`central.fastslam.reacquire.accumulate` by :func:`drift_accumulate_kernel` (None: no drift yet)."""
+    drift = np.zeros((3, 3)) if drift is None else np.ascontiguousarray(drift, float)
+    return drift_accumulate_kernel(drift, float(heading), np.ascontiguousarray(delta, float),
+                                   np.ascontiguousarray(cov, float), float(turn_slip_var))
+
+
+def drift_condition(drift: np.ndarray, h_x: np.ndarray, noise: np.ndarray) -> np.ndarray:
+    """:func:`central.fastslam.reacquire.condition` by :func:`drift_condition_kernel`."""
+    return drift_condition_kernel(np.ascontiguousarray(drift, float), np.ascontiguousarray(h_x, float),
+                                  np.ascontiguousarray(noise, float))
+
+
+@njit
+def joint_blocks_kernel(gated, h_x, own, pose_cov):
+    """The inputs of JCBB over the landmarks some detection gates (``reach``, the columns of ``gated`` with any
+    pair): (reach, the blocks ``(K, K, 2, 2)`` H_a P H_bᵀ of the predicted detections' joint covariance from the
+    pose covariance ``pose_cov``, plus each landmark's own H_m Σ H_mᵀ on the diagonal blocks)."""
+    count = 0
+    reach = np.empty(gated.shape[1], np.int64)
+    for n in range(gated.shape[1]):
+        for m in range(gated.shape[0]):
+            if gated[m, n]:
+                reach[count] = n
+                count += 1
+                break
+    reach = reach[:count]
+    hp = np.empty((count, 2, 3))  # H_a P
+    for a in range(count):
+        for i in range(2):
+            for j in range(3):
+                hp[a, i, j] = (h_x[reach[a], i, 0] * pose_cov[0, j] + h_x[reach[a], i, 1] * pose_cov[1, j]
+                               + h_x[reach[a], i, 2] * pose_cov[2, j])
+    joint = np.empty((count, count, 2, 2))
+    for a in range(count):
+        for b in range(count):
+            for i in range(2):
+                for j in range(2):
+                    joint[a, b, i, j] = (hp[a, i, 0] * h_x[reach[b], j, 0] + hp[a, i, 1] * h_x[reach[b], j, 1]
+                                         + hp[a, i, 2] * h_x[reach[b], j, 2])
+        for i in range(2):
+            for j in range(2):
+                joint[a, a, i, j] += own[reach[a], i, j]
+    return reach, joint
+
+
 def warm_up() -> None:
     """Compile (or load from the cache) every FastSLAM kernel on tiny inputs."""
     from central.fastslam.aligned_map import AlignedMap
@@ -722,6 +863,7 @@ def warm_up() -> None:
     weights = np.full(2, 0.5)
     weighted_pose(pose, weights, None)
     weighted_pose(pose, weights, (np.zeros(3), np.eye(3)))
+    pose_belief_kernel(pose, weights, np.zeros(3), np.eye(3), True)
     landmarks.near(np.zeros(2), 10.0)  # files the written blocks and searches: the index's kernels
     keep, mean, cov = marginal_map(landmarks, weights, slots, np.zeros(2), 10.0)
     shared_gating_kernel(np.zeros(3), 0.0, 0.0, mean, cov, np.zeros(keep.size, np.bool_), np.eye(3), np.eye(3),
@@ -730,7 +872,13 @@ def warm_up() -> None:
             np.array([[3.0, 0.0], [3.1, 0.3]]), np.eye(2) * 0.01, 1, np.zeros((2, 3)), 1e-12, 1.0, 6.0)
     vote(np.array([[0.0, 0.0], [1.0, 0.0]]), np.array([1, 2]), np.array([[0.1, 0.0], [1.1, 0.1]]), np.zeros(2),
          np.array([-0.1, 0.0, 0.1]), 0.5, 0.2, 4)
+    drift = drift_accumulate(None, 0.0, np.zeros(3), np.eye(3), 0.0)
+    h_x = np.ones((1, 2, 3))
+    drift_condition(drift, h_x, np.eye(2)[None])
+    joint_blocks_kernel(np.ones((1, 1), np.bool_), h_x, np.ones((1, 2, 2)), drift)
 
 
-__all__ = ["AVAILABLE", "integrate_controls", "known_update", "marginal_map", "private_blocks", "propose",
-           "proposal_moments", "shared_gating_kernel", "vote", "warm_up", "weighted_pose"]
+__all__ = ["AVAILABLE", "drift_accumulate", "drift_condition", "integrate_controls", "joint_blocks_kernel",
+           "known_update", "marginal_map", "pose_belief_kernel", "private_blocks", "propose", "proposal_moments",
+           "shared_gating_kernel",
+           "vote", "warm_up", "weighted_pose"]

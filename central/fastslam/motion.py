@@ -108,7 +108,8 @@ def take_pending(slam: FastSlam, robot: RobotState) -> tuple[np.ndarray, np.ndar
     if motion is not None and config.reacquire and config.association == "shared":
         heading = resampling.weighted_heading(slam.pose[:, robot.index, 2], slam.weights())
         slip = 0.0 if config.turn_slip else robot.info.turn_slip_var  # turn_slip: already in the motion's covariance
-        robot.drift = reacquire.accumulate(robot.drift, heading, motion[0], motion[1], slip)
+        accumulate = kernels.drift_accumulate if config.compiled else reacquire.accumulate
+        robot.drift = accumulate(robot.drift, heading, motion[0], motion[1], slip)
         if robot.blind is not None:
             robot.blind.moved(motion[0])
     if motion is not None and (config.turn_gain_std > 0.0 or config.turn_gain_walk > 0.0):

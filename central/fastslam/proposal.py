@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from central.fastslam import association, kernels, motion, shared
+from central.fastslam import association, kernels, motion
 from central.fastslam.lifecycle import RobotState
 from robots.gaussian import LOG_2PI, sandwich, sandwich2, sqrt_psd
 from robots.models import compose_jacobian, se2_compose, wrap_angle
@@ -44,7 +44,7 @@ def propose(slam: FastSlam, robot: RobotState, z, r, ids) -> tuple[bool, np.ndar
         det, slots = identified_matches(slam, ids)
         if det.size:
             delta, cov = (np.zeros(3), np.zeros((3, 3))) if pending is None else pending
-            weighs = weighing(slam, ids, det)
+            weighs = weighing(slam, slots)
             order = np.argsort(~weighs, kind="stable")  # the kernel weighs by the leading detections
             normals = slam.rng.standard_normal((n, 3))
             slam.logw += kernels.propose(slam.map, robot.sensor, slam.pose[:, col], delta, cov, slots[order],
@@ -65,7 +65,7 @@ def propose(slam: FastSlam, robot: RobotState, z, r, ids) -> tuple[bool, np.ndar
         counted = np.ones(z.shape[0], bool)
         if slam.config.association in ("known", "shared"):
             det = i[:p.size // n]
-            counted[det[~weighing(slam, ids, det)]] = False
+            counted[det[~weighing(slam, slot[:p.size // n])]] = False
         shift, post, log_weight = proposal_moments_reference(slam, robot, z, r, prior, p, i, slot, counted)
     post = post + POSTERIOR_JITTER * np.eye(3)
     slam.pose[:, col] += shift + (sqrt_psd(post) @ slam.rng.standard_normal((n, 3, 1)))[..., 0]
@@ -150,14 +150,14 @@ def identified_matches(slam: FastSlam, ids) -> tuple[np.ndarray, np.ndarray]:
     return np.array(det, np.int64), np.array(slots, np.int64)
 
 
-def weighing(slam: FastSlam, ids, det: np.ndarray) -> np.ndarray:
-    """Which matched detections ``det`` weigh the particles: all with known ids; with shared association only those
-    of confirmed landmarks. A tentative landmark (Wang, Huang and Dissanayake, "Implementation issues and
+def weighing(slam: FastSlam, slots: np.ndarray) -> np.ndarray:
+    """Which matched detections (of the landmarks in ``slots``) weigh the particles: all with known ids; with shared
+    association only those of confirmed landmarks. A tentative landmark (Wang, Huang and Dissanayake, "Implementation issues and
     experimental evaluation of D-SLAM", §3.1) still conditions the proposal, so the draw follows it, but weighs
     nothing until confirmed: clutter it was born of cannot select particles."""
-    if slam.config.association != "shared" or not det.size:
-        return np.ones(det.size, bool)
-    return shared.confirmed(slam, ids[det])
+    if slam.config.association != "shared" or not slots.size:
+        return np.ones(slots.size, bool)
+    return slam.map.hits[slots] >= slam.config.confirm_hits
 
 
 def _no_matches() -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -78,12 +78,16 @@ def pose_belief(slam: FastSlam, robot: RobotState) -> tuple[np.ndarray, np.ndarr
     assumes against drift: ``gate_pose_floor``² plus ``gate_pose_growth``² per second since its last match (at
     most 120 s)."""
     pose, w = slam.pose[:, robot.index], slam.weights()
-    mean, cov = kernels.weighted_pose(pose, w, None) if slam.config.compiled else resampling.weighted_pose(pose, w)
     pending = motion.pending_motion(robot, slam.config)  # FastSLAM 2.0 associates before it moves the particles
-    if pending is not None:
-        jac = compose_jacobian(mean[2])
-        mean = se2_compose(mean, pending[0])
-        cov = cov + jac @ pending[1] @ jac.T
+    if slam.config.compiled:
+        delta, delta_cov = (np.zeros(3), np.zeros((3, 3))) if pending is None else pending
+        mean, cov = kernels.pose_belief_kernel(np.ascontiguousarray(pose), w, delta, delta_cov, pending is not None)
+    else:
+        mean, cov = resampling.weighted_pose(pose, w)
+        if pending is not None:
+            jac = compose_jacobian(mean[2])
+            mean = se2_compose(mean, pending[0])
+            cov = cov + jac @ pending[1] @ jac.T
     blind = 0.0 if robot.last_match_stamp is None else min(max(robot.last_scan_stamp - robot.last_match_stamp, 0.0), 120.0)
     floor, growth = diagonal_variances(slam.config.gate_pose_floor), diagonal_variances(slam.config.gate_pose_growth)
     return mean, cov, floor + growth * blind
@@ -128,7 +132,8 @@ def associate(slam: FastSlam, robot: RobotState, z: np.ndarray, r: np.ndarray) -
         if not slam.config.reacquire_drift_update:
             robot.drift = None
         elif robot.drift is not None and (pinned := cols[~tentative[cols]]).size:
-            robot.drift = reacquire.condition(robot.drift, h_x[pinned], own[pinned] + r)
+            condition = kernels.drift_condition if slam.config.compiled else reacquire.condition
+            robot.drift = condition(robot.drift, h_x[pinned], own[pinned] + r)
         slam.counts["detections_matched"] += rows_matched
     created = int(np.count_nonzero(fresh))
     ids[fresh] = slam.next_landmark_id + np.arange(created)
@@ -177,14 +182,12 @@ def _solve(slam: FastSlam, nu, gated, d2, h_x, own, pose_cov, r) -> tuple[np.nda
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
     if slam.config.shared_solver == "exact":
         return solve_exact(np.where(gated, d2 - slam.gate, np.inf))
-    reach = np.flatnonzero(gated.any(0))  # JCBB never looks at a landmark no detection gates: leave them out
+    # JCBB never looks at a landmark no detection gates: leave them out
+    if slam.config.compiled:
+        reach, joint = kernels.joint_blocks_kernel(gated, h_x, own, pose_cov)
+    else:
+        reach, joint = joint_blocks(gated, h_x, own, pose_cov)
     nu, gated, d2 = nu.take(reach, 1), gated.take(reach, 1), d2.take(reach, 1)
-    h_x, own = h_x.take(reach, 0), own.take(reach, 0)
-    count = own.shape[0]  # H_a P H_bᵀ (a, b, 2, 2): np.tensordot's own reshapes and product, without its checks
-    joint = np.dot((h_x @ pose_cov).reshape(2 * count, 3), h_x.transpose(2, 0, 1).reshape(3, 2 * count))
-    joint = joint.reshape(count, 2, count, 2).transpose(0, 2, 1, 3)
-    diagonal = np.einsum("aaij->aij", joint)  # a writeable view of the blocks H_a P H_aᵀ
-    diagonal += own
     result = solve_jcbb(nu, gated, d2, joint, r, slam.config.gate_probability)
     slam.counts["jcbb_truncated"] += int(result.truncated)
     rows, cols = result.rows, result.cols
@@ -193,6 +196,21 @@ def _solve(slam: FastSlam, nu, gated, d2, h_x, own, pose_cov, r) -> tuple[np.nda
         slam.counts["detections_not_unique"] += int((~unique).sum())
         rows, cols = rows[unique], cols[unique]
     return rows, reach[cols]
+
+
+def joint_blocks(gated: np.ndarray, h_x: np.ndarray, own: np.ndarray, pose_cov: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """(reach, joint): the landmarks some detection gates, and the blocks ``(K, K, 2, 2)`` H_a P H_bᵀ of their
+    predicted detections' joint covariance (P = ``pose_cov``) plus each one's own H_m Σ H_mᵀ on the diagonal; the
+    reference of :func:`central.fastslam.kernels.joint_blocks_kernel`."""
+    reach = np.flatnonzero(gated.any(0))
+    h_x, own = h_x.take(reach, 0), own.take(reach, 0)
+    count = own.shape[0]  # np.tensordot's own reshapes and product, without its checks
+    joint = np.dot((h_x @ pose_cov).reshape(2 * count, 3), h_x.transpose(2, 0, 1).reshape(3, 2 * count))
+    joint = joint.reshape(count, 2, count, 2).transpose(0, 2, 1, 3).copy()
+    diagonal = np.einsum("aaij->aij", joint)  # a writeable view of the blocks H_a P H_aᵀ
+    diagonal += own
+    return reach, joint
 
 
 def _age_tentative(slam: FastSlam, robot: RobotState, ids: np.ndarray, slots: np.ndarray, tentative: np.ndarray,

@@ -189,9 +189,31 @@ def jcbb_search(innovations, joint_blocks, noise, candidates, counts, order, bou
     return not paused
 
 
+@njit
+def jcbb_whole_kernel(innovations, joint_blocks, noise, gated, nis, bounds, max_nodes):
+    """(pair measurement indices, pair landmark indices, joint NIS, truncated, nodes): the candidates
+    (:func:`jcbb_candidates`) and the whole search in one call, with no time budget (FastSLAM's shared association
+    once per scan: a dozen small arrays and a call with twenty arguments cost as much as the search).
+    ``bounds[k]`` is the χ² bound of k + 1 pairings, at least one per measurement."""
+    table, counts, order = jcbb_candidates(gated, nis)
+    depth_count = order.shape[0]
+    size = 2 * depth_count
+    best_m, best_n = np.zeros(depth_count, np.int64), np.zeros(depth_count, np.int64)
+    counters, best_d2 = np.array([0, 0, 1 if depth_count else 0, 0], np.int64), np.array([np.inf])
+    if depth_count:
+        jcbb_search(innovations, joint_blocks, noise, table, counts, order, bounds, max_nodes, np.zeros((size, size)),
+                    np.zeros(size), np.zeros(depth_count, np.int64), np.zeros(depth_count, np.int64),
+                    np.zeros(depth_count + 1), np.zeros(depth_count + 1, np.int64), np.zeros(depth_count + 1, np.int64),
+                    np.zeros(depth_count + 1, np.bool_), best_m, best_n, counters, best_d2, 0)
+    count = counters[1]
+    return best_m[:count].copy(), best_n[:count].copy(), best_d2[0] if count else 0.0, counters[3] != 0, counters[2]
+
+
 def warm_up() -> None:
     """Compile (or load from the cache) the kernel on a tiny input (:func:`services.compiled.warm_up` times it)."""
     if AVAILABLE:
         jcbb_candidates(np.ones((1, 1), np.bool_), np.zeros((1, 1)))
+        jcbb_whole_kernel(np.zeros((1, 1, 2)), np.zeros((1, 1, 2, 2)), np.eye(2), np.ones((1, 1), np.bool_),
+                          np.zeros((1, 1)), np.full(1, 9.0), 100)
         jcbb_kernel(np.zeros((1, 1, 2)), np.zeros((1, 1, 2, 2)), np.eye(2), np.zeros((1, 1), np.int64),
                     np.ones(1, np.int64), np.zeros(1, np.int64), np.full(1, 9.0), 100)

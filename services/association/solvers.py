@@ -28,6 +28,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass
+from functools import lru_cache
 from typing import Callable
 
 import numpy as np
@@ -43,6 +44,19 @@ _EMPTY = np.zeros(0, np.int64)
 
 
 gate_value = chi2_quantile  # the chi-square gate ε with P(τ ≤ ε) = probability for dof degrees of freedom
+
+
+@lru_cache(maxsize=64)
+def _chi2_bounds(probability: float, count: int) -> np.ndarray:
+    bounds = np.array([gate_value(probability, 2 * k) for k in range(1, count + 1)])
+    bounds.flags.writeable = False
+    return bounds
+
+
+def chi2_bounds(probability: float, count: int) -> np.ndarray:
+    """JCBB's bounds ``(count,)``: the χ² gate of k = 1..``count`` pairings (2k degrees of freedom), computed once per
+    (probability, power of two at least ``count``) and shared, so read-only."""
+    return _chi2_bounds(float(probability), max(8, 1 << max(count - 1, 0).bit_length()))[:count]
 
 
 class DeadlineExceeded(RuntimeError):
@@ -325,6 +339,12 @@ def solve_jcbb(
     this recursive reference.
     """
     m_count = innovations.shape[0]
+    if compiled and kernels.AVAILABLE and budget is None:
+        rows, cols, d2, truncated, nodes = kernels.jcbb_whole_kernel(
+            np.ascontiguousarray(innovations, float), np.ascontiguousarray(joint_blocks, float),
+            np.asarray(noise, float), np.ascontiguousarray(gated, np.bool_), np.ascontiguousarray(nis, float),
+            chi2_bounds(probability, m_count), max_nodes)
+        return JcbbResult(rows, cols, float(d2), bool(truncated), int(nodes))
     if compiled and kernels.AVAILABLE:
         table, counts, order = kernels.jcbb_candidates(np.ascontiguousarray(gated, np.bool_),
                                                         np.ascontiguousarray(nis, float))

@@ -7,7 +7,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from central.fastslam import association, kernels, proposal, resampling, shared
+from central.fastslam import association, kernels, proposal, reacquire, resampling, shared
 from central.fastslam.aligned_map import AlignedMap
 from central.fastslam.config import FastSlamConfig
 from central.fastslam.core import FastSlam
@@ -117,6 +117,63 @@ def test_weighted_pose_kernel_gives_the_reference_moments(moved):
         mean, cov = resampling.weighted_pose(pose, w)
     np.testing.assert_allclose(got[0], mean, atol=1e-12)
     np.testing.assert_allclose(got[1], 0.5 * (cov + cov.T), atol=1e-12)
+
+
+@pytest.mark.parametrize("moved", [False, True])
+def test_pose_belief_kernel_moves_the_mean_as_the_reference(moved):
+    """The belief the shared association gates from: the weighted mean composed with the pending motion (not every
+    particle moved), its covariance plus J Σ_Δ Jᵀ at the mean's heading."""
+    rng = np.random.default_rng(5)
+    pose = rng.normal([1.0, -2.0, 3.0], [0.4, 0.4, 0.2], (60, 3))
+    w = rng.dirichlet(np.ones(60))
+    delta = np.array([0.5, 0.1, -0.3])
+    root = rng.normal(0.0, 0.1, (3, 3))
+    delta_cov = root @ root.T
+    mean, cov = kernels.pose_belief_kernel(pose, w, delta, delta_cov, moved)
+    expected_mean, expected_cov = resampling.weighted_pose(pose, w)
+    if moved:
+        c, s = np.cos(expected_mean[2]), np.sin(expected_mean[2])
+        jac = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        expected_mean, expected_cov = se2_compose(expected_mean, delta), expected_cov + jac @ delta_cov @ jac.T
+    np.testing.assert_allclose(mean, expected_mean, atol=1e-12)
+    np.testing.assert_allclose(cov, expected_cov, atol=1e-12)
+    assert moved == (not np.allclose(mean, resampling.weighted_pose(pose, w)[0]))
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_drift_kernels_give_the_reference_drift(seed):
+    """The drift's growth along a motion and its Kalman update by 1–5 matched detections (one after the other in the
+    kernel, all at once in the reference), from a zero drift and from a full one."""
+    rng = np.random.default_rng(seed)
+    root = rng.normal(0.0, 0.2, (3, 3))
+    drift = None if seed == 0 else root @ root.T
+    delta, heading = rng.normal(0.0, 1.0, 3), rng.uniform(-np.pi, np.pi)
+    root = rng.normal(0.0, 0.1, (3, 3))
+    motion_cov = root @ root.T
+    grown = kernels.drift_accumulate(drift, heading, delta, motion_cov, 0.01)
+    expected = reacquire.accumulate(drift, heading, delta, motion_cov, 0.01)
+    np.testing.assert_allclose(grown, expected, rtol=1e-12, atol=1e-15)
+    count = 1 + seed
+    h_x = rng.normal(0.0, 1.0, (count, 2, 3))
+    root = rng.normal(0.0, 0.1, (count, 2, 2))
+    noise = root @ np.swapaxes(root, -1, -2) + 1e-3 * np.eye(2)
+    conditioned = kernels.drift_condition(grown, h_x, noise)
+    np.testing.assert_allclose(conditioned, reacquire.condition(grown, h_x, noise), rtol=1e-8, atol=1e-12)
+    assert np.trace(conditioned) < np.trace(grown)
+
+
+def test_joint_blocks_kernel_gives_the_reference_blocks():
+    """JCBB's inputs: the landmarks some detection gates, and their predicted detections' joint covariance."""
+    rng = np.random.default_rng(7)
+    gated = rng.random((5, 9)) < 0.3
+    gated[:, 4] = False  # a landmark no detection gates is left out
+    h_x, own = rng.normal(0.0, 1.0, (9, 2, 3)), rng.normal(0.0, 1.0, (9, 2, 2))
+    root = rng.normal(0.0, 0.3, (3, 3))
+    reach, joint = kernels.joint_blocks_kernel(gated, h_x, own, root @ root.T)
+    expected_reach, expected_joint = shared.joint_blocks(gated, h_x, own, root @ root.T)
+    assert 4 not in reach and reach.size == expected_reach.size > 2
+    np.testing.assert_array_equal(reach, expected_reach)
+    np.testing.assert_allclose(joint, expected_joint, rtol=1e-12, atol=1e-14)
 
 
 def test_marginal_map_and_gating_kernels_give_the_reference_on_a_run():
