@@ -32,7 +32,7 @@ import numpy as np
 from central.fastslam import kernels
 
 BLOCK = 32  # slots per block: a scan's copies stay small, a table stays 1/32 of the map
-INDEX_CELLS_PER_RADIUS = 2  # the index's grid cell: half the first search's radius (a search reads 6 × 6 cells)
+INDEX_CELLS_PER_RADIUS = 4  # the index's grid cell: a quarter of the first search's radius (a search reads about 100 cells)
 UNFILED, IN_CELL, WIDE = 0, 1, 2  # where the spatial index holds a slot
 
 
@@ -230,12 +230,15 @@ class AlignedMap:
         self.free_blocks[: free.size] = free
         self.free_count[0] = free.size
 
-    def reserve_private(self, slots: np.ndarray) -> np.ndarray:
+    def reserve_private(self, slots: np.ndarray, refile: bool = True) -> np.ndarray:
         """The blocks holding ``slots`` (sorted, distinct), with free physical blocks enough for every particle to
-        take a copy of each (:meth:`private`, or a kernel that copies one particle at a time)."""
+        take a copy of each (:meth:`private`, or a kernel that copies one particle at a time). ``refile``: the
+        blocks are filed again in the spatial index before the next search (False: the caller files the slots it
+        changes, :meth:`refile_slots`)."""
         blocks = np.unique(np.asarray(slots, np.int64) // self.block)
         self._reserve_blocks(self.particles * blocks.size)
-        self._dirty.update(blocks.tolist())
+        if refile:
+            self._dirty.update(blocks.tolist())
         self.mixed.update(blocks.tolist())
         return blocks
 
@@ -336,14 +339,38 @@ class AlignedMap:
             self.index_cell = max(float(radius) / INDEX_CELLS_PER_RADIUS, 0.1)
         self._file_dirty()
         cell = self.index_cell
-        low = np.floor((np.asarray(point, float) - radius - cell) / cell).astype(np.int64)
-        high = np.floor((np.asarray(point, float) + radius + cell) / cell).astype(np.int64)
+        point = np.asarray(point, float)
+        low = np.floor((point - radius - cell) / cell).astype(np.int64)
+        high = np.floor((point + radius + cell) / cell).astype(np.int64)
+        # a slot's anchor lies within its spread (at most a cell) of any mixture of its particles' means: the cells
+        # within radius + cell of the point hold every slot whose mixture may lie within the radius
         slots = kernels.grid_candidates_kernel(low[0], low[1], high[0], high[1], self._bucket, self._following,
-                                               self._filed_state, self._filed_cell, self.valid)
+                                               self._filed_state, self._filed_cell, self.valid, cell, point,
+                                               float(radius) + cell)
         if self._wide:
             wide = np.array(sorted(self._wide), np.int64)
             slots = np.concatenate([slots, wide[self.valid[wide]]])
         return slots[np.argsort(self.serial[slots], kind="stable")]
+
+    def refile_slots(self, slots: np.ndarray, box: np.ndarray) -> None:
+        """File ``slots`` again in the spatial index under ``box`` ``(m, 4)``, the box (low x, low y, high x, high y)
+        of every particle's mean of each, as the FastSLAM 2.0 kernel leaves it after updating them. Only the slots a
+        scan changed are filed again, not their blocks: the blocks' other slots were copied, not changed, and
+        resampling only drops particles, so the box they were filed under still holds every particle's mean."""
+        if self.index_cell is None:  # no search yet: the first files every block
+            self._dirty.update(np.unique(np.asarray(slots, np.int64) // self.block).tolist())
+            return
+        wide_slots, states = kernels.refile_slots_kernel(np.asarray(slots, np.int64), box, self.valid, self.index_cell,
+                                                         self._filed_state, self._filed_cell, self._bucket,
+                                                         self._following)
+        self._note_wide(wide_slots, states)
+
+    def _note_wide(self, slots: np.ndarray, states: np.ndarray) -> None:
+        for slot, state in zip(slots.tolist(), states.tolist()):
+            if state == WIDE:
+                self._wide.add(slot)
+            else:
+                self._wide.discard(slot)
 
     def _file_dirty(self) -> None:
         """File again the slots of the blocks written since the last search (:func:`central.fastslam.kernels.
@@ -355,8 +382,4 @@ class AlignedMap:
         slots, states = kernels.refile_kernel(self.table, self.pool_mean, self.valid, blocks, self.block,
                                               self.index_cell, self._filed_state, self._filed_cell, self._bucket,
                                               self._following)
-        for slot, state in zip(slots.tolist(), states.tolist()):
-            if state == WIDE:
-                self._wide.add(slot)
-            else:
-                self._wide.discard(slot)
+        self._note_wide(slots, states)

@@ -259,14 +259,46 @@ def _cell_bucket(cx, cy, mask):
 
 
 @njit
+def _file_slot(slot, low_x, low_y, high_x, high_y, valid, cell, filed_state, filed_cell, bucket, following):
+    """File ``slot`` under the box [low, high] of its particles' means: the grid cell of the box's centre (its
+    anchor, ``IN_CELL`` = 1) unless half the box's diagonal (its spread) exceeds ``cell`` (``WIDE`` = 2); an
+    invalid slot is unfiled (0). Returns (whether it entered or left ``WIDE``, its state)."""
+    mask = bucket.shape[0] - 1
+    state = 0
+    cx, cy = 0, 0
+    if valid[slot]:  # a valid slot was written in every particle
+        ax, ay = 0.5 * (low_x + high_x), 0.5 * (low_y + high_y)  # the anchor: the box's centre
+        half_x, half_y = 0.5 * (high_x - low_x), 0.5 * (high_y - low_y)
+        state = 2 if half_x * half_x + half_y * half_y > cell * cell else 1  # spread: half the box's diagonal
+        cx, cy = int(math.floor(ax / cell)), int(math.floor(ay / cell))
+    old = filed_state[slot]
+    if state == old and (state != 1 or (cx == filed_cell[slot, 0] and cy == filed_cell[slot, 1])):
+        return False, state
+    if old == 1:  # unlink from its cell's list
+        h = _cell_bucket(filed_cell[slot, 0], filed_cell[slot, 1], mask)
+        previous, current = -1, bucket[h]
+        while current != slot:
+            previous, current = current, following[current]
+        if previous < 0:
+            bucket[h] = following[slot]
+        else:
+            following[previous] = following[slot]
+    if state == 1:
+        h = _cell_bucket(cx, cy, mask)
+        following[slot] = bucket[h]
+        bucket[h] = slot
+        filed_cell[slot, 0], filed_cell[slot, 1] = cx, cy
+    filed_state[slot] = state
+    return old == 2 or state == 2, state
+
+
+@njit
 def refile_kernel(table, pool_mean, valid, blocks, block, cell, filed_state, filed_cell, bucket, following):
-    """File again the slots of ``blocks`` in the map's spatial index, a hashed grid (:meth:`AlignedMap.near`): a
-    valid slot goes to the grid cell of its anchor, the centre of the box holding every particle's mean
-    (``IN_CELL`` = 1), unless half the box's diagonal (its spread: no particle's mean lies farther from the
-    anchor) exceeds ``cell`` (``WIDE`` = 2: every search checks it); an invalid slot is unfiled (0). A cell's
-    slots are a list threaded through ``following`` from ``bucket`` (cells sharing a bucket share the list;
-    ``filed_cell`` tells them apart). Returns (slots, states) of the slots that entered or left ``WIDE``."""
-    particles, mask = table.shape[0], bucket.shape[0] - 1
+    """File again the slots of ``blocks`` in the map's spatial index, a hashed grid (:meth:`AlignedMap.near`), each
+    under the box holding every particle's mean (:func:`_file_slot`). A cell's slots are a list threaded through
+    ``following`` from ``bucket`` (cells sharing a bucket share the list; ``filed_cell`` tells them apart).
+    Returns (slots, states) of the slots that entered or left ``WIDE``."""
+    particles = table.shape[0]
     wide_slots = np.empty(blocks.shape[0] * block, np.int64)
     wide_states = np.empty(blocks.shape[0] * block, np.int8)
     wide = 0
@@ -285,46 +317,45 @@ def refile_kernel(table, pool_mean, valid, blocks, block, cell, filed_state, fil
                     high[k, axis] = max(high[k, axis], value)
         for k in range(block):
             slot = b * block + k
-            state = 0
-            cx, cy = 0, 0
-            if valid[slot]:  # a valid slot was written in every particle
-                ax, ay = 0.5 * (low[k, 0] + high[k, 0]), 0.5 * (low[k, 1] + high[k, 1])  # the anchor: the box's centre
-                half_x, half_y = 0.5 * (high[k, 0] - low[k, 0]), 0.5 * (high[k, 1] - low[k, 1])
-                state = 2 if half_x * half_x + half_y * half_y > cell * cell else 1  # spread: half the box's diagonal
-                cx, cy = int(math.floor(ax / cell)), int(math.floor(ay / cell))
-            old = filed_state[slot]
-            if state == old and (state != 1 or (cx == filed_cell[slot, 0] and cy == filed_cell[slot, 1])):
-                continue
-            if old == 1:  # unlink from its cell's list
-                h = _cell_bucket(filed_cell[slot, 0], filed_cell[slot, 1], mask)
-                previous, current = -1, bucket[h]
-                while current != slot:
-                    previous, current = current, following[current]
-                if previous < 0:
-                    bucket[h] = following[slot]
-                else:
-                    following[previous] = following[slot]
-            if state == 1:
-                h = _cell_bucket(cx, cy, mask)
-                following[slot] = bucket[h]
-                bucket[h] = slot
-                filed_cell[slot, 0], filed_cell[slot, 1] = cx, cy
-            if old == 2 or state == 2:
+            changed, state = _file_slot(slot, low[k, 0], low[k, 1], high[k, 0], high[k, 1], valid, cell, filed_state,
+                                        filed_cell, bucket, following)
+            if changed:
                 wide_slots[wide], wide_states[wide] = slot, state
                 wide += 1
-            filed_state[slot] = state
     return wide_slots[:wide], wide_states[:wide]
 
 
 @njit
-def grid_candidates_kernel(low_x, low_y, high_x, high_y, bucket, following, filed_state, filed_cell, valid):
-    """The valid slots filed in the grid cells [low_x, high_x] × [low_y, high_y] of :func:`refile_kernel`'s index."""
+def refile_slots_kernel(slots, box, valid, cell, filed_state, filed_cell, bucket, following):
+    """File again ``slots`` under their boxes ``box`` ``(m, 4)`` (low x, low y, high x, high y of every particle's
+    mean, as :func:`propose_kernel` leaves them), as :func:`refile_kernel` would from the blocks."""
+    wide_slots = np.empty(slots.shape[0], np.int64)
+    wide_states = np.empty(slots.shape[0], np.int8)
+    wide = 0
+    for j in range(slots.shape[0]):
+        changed, state = _file_slot(slots[j], box[j, 0], box[j, 1], box[j, 2], box[j, 3], valid, cell, filed_state,
+                                    filed_cell, bucket, following)
+        if changed:
+            wide_slots[wide], wide_states[wide] = slots[j], state
+            wide += 1
+    return wide_slots[:wide], wide_states[:wide]
+
+
+@njit
+def grid_candidates_kernel(low_x, low_y, high_x, high_y, bucket, following, filed_state, filed_cell, valid, cell,
+                           point, reach):
+    """The valid slots filed in the grid cells [low_x, high_x] × [low_y, high_y] of :func:`refile_kernel`'s index
+    that come within ``reach`` of ``point`` (cells of side ``cell``; the corners of the square hold no more)."""
     mask = bucket.shape[0] - 1
     out = np.empty(0, np.int64)
     for rounds in range(2):  # count, then fill
         found = 0
         for cx in range(low_x, high_x + 1):
+            gap_x = max(cx * cell - point[0], 0.0, point[0] - (cx + 1) * cell)
             for cy in range(low_y, high_y + 1):
+                gap_y = max(cy * cell - point[1], 0.0, point[1] - (cy + 1) * cell)
+                if gap_x * gap_x + gap_y * gap_y > reach * reach:
+                    continue
                 slot = bucket[_cell_bucket(cx, cy, mask)]
                 while slot >= 0:
                     if filed_state[slot] == 1 and filed_cell[slot, 0] == cx and filed_cell[slot, 1] == cy and valid[slot]:
@@ -565,15 +596,17 @@ def proposal_moments_kernel(pool_mean, pool_cov, table, block, pose, prior, a, b
 
 @njit
 def propose_kernel(pool_mean, pool_cov, table, block, refs, free_blocks, free_count, blocks, exist, hits, pose, delta,
-                   motion_cov, a, b, slots, z, r, weighed, normals, jitter, exist_hit, exist_max, log_weight):
+                   motion_cov, a, b, slots, z, r, weighed, normals, jitter, exist_hit, exist_max, log_weight, box):
     """Every particle's FastSLAM 2.0 step, in place on ``pose`` ``(P, 3)`` and on its landmarks: the buffered motion
     (``delta``, ``motion_cov`` in the robot's frame) composed onto the pose, its prior J Σ Jᵀ updated by the scan
     (:func:`_particle_proposal`), a draw ``shift + L · normals[p]`` from the posterior (L its Cholesky factor,
     ``jitter`` added to the diagonal), then the EKF updates of the landmarks ``slots`` (distinct) from the drawn
     pose (:func:`_particle_update`), in the particle's own copy of ``blocks`` (:func:`_private_particle`);
-    ``log_weight`` gets the particles' weights. One particle at a time, so its landmarks are read from memory once
-    for the proposal and the update: with 1000 particles the blocks outgrow the cache, and the two passes over them
-    of separate kernels each paid the misses."""
+    ``log_weight`` gets the particles' weights and ``box`` ``(m, 4)`` (low x, low y, high x, high y; start empty)
+    the box of every particle's updated mean of each slot, for the map's spatial index
+    (:meth:`AlignedMap.refile_slots`). One particle at a time, so its landmarks are read from memory once for the
+    proposal, the update and the box: with 1000 particles the blocks outgrow the cache, and each pass over them
+    of a separate kernel paid the misses."""
     cov = np.empty((3, 3))
     shift = np.empty(3)
     scratch = np.empty((2, 3, 2))
@@ -619,6 +652,10 @@ def propose_kernel(pool_mean, pool_cov, table, block, refs, free_blocks, free_co
             pose[p, i] += shift[i] + lower[i, 0] * normals[p, 0] + lower[i, 1] * normals[p, 1] + lower[i, 2] * normals[p, 2]
         pose[p, 2] = wrap_angle(pose[p, 2])
         _particle_update(pool_mean, pool_cov, table, p, pose[p], a, b, places, z, r, unused, False)
+        for j in range(places.shape[0]):
+            mean = pool_mean[table[p, places[j, 0]], places[j, 1]]
+            box[j, 0], box[j, 1] = min(box[j, 0], mean[0]), min(box[j, 1], mean[1])
+            box[j, 2], box[j, 3] = max(box[j, 2], mean[0]), max(box[j, 3], mean[1])
     _count_hits(exist, hits, slots, exist_hit, exist_max)
 
 
@@ -637,14 +674,18 @@ def propose(landmarks, sensor, pose: np.ndarray, delta: np.ndarray, motion_cov: 
     """Move every particle's ``pose`` ``(P, 3)`` (in place) by a draw from its FastSLAM 2.0 proposal given the motion
     (``delta``, ``motion_cov``) and detections ``z`` of landmarks ``slots`` (distinct) held by every particle, then
     update those landmarks from the drawn poses, as :func:`known_update` would; returns the log weights ``(P,)``
-    (:func:`propose_kernel`)."""
-    blocks = landmarks.reserve_private(slots)
+    (:func:`propose_kernel`). The updated slots are filed again in the map's spatial index from the boxes the kernel
+    leaves: the other slots of their blocks changed in no particle."""
+    blocks = landmarks.reserve_private(slots, refile=False)
     out = np.empty(pose.shape[0])
+    box = np.empty((slots.shape[0], 4))
+    box[:, :2], box[:, 2:] = np.inf, -np.inf
     moved = np.ascontiguousarray(pose)
     propose_kernel(landmarks.pool_mean, landmarks.pool_cov, landmarks.table, landmarks.block, landmarks.refs,
                    landmarks.free_blocks, landmarks.free_count, blocks, landmarks.exist, landmarks.hits, moved, delta,
                    motion_cov, sensor.offset[0], sensor.offset[1], slots, z, r, weighed, normals, jitter, exist_hit,
-                   exist_max, out)
+                   exist_max, out, box)
+    landmarks.refile_slots(slots, box)
     if moved is not pose:
         pose[...] = moved
     return out

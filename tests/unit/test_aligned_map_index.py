@@ -9,7 +9,8 @@ import pickle
 import numpy as np
 import pytest
 
-from central.fastslam.aligned_map import AlignedMap
+from central.fastslam import kernels
+from central.fastslam.aligned_map import INDEX_CELLS_PER_RADIUS, AlignedMap
 
 PARTICLES, BLOCK = 30, 4
 
@@ -47,6 +48,31 @@ def check_searches(lmap: AlignedMap, rng: np.random.Generator) -> int:
     return left_out
 
 
+@pytest.mark.parametrize("seed", [0, 1])
+def test_near_finds_the_landmarks_a_scan_moved_when_only_their_slots_are_filed_again(seed):
+    """The FastSLAM 2.0 kernel files again only the slots it updated (from the box of their new means), not their
+    blocks: between such updates and resampling, a search still finds every landmark whose mixture is in the disc."""
+    rng = np.random.default_rng(seed)
+    lmap = AlignedMap(PARTICLES, block=BLOCK)
+    new_landmarks(lmap, rng, 120)
+    lmap.near(np.zeros(2), 8.0)
+    for _ in range(15):
+        slots = np.sort(rng.choice(np.flatnonzero(lmap.valid), 6, replace=False))
+        lmap.reserve_private(slots, refile=False)  # as the kernel: private copies, the blocks not marked
+        kernels.private_blocks(lmap.table, np.unique(slots // BLOCK), lmap.refs, lmap.pool_mean, lmap.pool_cov,
+                               lmap.free_blocks, lmap.free_count)
+        means, _ = lmap.gather(np.arange(PARTICLES)[:, None], slots[None])
+        means = means + rng.normal(0.0, 1.0, (PARTICLES, slots.size, 2)) * np.where(rng.random(slots.size) < 0.4, 8.0, 0.3)[:, None]
+        phys = lmap.table[:, slots // BLOCK]
+        lmap.pool_mean[phys, slots % BLOCK] = means
+        box = np.concatenate([means.min(0), means.max(0)], 1)
+        lmap.refile_slots(slots, box)
+        lmap.select(np.sort(rng.integers(0, PARTICLES, PARTICLES)))
+        check_searches(lmap, rng)
+    lmap.refile_slots(slots, np.tile([0.0, 0.0, 0.0, 0.0], (slots.size, 1)))  # filed at the origin: found there
+    assert set(slots.tolist()) <= set(lmap.near(np.zeros(2), 0.5).tolist())
+
+
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_near_finds_every_landmark_whose_mixture_lies_within_the_radius(seed):
     """Through writes that move landmarks across cells, releases, reused slots, resampling and growth, a search
@@ -54,8 +80,8 @@ def test_near_finds_every_landmark_whose_mixture_lies_within_the_radius(seed):
     rng = np.random.default_rng(seed)
     lmap = AlignedMap(PARTICLES, block=BLOCK)
     new_landmarks(lmap, rng, 200)
-    lmap.near(np.zeros(2), 8.0)  # the first search sets the grid's cell: 4 m
-    assert lmap.index_cell == pytest.approx(4.0)
+    lmap.near(np.zeros(2), 8.0)  # the first search sets the grid's cell
+    assert lmap.index_cell == pytest.approx(8.0 / INDEX_CELLS_PER_RADIUS)
     left_out = check_searches(lmap, rng)
     for _ in range(12):
         moved = rng.choice(np.flatnonzero(lmap.valid), 15, replace=False)
