@@ -189,11 +189,16 @@ class AlignedMap:
         kept within int32); returns their slots."""
         slots = self.allocate(len(labels))
         self.write(slots, mean, cov)
+        self.register(slots, exist, hits, labels)
+        return slots
+
+    def register(self, slots: np.ndarray, exist: float, hits, labels: np.ndarray) -> None:
+        """Make the landmarks just written in ``slots`` (:meth:`allocate`, then their Gaussians) valid, with
+        existence score ``exist``, ``hits`` and ``labels``, numbered in the order they were added in."""
         self.exist[slots], self.hits[slots] = exist, np.minimum(hits, np.iinfo(np.int32).max)
         self.label[slots], self.valid[slots] = labels, True
         self.serial[slots] = self.added + np.arange(slots.size)
         self.added += slots.size
-        return slots
 
     def release(self, slots: np.ndarray) -> None:
         """Drop the landmarks in ``slots`` from every particle; their slots go back to :meth:`allocate`."""
@@ -248,7 +253,7 @@ class AlignedMap:
         kernels.private_blocks(self.table, blocks, self.refs, self.pool_mean, self.pool_cov, self.free_blocks,
                                self.free_count)
 
-    def select(self, index: np.ndarray) -> None:
+    def select(self, index: np.ndarray, compiled: bool = True) -> None:
         """Keep particles ``index`` (with repetition): tables are copied, blocks shared; unheld blocks are freed.
 
         Only the ``mixed`` columns of the tables (blocks some particle copied since every particle last held
@@ -261,6 +266,10 @@ class AlignedMap:
             return
         mixed = np.array(sorted(self.mixed), np.int64)
         if not mixed.size:
+            return
+        if compiled:  # the kernel; the numpy below is its reference
+            uniform = kernels.select_kernel(self.table, mixed, index, self.refs, self.free_blocks, self.free_count)
+            self.mixed.difference_update(mixed[uniform].tolist())
             return
         old = self.table[:, mixed]
         new = old[index]

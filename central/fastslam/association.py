@@ -137,10 +137,15 @@ def known_update_reference(slam: FastSlam, robot: RobotState, slots: np.ndarray,
 def create_known(slam: FastSlam, robot: RobotState, z: np.ndarray, r: np.ndarray, ids: np.ndarray) -> None:
     """New landmarks ``ids`` (not in the map) where detections ``z`` ``(m, 2)`` put them, in every particle: one slot
     each, the same in all particles, the sensor noise ``r`` carried into the map."""
-    pose = slam.pose[:, robot.index][:, None, :]
-    mean = robot.sensor.inverse(pose, z[None])
-    _, g = robot.sensor.inverse_jacobians(pose, z[None])
-    slots = slam.map.add(mean, sandwich2(g, r), slam.config.exist_init, 1, ids)
+    if slam.config.compiled:
+        slots = slam.map.allocate(ids.size)
+        kernels.create(slam.map, robot.sensor, slam.pose[:, robot.index], slots, z, r)
+        slam.map.register(slots, slam.config.exist_init, 1, ids)
+    else:
+        pose = slam.pose[:, robot.index][:, None, :]
+        mean = robot.sensor.inverse(pose, z[None])
+        _, g = robot.sensor.inverse_jacobians(pose, z[None])
+        slots = slam.map.add(mean, sandwich2(g, r), slam.config.exist_init, 1, ids)
     slam.known_slots.update(zip(ids.tolist(), slots.tolist()))
     slam.counts["landmarks_created"] += slam.pose.shape[0] * ids.size
 

@@ -172,6 +172,40 @@ def private_blocks(table, blocks, refs, pool_mean, pool_cov, free_blocks, free_c
 
 
 @njit
+def select_kernel(table, mixed, index, refs, free_blocks, free_count):
+    """Resampling of the tables' ``mixed`` columns: row p becomes row ``index[p]``; reference counts follow, and
+    the blocks no particle holds any more go to ``free_blocks``. Returns which of the columns are now the same in
+    every row."""
+    particles = table.shape[0]
+    old = np.empty(particles, table.dtype)
+    uniform = np.ones(mixed.shape[0], np.bool_)
+    for c in range(mixed.shape[0]):
+        column = mixed[c]
+        for p in range(particles):
+            old[p] = table[p, column]
+        for p in range(particles):
+            held = old[index[p]]
+            table[p, column] = held
+            if held >= 0:
+                refs[held] += 1
+            if held != old[index[0]]:
+                uniform[c] = False
+        for p in range(particles):
+            if old[p] >= 0:
+                refs[old[p]] -= 1
+        for p in range(particles):
+            held = old[p]
+            if held >= 0 and refs[held] == 0:
+                free_blocks[free_count[0]] = held
+                free_count[0] += 1
+                refs[held] = -1  # pushed once: marked until the column is done
+        for p in range(particles):
+            if old[p] >= 0 and refs[old[p]] == -1:
+                refs[old[p]] = 0
+    return uniform
+
+
+@njit
 def weighted_pose_kernel(pose, w, delta, delta_cov, moved):
     """(mean, covariance) of poses ``(P, 3)`` under weights ``w``; with ``moved``, of every pose ⊕ ``delta``, the
     covariance plus the weighted J_p Σ_Δ J_pᵀ (J_p: the composition's Jacobian in the increment)."""
@@ -659,6 +693,44 @@ def propose_kernel(pool_mean, pool_cov, table, block, refs, free_blocks, free_co
     _count_hits(exist, hits, slots, exist_hit, exist_max)
 
 
+@njit
+def create_kernel(pool_mean, pool_cov, table, block, refs, free_blocks, free_count, blocks, pose, a, b, slots, z, r):
+    """New landmarks ``slots`` where detections ``z`` ``(m, 2)`` put them from each particle's ``pose`` ``(P, 3)``, in
+    the particle's own copy of ``blocks`` (:func:`_private_particle`): the mean the inverse sensor model gives and
+    the covariance G R Gᵀ, G its Jacobian in the detection ((a, b) the sensor's offset on the robot), as
+    :meth:`robots.models.RangeBearingSensor.inverse` and ``inverse_jacobians`` with
+    :func:`robots.gaussian.sandwich2`."""
+    places = _places(slots, block)
+    r00, r01, r11 = r[0, 0], r[0, 1], r[1, 1]
+    for p in range(pose.shape[0]):
+        _private_particle(table, p, blocks, refs, pool_mean, pool_cov, free_blocks, free_count)
+        c, s = math.cos(pose[p, 2]), math.sin(pose[p, 2])
+        px, py = pose[p, 0] + a * c - b * s, pose[p, 1] + a * s + b * c
+        for j in range(places.shape[0]):
+            mean = pool_mean[table[p, places[j, 0]]]
+            cov = pool_cov[table[p, places[j, 0]]]
+            k = places[j, 1]
+            beta = pose[p, 2] + z[j, 1]
+            distance = z[j, 0]
+            cb, sb = math.cos(beta), math.sin(beta)
+            mean[k, 0], mean[k, 1] = px + distance * cb, py + distance * sb
+            a00, a01, a10, a11 = cb, -distance * sb, sb, distance * cb
+            t00, t01 = a00 * r00 + a01 * r01, a00 * r01 + a01 * r11
+            t10, t11 = a10 * r00 + a11 * r01, a10 * r01 + a11 * r11
+            cov[k, 0, 0] = t00 * a00 + t01 * a01
+            cov[k, 0, 1] = cov[k, 1, 0] = t00 * a10 + t01 * a11
+            cov[k, 1, 1] = t10 * a10 + t11 * a11
+
+
+def create(landmarks, sensor, pose: np.ndarray, slots: np.ndarray, z: np.ndarray, r: np.ndarray) -> None:
+    """Write new landmarks ``slots`` (allocated, distinct) of every particle of an :class:`AlignedMap` where detections
+    ``z`` ``(m, 2)`` put them from ``pose`` ``(P, 3)`` (:func:`create_kernel`); the caller registers them."""
+    blocks = landmarks.reserve_private(slots)
+    create_kernel(landmarks.pool_mean, landmarks.pool_cov, landmarks.table, landmarks.block, landmarks.refs,
+                  landmarks.free_blocks, landmarks.free_count, blocks, np.ascontiguousarray(pose), float(sensor.offset[0]),
+                  float(sensor.offset[1]), slots, np.ascontiguousarray(z, float), np.ascontiguousarray(r, float))
+
+
 def proposal_moments(landmarks, sensor, pose: np.ndarray, prior: np.ndarray, slots: np.ndarray, z: np.ndarray,
                      r: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """FastSLAM 2.0 proposal of every particle of an :class:`AlignedMap` from its moved ``pose`` ``(P, 3)`` and motion
@@ -905,6 +977,10 @@ def warm_up() -> None:
     weighted_pose(pose, weights, None)
     weighted_pose(pose, weights, (np.zeros(3), np.eye(3)))
     pose_belief_kernel(pose, weights, np.zeros(3), np.eye(3), True)
+    created = landmarks.allocate(1)
+    create(landmarks, RangeBearingSensor(), pose, created, np.array([[2.0, 0.1]]), np.eye(2) * 0.01)
+    landmarks.register(created, 1.0, 1, np.array([2]))
+    landmarks.select(np.array([1, 0]))
     landmarks.near(np.zeros(2), 10.0)  # files the written blocks and searches: the index's kernels
     keep, mean, cov = marginal_map(landmarks, weights, slots, np.zeros(2), 10.0)
     shared_gating_kernel(np.zeros(3), 0.0, 0.0, mean, cov, np.zeros(keep.size, np.bool_), np.eye(3), np.eye(3),
@@ -919,7 +995,7 @@ def warm_up() -> None:
     joint_blocks_kernel(np.ones((1, 1), np.bool_), h_x, np.ones((1, 2, 2)), drift)
 
 
-__all__ = ["AVAILABLE", "drift_accumulate", "drift_condition", "integrate_controls", "joint_blocks_kernel",
+__all__ = ["AVAILABLE", "create", "drift_accumulate", "drift_condition", "integrate_controls", "joint_blocks_kernel",
            "known_update", "marginal_map", "pose_belief_kernel", "private_blocks", "propose", "proposal_moments",
            "shared_gating_kernel",
            "vote", "warm_up", "weighted_pose"]

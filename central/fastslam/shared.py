@@ -52,8 +52,9 @@ def marginal_map(slam: FastSlam, near: tuple[np.ndarray, float] | None = None
     rows = None  # every particle
     cap = slam.config.association_particles
     if near is not None and 0 < cap < w.size:  # the association's mixtures: from ``cap`` particles drawn by weight
-        rows, counts = np.unique(systematic_resample(w, cap, None, offset=0.5), return_counts=True)
-        w = counts / cap
+        drawn = systematic_resample(w, cap, None, offset=0.5)  # sorted: its runs are np.unique's counts
+        first = np.flatnonzero(np.concatenate(([True], drawn[1:] != drawn[:-1])))
+        rows, w = drawn[first], np.diff(np.append(first, cap)) / cap
     if slam.config.compiled and near is not None:
         point, radius = np.asarray(near[0], float), float(near[1])
         slots = slam.map.near(point, radius)

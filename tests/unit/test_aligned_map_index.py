@@ -115,10 +115,11 @@ def test_the_index_survives_a_checkpoint_also_one_written_before_it():
     assert old.mixed == lmap.mixed
 
 
-@pytest.mark.parametrize("seed", [0, 1])
-def test_resampling_only_the_mixed_columns_counts_as_a_full_recount(seed):
+@pytest.mark.parametrize("seed, compiled", [(0, True), (1, True), (0, False)])
+def test_resampling_only_the_mixed_columns_counts_as_a_full_recount(seed, compiled):
     """Each resampling copies only the columns where particles may disagree; the reference counts, free blocks
-    and every particle's Gaussians are those of copying every row whole (a dense reference)."""
+    and every particle's Gaussians are those of copying every row whole (a dense reference), by the kernel and by
+    its numpy reference."""
     rng = np.random.default_rng(seed)
     lmap = AlignedMap(PARTICLES, block=BLOCK)
     slots = lmap.add(rng.normal(0.0, 10.0, (200, 2)), np.broadcast_to(np.eye(2), (200, 2, 2)), 1.0, 1,
@@ -133,7 +134,7 @@ def test_resampling_only_the_mixed_columns_counts_as_a_full_recount(seed):
         dense[:, touched] += step
         index = np.sort(rng.choice(PARTICLES, PARTICLES, p=rng.dirichlet(np.full(PARTICLES, 0.2))))
         copied_columns.append(len(lmap.mixed))
-        lmap.select(index)
+        lmap.select(index, compiled)
         dense = dense[index]
         held = lmap.table[lmap.table >= 0]
         np.testing.assert_array_equal(lmap.refs, np.bincount(held, minlength=lmap.refs.size))

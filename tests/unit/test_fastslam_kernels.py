@@ -11,6 +11,7 @@ from central.fastslam import association, kernels, proposal, reacquire, resampli
 from central.fastslam.aligned_map import AlignedMap
 from central.fastslam.config import FastSlamConfig
 from central.fastslam.core import FastSlam
+from robots.gaussian import sandwich2
 from robots.models import AckermannModel, RangeBearingSensor, UnicycleModel, integrate_controls, se2_compose
 from robots.simulator import simulate
 from schemas.contract import OdomEvent, ScanEvent
@@ -117,6 +118,36 @@ def test_weighted_pose_kernel_gives_the_reference_moments(moved):
         mean, cov = resampling.weighted_pose(pose, w)
     np.testing.assert_allclose(got[0], mean, atol=1e-12)
     np.testing.assert_allclose(got[1], 0.5 * (cov + cov.T), atol=1e-12)
+
+
+@pytest.mark.parametrize("offset", [(0.0, 0.0), (0.5, -0.3)])
+def test_create_kernel_puts_new_landmarks_where_the_reference_does(offset):
+    """New landmarks in every particle, into blocks the particles share and blocks not written yet: the kernel's
+    Gaussians are the inverse sensor model's (and G R Gᵀ), and the shared blocks' other landmarks are untouched."""
+    rng = np.random.default_rng(11)
+    sensor = RangeBearingSensor(offset=offset)
+    pose = rng.normal([0.0, 0.0, 0.5], [1.0, 1.0, 0.3], (40, 3))
+    z = np.array([[4.0, 0.3], [7.5, -1.0], [2.0, 2.5]])
+    r = np.array([[0.04, 0.001], [0.001, 0.002]])
+    maps = {}
+    for compiled in (True, False):
+        lmap = random_map(2)  # 12 slots in blocks of 4: the first new ones fill no block, the rest a fresh one
+        before = gaussians(lmap)
+        slots = lmap.allocate(3)
+        if compiled:
+            kernels.create(lmap, sensor, pose, slots, z, r)
+            lmap.register(slots, 1.0, 1, np.array([7, 8, 9]))
+        else:
+            _, g = sensor.inverse_jacobians(pose[:, None], z[None])
+            lmap.write(slots, sensor.inverse(pose[:, None], z[None]), sandwich2(g, r))
+            lmap.register(slots, 1.0, 1, np.array([7, 8, 9]))
+        maps[compiled] = lmap
+        for a, b in zip(before, lmap.gather(np.arange(40)[:, None], np.arange(12)[None])):
+            np.testing.assert_array_equal(a, b)
+    for a, b in zip(gaussians(maps[True]), gaussians(maps[False])):
+        np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-14)
+    assert maps[True].valid[12:15].all() and list(maps[True].label[12:15]) == [7, 8, 9]
+    assert np.ptp(gaussians(maps[True])[0][:, 12, 0]) > 0.5  # each particle's own
 
 
 @pytest.mark.parametrize("moved", [False, True])
