@@ -339,7 +339,8 @@ def refile_kernel(table, pool_mean, valid, blocks, block, cell, filed_state, fil
     low = np.empty((block, 2))
     high = np.empty((block, 2))
     for b in blocks:
-        low[:], high[:] = np.inf, -np.inf
+        for k in range(block):
+            low[k, 0], low[k, 1], high[k, 0], high[k, 1] = np.inf, np.inf, -np.inf, -np.inf
         for p in range(particles):  # the box of every particle's mean, slot by slot (a block is contiguous)
             phys = table[p, b]
             if phys < 0:
@@ -459,7 +460,7 @@ def marginal_map_kernel(w, pool_mean, pool_cov, table, rows, block, slots, point
     out_mean = np.empty((kept, 2))
     out_cov = np.zeros((kept, 2, 2))
     for n in range(kept):
-        out_mean[n] = means[keep[n]]
+        out_mean[n, 0], out_mean[n, 1] = means[keep[n], 0], means[keep[n], 1]
     for b in range(blocks.shape[0]):
         for j in range(holders[b]):
             wj, held = weight[b, j], phys[b, j]
@@ -486,16 +487,14 @@ def marginal_map(landmarks, w: np.ndarray, slots: np.ndarray, point: np.ndarray,
 
 
 @njit
-def _sandwich3(h, k, m):
-    """Rows ``(2, 2)`` of H_k M H_kᵀ for the 2 × 3 block ``h[k]`` and a 3 × 3 ``m``."""
-    out = np.empty((2, 2))
+def _sandwich3(h, k, m, out):
+    """``out`` ``(2, 2)`` = H_k M H_kᵀ for the 2 × 3 block ``h[k]`` and a 3 × 3 ``m``."""
     for i in range(2):
         t0 = h[k, i, 0] * m[0, 0] + h[k, i, 1] * m[1, 0] + h[k, i, 2] * m[2, 0]
         t1 = h[k, i, 0] * m[0, 1] + h[k, i, 1] * m[1, 1] + h[k, i, 2] * m[2, 1]
         t2 = h[k, i, 0] * m[0, 2] + h[k, i, 1] * m[1, 2] + h[k, i, 2] * m[2, 2]
         for j in range(2):
             out[i, j] = t0 * h[k, j, 0] + t1 * h[k, j, 1] + t2 * h[k, j, 2]
-    return out
 
 
 @njit
@@ -512,6 +511,7 @@ def shared_gating_kernel(pose, a, b, mean, cov, tentative, spread, drift, r, z):
     h_x = np.empty((count, 2, 3))
     own = np.empty((count, 2, 2))
     s_inv = np.empty((count, 2, 2))
+    pose_part, drift_part, total = np.empty((2, 2)), np.empty((2, 2)), np.empty((2, 2))
     for k in range(count):
         dx, dy = mean[k, 0] - px, mean[k, 1] - py
         zhat[k, 0] = math.hypot(dx, dy)
@@ -528,13 +528,12 @@ def shared_gating_kernel(pose, a, b, mean, cov, tentative, spread, drift, r, z):
         own[k, 0, 0] = t00 * h00 + t01 * h01
         own[k, 0, 1] = own[k, 1, 0] = t00 * h10 + t01 * h11
         own[k, 1, 1] = t10 * h10 + t11 * h11
-        pose_part = _sandwich3(h_x, k, spread)
-        total = np.empty((2, 2))
+        _sandwich3(h_x, k, spread, pose_part)
         for i in range(2):
             for j in range(2):
                 total[i, j] = own[k, i, j] + pose_part[i, j] + r[i, j]
         if not tentative[k]:
-            drift_part = _sandwich3(h_x, k, drift)
+            _sandwich3(h_x, k, drift, drift_part)
             for i in range(2):
                 for j in range(2):
                     total[i, j] += drift_part[i, j]
