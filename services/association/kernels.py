@@ -102,6 +102,7 @@ def jcbb_search(innovations, joint_blocks, noise, candidates, counts, order, bou
     saved for the next call. A unit is one multiply-add of a candidate's test, so a slice takes about as long
     whatever the size of the branch: the caller checks its clock between slices."""
     depth_count = order.shape[0]
+    scratch = np.empty((2 * depth_count, 2))  # b = L⁻¹ C_{H,n} of the candidate being tested
     depth, best_count, nodes, truncated = counters[0], counters[1], counters[2], counters[3] != 0
     best = best_d2[0]
     work = 0
@@ -138,29 +139,41 @@ def jcbb_search(innovations, joint_blocks, noise, candidates, counts, order, bou
             if used:
                 continue
             rows = 2 * k
-            stacked = np.empty((rows, 2))  # C_{H,n}
-            for j in range(k):
-                stacked[2 * j: 2 * j + 2, :] = joint_blocks[pair_n[j], n]
-            lower_hh = np.ascontiguousarray(lower[:rows, :rows])  # the product copies a strided block anyway
-            b = lower_hh @ stacked  # L⁻¹ C_{H,n}
-            schur = joint_blocks[n, n] + noise - b.T @ b
-            residual = innovations[m, n] - b.T @ white[:rows]
-            if schur[0, 0] <= 0.0:
+            btb00, btb01, btb11, bw0, bw1 = 0.0, 0.0, 0.0, 0.0, 0.0
+            for i in range(rows):  # b = L⁻¹ C_{H,n} (rows × 2), L⁻¹ lower triangular; bᵀ b and bᵀ w with it
+                b0, b1 = 0.0, 0.0
+                for j in range(i + 1):
+                    b0 += lower[i, j] * joint_blocks[pair_n[j >> 1], n, j & 1, 0]
+                    b1 += lower[i, j] * joint_blocks[pair_n[j >> 1], n, j & 1, 1]
+                scratch[i, 0], scratch[i, 1] = b0, b1
+                btb00, btb01, btb11 = btb00 + b0 * b0, btb01 + b0 * b1, btb11 + b1 * b1
+                bw0, bw1 = bw0 + b0 * white[i], bw1 + b1 * white[i]
+            schur00 = joint_blocks[n, n, 0, 0] + noise[0, 0] - btb00
+            schur10 = joint_blocks[n, n, 1, 0] + noise[1, 0] - btb01
+            schur11 = joint_blocks[n, n, 1, 1] + noise[1, 1] - btb11
+            if schur00 <= 0.0:
                 continue
-            l11 = math.sqrt(schur[0, 0])
-            l21 = schur[1, 0] / l11
-            rest = schur[1, 1] - l21 * l21
+            l11 = math.sqrt(schur00)
+            l21 = schur10 / l11
+            rest = schur11 - l21 * l21
             if rest <= 0.0:
                 continue
             l22 = math.sqrt(rest)
-            inv_lower = np.array([[1.0 / l11, 0.0], [-l21 / (l11 * l22), 1.0 / l22]])
-            u = inv_lower @ residual
-            d2_new = d2_at[k] + u[0] * u[0] + u[1] * u[1]
+            i00, i10, i11 = 1.0 / l11, -l21 / (l11 * l22), 1.0 / l22  # the inverse of [[l11, 0], [l21, l22]]
+            r0, r1 = innovations[m, n, 0] - bw0, innovations[m, n, 1] - bw1
+            u0, u1 = i00 * r0, i10 * r0 + i11 * r1
+            d2_new = d2_at[k] + u0 * u0 + u1 * u1
             if d2_new > bounds[k]:
                 continue
-            lower[rows:rows + 2, :rows] = -(inv_lower @ b.T) @ lower_hh
-            lower[rows:rows + 2, rows:rows + 2] = inv_lower
-            white[rows:rows + 2] = u
+            for c in range(rows):  # the new rows of L⁻¹: −(inv · bᵀ) L⁻¹
+                t0, t1 = 0.0, 0.0
+                for i in range(c, rows):
+                    t0 += i00 * scratch[i, 0] * lower[i, c]
+                    t1 += (i10 * scratch[i, 0] + i11 * scratch[i, 1]) * lower[i, c]
+                lower[rows, c], lower[rows + 1, c] = -t0, -t1
+            lower[rows, rows], lower[rows, rows + 1] = i00, 0.0
+            lower[rows + 1, rows], lower[rows + 1, rows + 1] = i10, i11
+            white[rows], white[rows + 1] = u0, u1
             pair_m[k], pair_n[k] = m, n
             d2_at[k + 1] = d2_new
             depth += 1
