@@ -10,6 +10,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import math
+
 import numpy as np
 
 TWO_PI = 2.0 * np.pi
@@ -271,6 +273,10 @@ class RangeBearingSensor:
         """Sensor position ``(..., 2)`` and its derivative with respect to θ."""
         pose = np.asarray(pose, float)
         a, b = self.offset
+        if pose.ndim == 1:  # one pose (a scan's association): the same arithmetic without the array machinery
+            c, s = math.cos(pose[2]), math.sin(pose[2])
+            return (np.array([pose[0] + a * c - b * s, pose[1] + a * s + b * c]),
+                    np.array([-a * s - b * c, a * c - b * s]))
         c, s = np.cos(pose[..., 2]), np.sin(pose[..., 2])
         position, d_theta = np.empty(c.shape + (2,)), np.empty(c.shape + (2,))
         position[..., 0], position[..., 1] = pose[..., 0] + a * c - b * s, pose[..., 1] + a * s + b * c

@@ -116,13 +116,16 @@ def associate(slam: FastSlam, robot: RobotState, z: np.ndarray, r: np.ndarray) -
         tentative = slam.map.hits[slots] < slam.config.confirm_hits
         zhat, h_x, own, nu, d2 = _gating(slam, robot, pose, mean, cov, tentative, spread, drift, r, z)
         gated = d2 < slam.gate
-        ambiguous = _ambiguous(slam, d2, gated, zhat, r)
-        gated[ambiguous] = False
-        slam.counts["detections_ambiguous"] += int(np.count_nonzero(ambiguous))
+        fresh = d2.min(1) > slam.new_gate
+        if slam.config.ambiguity_margin > 0.0:
+            ambiguous = _ambiguous(slam, d2, gated, zhat, r)
+            gated[ambiguous] = False
+            fresh &= ~ambiguous
+            slam.counts["detections_ambiguous"] += int(np.count_nonzero(ambiguous))
         rows, cols = _solve(slam, nu, gated, d2, h_x, own, spread + drift, r)
         ids[rows] = known[cols]
         unmatched = ids < 0
-        fresh = unmatched & (d2.min(1) > slam.new_gate) & ~ambiguous
+        fresh &= unmatched
         unmatched_count = int(np.count_nonzero(unmatched))
         slam.counts["detections_ignored"] += unmatched_count - int(np.count_nonzero(fresh))  # fresh ⊆ unmatched
         _age_tentative(slam, robot, known, slots, tentative, zhat, set(ids[rows].tolist()))
@@ -163,7 +166,7 @@ def _ambiguous(slam: FastSlam, d2: np.ndarray, gated: np.ndarray, zhat: np.ndarr
     the sensor's new-landmark gate) and nearly as likely (d² within ``ambiguity_margin``): left out rather than
     risk a wrong association, which every particle would share."""
     margin = slam.config.ambiguity_margin
-    if margin <= 0 or gated.shape[1] < 2:
+    if gated.shape[1] < 2:
         return np.zeros(gated.shape[0], bool)
     order = np.argsort(np.where(gated, d2, np.inf), axis=1)[:, :2]
     rows = np.arange(gated.shape[0])

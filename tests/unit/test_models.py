@@ -99,6 +99,18 @@ def test_pose_seeing_a_point_sees_it_as_observed(offset):
     np.testing.assert_allclose(wrap_angle(np.arctan2(at[:, 1], at[:, 0]) - directions), 0.0, atol=1e-12)
 
 
+def test_sensor_position_of_one_pose_is_the_stacks_own():
+    """One pose takes a scalar path: the same position and derivative, to the bit, as the same pose in a stack."""
+    sensor = RangeBearingSensor((0.3, -0.1))
+    poses = np.random.default_rng(4).uniform(-5.0, 5.0, (9, 3))
+    stacked = sensor.sensor_position(poses)
+    for k, pose in enumerate(poses):
+        one = sensor.sensor_position(pose)
+        assert one[0].shape == one[1].shape == (2,)
+        np.testing.assert_array_equal(one[0], stacked[0][k])
+        np.testing.assert_array_equal(one[1], stacked[1][k])
+
+
 def test_sensor_inverse_recovers_landmarks_vectorised():
     rng = np.random.default_rng(3)
     sensor = RangeBearingSensor((0.3, -0.1))
