@@ -226,7 +226,9 @@ def warm_up() -> None:
     """Compile (or load from the cache) the kernel on a tiny input (:func:`services.compiled.warm_up` times it)."""
     if AVAILABLE:
         jcbb_candidates(np.ones((1, 1), np.bool_), np.zeros((1, 1)))
+        bounds = np.full(1, 9.0)
+        bounds.flags.writeable = False  # as :func:`services.association.solvers.chi2_bounds` shares them
         jcbb_whole_kernel(np.zeros((1, 1, 2)), np.zeros((1, 1, 2, 2)), np.eye(2), np.ones((1, 1), np.bool_),
-                          np.zeros((1, 1)), np.full(1, 9.0), 100)
+                          np.zeros((1, 1)), bounds, 100)
         jcbb_kernel(np.zeros((1, 1, 2)), np.zeros((1, 1, 2, 2)), np.eye(2), np.zeros((1, 1), np.int64),
                     np.ones(1, np.int64), np.zeros(1, np.int64), np.full(1, 9.0), 100)
