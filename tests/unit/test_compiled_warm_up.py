@@ -30,7 +30,7 @@ def compiled_signatures() -> dict[str, int]:
 def test_a_run_without_ids_compiles_nothing_after_the_warm_up(estimator):
     warm_up()
     before = compiled_signatures()
-    data = simulate("arena", robots=2, seed=2, duration=20.0, clutter_rate=0.3)
+    data = simulate("arena", robots=2, seed=2, duration=12.0, clutter_rate=0.3)
     run = run_estimator(data, RunOptions(estimator=estimator, association="unknown", particles=30, seed=1, settings={}))
     assert run.events["scan"] > 100
     after = compiled_signatures()
