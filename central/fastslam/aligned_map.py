@@ -34,6 +34,7 @@ from central.fastslam import kernels
 BLOCK = 32  # slots per block: a scan's copies stay small, a table stays 1/32 of the map
 INDEX_CELLS_PER_RADIUS = 4  # the index's grid cell: a quarter of the first search's radius (a search reads about 100 cells)
 UNFILED, IN_CELL, WIDE = 0, 1, 2  # where the spatial index holds a slot
+_NO_SLOTS = np.zeros(0, np.int64)
 
 
 class SlotTable(dict):
@@ -347,19 +348,11 @@ class AlignedMap:
         if self.index_cell is None:
             self.index_cell = max(float(radius) / INDEX_CELLS_PER_RADIUS, 0.1)
         self._file_dirty()
-        cell = self.index_cell
-        point = np.asarray(point, float)
-        low = np.floor((point - radius - cell) / cell).astype(np.int64)
-        high = np.floor((point + radius + cell) / cell).astype(np.int64)
         # a slot's anchor lies within its spread (at most a cell) of any mixture of its particles' means: the cells
         # within radius + cell of the point hold every slot whose mixture may lie within the radius
-        slots = kernels.grid_candidates_kernel(low[0], low[1], high[0], high[1], self._bucket, self._following,
-                                               self._filed_state, self._filed_cell, self.valid, cell, point,
-                                               float(radius) + cell)
-        if self._wide:
-            wide = np.array(sorted(self._wide), np.int64)
-            slots = np.concatenate([slots, wide[self.valid[wide]]])
-        return slots[np.argsort(self.serial[slots], kind="stable")]
+        wide = np.array(sorted(self._wide), np.int64) if self._wide else _NO_SLOTS
+        return kernels.near_kernel(np.asarray(point, float), float(radius), float(self.index_cell), self._bucket,
+                                   self._following, self._filed_state, self._filed_cell, self.valid, wide, self.serial)
 
     def refile_slots(self, slots: np.ndarray, box: np.ndarray) -> None:
         """File ``slots`` again in the spatial index under ``box`` ``(m, 4)``, the box (low x, low y, high x, high y)

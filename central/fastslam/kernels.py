@@ -404,6 +404,25 @@ def grid_candidates_kernel(low_x, low_y, high_x, high_y, bucket, following, file
 
 
 @njit
+def near_kernel(point, radius, cell, bucket, following, filed_state, filed_cell, valid, wide, serial):
+    """:meth:`AlignedMap.near` in one call: the valid slots filed in the grid cells within ``radius`` + ``cell`` of
+    ``point`` (:func:`grid_candidates_kernel`), and the valid ones of ``wide``, in the order of their ``serial``."""
+    low_x, low_y = math.floor((point[0] - radius - cell) / cell), math.floor((point[1] - radius - cell) / cell)
+    high_x, high_y = math.floor((point[0] + radius + cell) / cell), math.floor((point[1] + radius + cell) / cell)
+    filed = grid_candidates_kernel(int(low_x), int(low_y), int(high_x), int(high_y), bucket, following, filed_state,
+                                   filed_cell, valid, cell, point, radius + cell)
+    slots = np.empty(filed.shape[0] + wide.shape[0], np.int64)
+    slots[:filed.shape[0]] = filed
+    count = filed.shape[0]
+    for slot in wide:
+        if valid[slot]:
+            slots[count] = slot
+            count += 1
+    slots = slots[:count]
+    return slots[np.argsort(serial[slots], kind="mergesort")]
+
+
+@njit
 def _block_weights(w, table, rows, blocks, position):
     """For each block ``blocks[b]``: the distinct physical blocks the particles ``rows`` hold there
     (``phys[b, :count[b]]``, in order of first holder) and the summed weight ``w`` of the rows holding each
