@@ -54,9 +54,12 @@ def test_association_refuses_oversize_at_once_cuts_at_the_deadline_and_answers_a
                                                                                               prefix):
     keys = Keys(prefix)
     stats = Collector(zsession, keys.stats("assoc"))
-    processes.start("assoc", "assoc", "--query-workers", "1", "--query-deadline-s", "1.5", "--stats-period-s", "0.3")
+    processes.start("assoc", "assoc", "--query-workers", "1", "--query-deadline-s", "1.5", "--stats-period-s", "0.3",
+                    "--max-jcbb-nodes", str(10**8))
     wait_until(lambda: stats.count() > 0, 60, what="the assoc service's stats")
-    slow = Asked(zsession, keys.assoc("jcbb"), encode(dense_request(150, 150)))  # holds the only worker 1.5 s
+    # holds the only worker 1.5 s: a node budget no search spends in that time, so the deadline is what cuts it
+    slow = Asked(zsession, keys.assoc("jcbb"),
+                 encode(dense_request(150, 150).model_copy(update={"jcbb_max_nodes": 10**8})))
     oversize = Asked(zsession, keys.assoc("exact"), encode(dense_request(800, 400)))  # (800 + 400)² cells
     small = encode(dense_request(5, 5))
     light = Asked(zsession, keys.assoc("auto"), small)  # as D-SLAM asks: the light lane, while the worker is held
