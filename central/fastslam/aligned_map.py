@@ -241,12 +241,12 @@ class AlignedMap:
         take a copy of each (:meth:`private`, or a kernel that copies one particle at a time). ``refile``: the
         blocks are filed again in the spatial index before the next search (False: the caller files the slots it
         changes, :meth:`refile_slots`)."""
-        blocks = np.unique(np.asarray(slots, np.int64) // self.block)
-        self._reserve_blocks(self.particles * blocks.size)
+        held = sorted({slot // self.block for slot in np.asarray(slots, np.int64).tolist()})  # a scan's few slots
+        self._reserve_blocks(self.particles * len(held))
         if refile:
-            self._dirty.update(blocks.tolist())
-        self.mixed.update(blocks.tolist())
-        return blocks
+            self._dirty.update(held)
+        self.mixed.update(held)
+        return np.array(held, np.int64)
 
     def private(self, slots: np.ndarray) -> None:
         """Give every particle a block of its own for each block holding one of ``slots`` (copy on write)."""
