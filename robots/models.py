@@ -8,9 +8,8 @@ Every filter of the project imports these; nothing else models a robot.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import math
+from dataclasses import dataclass
 
 import numpy as np
 

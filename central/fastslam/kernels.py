@@ -33,11 +33,11 @@ arrays of a few hundred 2 × 2 blocks, more than the arithmetic. Each kernel doe
   (:func:`central.fastslam.proposal.propose` then :func:`central.fastslam.association.update_known`;
   :func:`proposal_moments` gives the moments alone, against
   :func:`central.fastslam.proposal.proposal_moments_reference`, for the tests: the warm-up leaves it out).
+- :func:`vote_kernel`: the Hough vote of a blind robot's re-acquisition, every turn's binned shifts and the scores
+  of its best ones (:func:`central.fastslam.reacquire.vote_reference`, about 60 turns of a dozen numpy calls each).
 
 Inside the loops nothing is allocated and no sub-array is copied by slice: numba pays for each (a block's slice
 copy took a fifth of the FastSLAM 2.0 step at 1000 particles, the gating's per-landmark 2 × 2 arrays half its time).
-- :func:`vote_kernel`: the Hough vote of a blind robot's re-acquisition, every turn's binned shifts and the scores
-  of its best ones (:func:`central.fastslam.reacquire.vote_reference`, about 60 turns of a dozen numpy calls each).
 
 Each has a thin wrapper that takes the Python objects; ``FastSlamConfig.compiled`` chooses kernels or references.
 A robot's poses are a strided view of the (P, R, 3) particle poses when the filter holds several robots: the
@@ -203,18 +203,13 @@ def select_kernel(table, mixed, index, refs, free_blocks, free_count):
                 refs[held] += 1
             if held != old[index[0]]:
                 uniform[c] = False
-        for p in range(particles):
-            if old[p] >= 0:
-                refs[old[p]] -= 1
-        for p in range(particles):
+        for p in range(particles):  # the new holders are counted first: a block reaches 0 once, when freed
             held = old[p]
-            if held >= 0 and refs[held] == 0:
-                free_blocks[free_count[0]] = held
-                free_count[0] += 1
-                refs[held] = -1  # pushed once: marked until the column is done
-        for p in range(particles):
-            if old[p] >= 0 and refs[old[p]] == -1:
-                refs[old[p]] = 0
+            if held >= 0:
+                refs[held] -= 1
+                if refs[held] == 0:
+                    free_blocks[free_count[0]] = held
+                    free_count[0] += 1
     return uniform
 
 
@@ -935,9 +930,9 @@ def drift_condition_kernel(drift, h_x, noise):
             for j in range(3):
                 tmp[i, j] = i_kh[i, 0] * p[0, j] + i_kh[i, 1] * p[1, j] + i_kh[i, 2] * p[2, j]
         for i in range(3):
+            kr0 = gain[i, 0] * noise[n, 0, 0] + gain[i, 1] * noise[n, 1, 0]  # row i of K N
+            kr1 = gain[i, 0] * noise[n, 0, 1] + gain[i, 1] * noise[n, 1, 1]
             for j in range(3):
-                kr0 = gain[i, 0] * noise[n, 0, 0] + gain[i, 1] * noise[n, 1, 0]
-                kr1 = gain[i, 0] * noise[n, 0, 1] + gain[i, 1] * noise[n, 1, 1]
                 p[i, j] = tmp[i, 0] * i_kh[j, 0] + tmp[i, 1] * i_kh[j, 1] + tmp[i, 2] * i_kh[j, 2] \
                     + kr0 * gain[j, 0] + kr1 * gain[j, 1]
         for i in range(3):

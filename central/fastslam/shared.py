@@ -211,7 +211,7 @@ def joint_blocks(gated: np.ndarray, h_x: np.ndarray, own: np.ndarray, pose_cov: 
     h_x, own = h_x.take(reach, 0), own.take(reach, 0)
     count = own.shape[0]  # np.tensordot's own reshapes and product, without its checks
     joint = np.dot((h_x @ pose_cov).reshape(2 * count, 3), h_x.transpose(2, 0, 1).reshape(3, 2 * count))
-    joint = joint.reshape(count, 2, count, 2).transpose(0, 2, 1, 3).copy()
+    joint = joint.reshape(count, 2, count, 2).transpose(0, 2, 1, 3)
     diagonal = np.einsum("aaij->aij", joint)  # a writeable view of the blocks H_a P H_aᵀ
     diagonal += own
     return reach, joint
