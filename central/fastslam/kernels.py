@@ -467,14 +467,16 @@ def marginal_map_kernel(w, pool_mean, pool_cov, table, rows, block, slots, point
     local = np.searchsorted(blocks, slots // block)
     order = np.argsort(local, kind="mergesort")  # the slots block by block: start[b]..start[b + 1] in ``order``
     start = np.searchsorted(local[order], np.arange(blocks.shape[0] + 1))
+    offset = np.empty(count, np.int64)  # each slot's place in its block, in ``order``: divided once, not per holder
+    for n in range(count):
+        offset[n] = slots[order[n]] % block
     phys, weight, holders = _block_weights(w, table, rows, blocks, position)
     means = np.zeros((count, 2))
     for b in range(blocks.shape[0]):
         for j in range(holders[b]):
             wj, held = weight[b, j], phys[b, j]
             for n in range(start[b], start[b + 1]):
-                i = order[n]
-                k = slots[i] % block
+                i, k = order[n], offset[n]
                 means[i, 0] += wj * pool_mean[held, k, 0]
                 means[i, 1] += wj * pool_mean[held, k, 1]
     row_of = np.full(count, -1, np.int64)  # the output row of each kept slot, −1 for the others
@@ -488,14 +490,19 @@ def marginal_map_kernel(w, pool_mean, pool_cov, table, rows, block, slots, point
     out_cov = np.zeros((kept, 2, 2))
     for n in range(kept):
         out_mean[n, 0], out_mean[n, 1] = means[keep[n], 0], means[keep[n], 1]
+    kept_start = np.zeros(blocks.shape[0] + 1, np.int64)  # the kept slots block by block, in ``order``
+    kept_row, kept_offset = np.empty(kept, np.int64), np.empty(kept, np.int64)
+    for b in range(blocks.shape[0]):
+        kept_start[b + 1] = kept_start[b]
+        for q in range(start[b], start[b + 1]):
+            if row_of[order[q]] >= 0:
+                kept_row[kept_start[b + 1]], kept_offset[kept_start[b + 1]] = row_of[order[q]], offset[q]
+                kept_start[b + 1] += 1
     for b in range(blocks.shape[0]):
         for j in range(holders[b]):
             wj, held = weight[b, j], phys[b, j]
-            for q in range(start[b], start[b + 1]):
-                i = order[q]
-                n, k = row_of[i], slots[i] % block
-                if n < 0:
-                    continue
+            for q in range(kept_start[b], kept_start[b + 1]):
+                n, k = kept_row[q], kept_offset[q]
                 r0, r1 = pool_mean[held, k, 0] - out_mean[n, 0], pool_mean[held, k, 1] - out_mean[n, 1]
                 out_cov[n, 0, 0] += wj * (pool_cov[held, k, 0, 0] + r0 * r0)
                 out_cov[n, 0, 1] += wj * (pool_cov[held, k, 0, 1] + r0 * r1)
