@@ -26,7 +26,10 @@ def njit(function):
 
 @njit
 def wrap_angle(angle):
-    """An angle wrapped to [−π, π) inside a kernel: the floor form of :func:`robots.models.wrap_angle`."""
+    """An angle wrapped to [−π, π) inside a kernel: the floor form of :func:`robots.models.wrap_angle`. Within ±3
+    the floor is 0 whatever the rounding, so the angle itself is the same result, without the division."""
+    if -3.0 <= angle <= 3.0:
+        return angle
     return angle - 2.0 * math.pi * math.floor((angle + math.pi) / (2.0 * math.pi))
 
 
