@@ -74,6 +74,7 @@ def _particle_update(pool_mean, pool_cov, table, p, pose, a, b, places, z, r, lo
     c, s = math.cos(theta), math.sin(theta)
     px = pose[0] + a * c - b * s
     py = pose[1] + a * s + b * c
+    r00, r01, r10, r11 = r[0, 0], r[0, 1], r[1, 0], r[1, 1]  # read once: the stores below may alias any array
     for j in range(places.shape[0]):
         mean = pool_mean[table[p, places[j, 0]]]
         cov = pool_cov[table[p, places[j, 0]]]
@@ -88,10 +89,10 @@ def _particle_update(pool_mean, pool_cov, table, p, pose, a, b, places, z, r, lo
         t00, t01 = h00 * m00 + h01 * m01, h00 * m01 + h01 * m11
         t10, t11 = h10 * m00 + h11 * m01, h10 * m01 + h11 * m11
         cross = t00 * h10 + t01 * h11
-        s00 = t00 * h00 + t01 * h01 + r[0, 0]
-        s01 = cross + r[0, 1]
-        s10 = cross + r[1, 0]
-        s11 = t10 * h10 + t11 * h11 + r[1, 1]
+        s00 = t00 * h00 + t01 * h01 + r00
+        s01 = cross + r01
+        s10 = cross + r10
+        s11 = t10 * h10 + t11 * h11 + r11
         det = s00 * s11 - s01 * s10
         safe = det if abs(det) > 1e-300 else 1e-300
         i00, i01, i10, i11 = s11 / safe, -s01 / safe, -s10 / safe, s00 / safe
@@ -587,18 +588,20 @@ def shared_gating_kernel(pose, a, b, mean, cov, tentative, spread, drift, r, z):
 
 
 @njit
-def _particle_proposal(pool_mean, pool_cov, table, p, pose, cov, a, b, places, z, r, weighed, shift, scratch):
+def _particle_proposal(pool_mean, pool_cov, table, p, pose, cov, a, b, places, z, r, weighed, shift):
     """Particle ``p``'s FastSLAM 2.0 proposal: the Kalman update of its pose prior N(``pose``, ``cov``) by the
     detections ``z[j]`` of the landmarks at ``places[j]`` (:func:`_places`), all linearised at ``pose``, one
     detection after the other (with Q_j = H_m Σ_j H_mᵀ + R block diagonal this is the batch update exactly).
     ``cov`` becomes the posterior, ``shift`` the mean's offset; returns log N(ν; 0, H_x P H_xᵀ + Q) of the first
-    ``weighed`` detections, the particle's weight. ``scratch`` ``(2, 3, 2)``: work space for K and P H_xᵀ,
-    allocated once per scan."""
+    ``weighed`` detections, the particle's weight. The covariance, P H_xᵀ and the gain K live in local scalars
+    while the detections are folded in: as arrays, every store to one made the compiler load the others again."""
     theta = pose[2]
     c, s = math.cos(theta), math.sin(theta)
     px, py = pose[0] + a * c - b * s, pose[1] + a * s + b * c
     d_theta0, d_theta1 = -a * s - b * c, a * c - b * s
-    gain, ph = scratch[0], scratch[1]
+    c00, c01, c02 = cov[0, 0], cov[0, 1], cov[0, 2]
+    c10, c11, c12 = cov[1, 0], cov[1, 1], cov[1, 2]
+    c20, c21, c22 = cov[2, 0], cov[2, 1], cov[2, 2]
     x0, x1, x2 = 0.0, 0.0, 0.0
     log_weight = 0.0
     for j in range(places.shape[0]):
@@ -614,33 +617,40 @@ def _particle_proposal(pool_mean, pool_cov, table, p, pose, cov, a, b, places, z
         m00, m01, m11 = sigma[k, 0, 0], sigma[k, 0, 1], sigma[k, 1, 1]
         t00, t01 = h00 * m00 + h01 * m01, h00 * m01 + h01 * m11
         t10, t11 = h10 * m00 + h11 * m01, h10 * m01 + h11 * m11
-        for i in range(3):
-            ph[i, 0] = cov[i, 0] * g0 + cov[i, 1] * g1 + cov[i, 2] * g2
-            ph[i, 1] = cov[i, 0] * k0 + cov[i, 1] * k1 + cov[i, 2] * k2
-        s00 = g0 * ph[0, 0] + g1 * ph[1, 0] + g2 * ph[2, 0] + t00 * h00 + t01 * h01 + r[0, 0]
-        s01 = g0 * ph[0, 1] + g1 * ph[1, 1] + g2 * ph[2, 1] + t00 * h10 + t01 * h11 + r[0, 1]
-        s11 = k0 * ph[0, 1] + k1 * ph[1, 1] + k2 * ph[2, 1] + t10 * h10 + t11 * h11 + r[1, 1]
+        ph00, ph01 = c00 * g0 + c01 * g1 + c02 * g2, c00 * k0 + c01 * k1 + c02 * k2  # P H_xᵀ, row by row
+        ph10, ph11 = c10 * g0 + c11 * g1 + c12 * g2, c10 * k0 + c11 * k1 + c12 * k2
+        ph20, ph21 = c20 * g0 + c21 * g1 + c22 * g2, c20 * k0 + c21 * k1 + c22 * k2
+        s00 = g0 * ph00 + g1 * ph10 + g2 * ph20 + t00 * h00 + t01 * h01 + r[0, 0]
+        s01 = g0 * ph01 + g1 * ph11 + g2 * ph21 + t00 * h10 + t01 * h11 + r[0, 1]
+        s11 = k0 * ph01 + k1 * ph11 + k2 * ph21 + t10 * h10 + t11 * h11 + r[1, 1]
         det = s00 * s11 - s01 * s01
         safe = det if abs(det) > 1e-300 else 1e-300
         i00, i01, i11 = s11 / safe, -s01 / safe, s00 / safe
         e0 = z[j, 0] - distance - (g0 * x0 + g1 * x1 + g2 * x2)
         e1 = wrap_angle(z[j, 1] - wrap_angle(math.atan2(dy, dx) - theta)) - (k0 * x0 + k1 * x1 + k2 * x2)
-        for i in range(3):
-            gain[i, 0] = ph[i, 0] * i00 + ph[i, 1] * i01
-            gain[i, 1] = ph[i, 0] * i01 + ph[i, 1] * i11
-        x0 += gain[0, 0] * e0 + gain[0, 1] * e1
-        x1 += gain[1, 0] * e0 + gain[1, 1] * e1
-        x2 += gain[2, 0] * e0 + gain[2, 1] * e1
-        for i in range(3):
-            for l in range(3):
-                cov[i, l] -= gain[i, 0] * ph[l, 0] + gain[i, 1] * ph[l, 1]  # K H P = K (P Hᵀ)ᵀ
+        gain00, gain01 = ph00 * i00 + ph01 * i01, ph00 * i01 + ph01 * i11  # K = P H_xᵀ S⁻¹
+        gain10, gain11 = ph10 * i00 + ph11 * i01, ph10 * i01 + ph11 * i11
+        gain20, gain21 = ph20 * i00 + ph21 * i01, ph20 * i01 + ph21 * i11
+        x0 += gain00 * e0 + gain01 * e1
+        x1 += gain10 * e0 + gain11 * e1
+        x2 += gain20 * e0 + gain21 * e1
+        c00 -= gain00 * ph00 + gain01 * ph01  # P −= K H P = K (P Hᵀ)ᵀ
+        c01 -= gain00 * ph10 + gain01 * ph11
+        c02 -= gain00 * ph20 + gain01 * ph21
+        c10 -= gain10 * ph00 + gain11 * ph01
+        c11 -= gain10 * ph10 + gain11 * ph11
+        c12 -= gain10 * ph20 + gain11 * ph21
+        c20 -= gain20 * ph00 + gain21 * ph01
+        c21 -= gain20 * ph10 + gain21 * ph11
+        c22 -= gain20 * ph20 + gain21 * ph21
         if j < weighed:
             log_weight += -0.5 * (i00 * e0 * e0 + 2.0 * i01 * e0 * e1 + i11 * e1 * e1) \
                 - 0.5 * math.log(max(det, 1e-300)) - LOG_2PI
     shift[0], shift[1], shift[2] = x0, x1, x2
-    for i in range(3):
-        for l in range(i + 1, 3):
-            cov[i, l] = cov[l, i] = 0.5 * (cov[i, l] + cov[l, i])
+    cov[0, 0], cov[1, 1], cov[2, 2] = c00, c11, c22
+    cov[0, 1] = cov[1, 0] = 0.5 * (c01 + c10)
+    cov[0, 2] = cov[2, 0] = 0.5 * (c02 + c20)
+    cov[1, 2] = cov[2, 1] = 0.5 * (c12 + c21)
     return log_weight
 
 
@@ -652,12 +662,11 @@ def proposal_moments_kernel(pool_mean, pool_cov, table, block, pose, prior, a, b
     shift = np.zeros((count, 3))
     post = np.empty((count, 3, 3))
     log_weight = np.zeros(count)
-    scratch = np.empty((2, 3, 2))
     places = _places(slots, block)
     for p in range(count):
         post[p] = prior[p]
         log_weight[p] = _particle_proposal(pool_mean, pool_cov, table, p, pose[p], post[p], a, b, places, z, r,
-                                           slots.shape[0], shift[p], scratch)
+                                           slots.shape[0], shift[p])
     return shift, post, log_weight
 
 
@@ -676,7 +685,6 @@ def propose_kernel(pool_mean, pool_cov, table, block, refs, free_blocks, free_co
     of a separate kernel paid the misses."""
     cov = np.empty((3, 3))
     shift = np.empty(3)
-    scratch = np.empty((2, 3, 2))
     lower = np.zeros((3, 3))
     unused = np.empty(0)  # the updates' own likelihoods, not computed: the proposal weighs instead
     places = _places(slots, block)
@@ -702,7 +710,7 @@ def propose_kernel(pool_mean, pool_cov, table, block, refs, free_blocks, free_co
         cov[2, 2] = m22
         _private_particle(table, p, blocks, refs, pool_mean, pool_cov, free_blocks, free_count)
         log_weight[p] = _particle_proposal(pool_mean, pool_cov, table, p, pose[p], cov, a, b, places, z, r, weighed,
-                                           shift, scratch)
+                                           shift)
         for i in range(3):
             cov[i, i] += jitter
         for j in range(3):  # Cholesky, lower
