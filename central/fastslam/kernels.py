@@ -460,9 +460,9 @@ def marginal_map_kernel(w, pool_mean, pool_cov, table, rows, block, slots, point
     """(kept rows of ``slots``, means ``(k, 2)``, covariances ``(k, 2, 2)``): the mixture over particles ``rows``
     (weights ``w``) of each landmark slot whose weighted mean lies within ``radius`` of ``point`` (the weighted
     covariances plus the spread of the means). Particles sharing a block share its Gaussians: each distinct block
-    is read once, with the summed weight of its holders, so the cost follows the blocks of ``slots``, not
+    is read, with the summed weight of its holders, so the cost follows the blocks of ``slots``, not
     particles × landmarks, nor the size of the map; each slot sums its holders in the order of their first
-    holder. ``position`` is :func:`_block_weights`' scratch."""
+    holder, in local scalars. ``position`` is :func:`_block_weights`' scratch."""
     count = slots.shape[0]
     blocks = np.unique(slots // block)
     local = np.searchsorted(blocks, slots // block)
@@ -472,14 +472,15 @@ def marginal_map_kernel(w, pool_mean, pool_cov, table, rows, block, slots, point
     for n in range(count):
         offset[n] = slots[order[n]] % block
     phys, weight, holders = _block_weights(w, table, rows, blocks, position)
-    means = np.zeros((count, 2))
-    for b in range(blocks.shape[0]):
-        for j in range(holders[b]):
-            wj, held = weight[b, j], phys[b, j]
-            for n in range(start[b], start[b + 1]):
-                i, k = order[n], offset[n]
-                means[i, 0] += wj * pool_mean[held, k, 0]
-                means[i, 1] += wj * pool_mean[held, k, 1]
+    means = np.empty((count, 2))
+    for b in range(blocks.shape[0]):  # slot by slot, its holders summed in local scalars
+        for n in range(start[b], start[b + 1]):
+            k, m0, m1 = offset[n], 0.0, 0.0
+            for j in range(holders[b]):
+                wj, held = weight[b, j], phys[b, j]
+                m0 += wj * pool_mean[held, k, 0]
+                m1 += wj * pool_mean[held, k, 1]
+            means[order[n], 0], means[order[n], 1] = m0, m1
     row_of = np.full(count, -1, np.int64)  # the output row of each kept slot, −1 for the others
     kept = 0
     for i in range(count):
@@ -488,7 +489,7 @@ def marginal_map_kernel(w, pool_mean, pool_cov, table, rows, block, slots, point
             kept += 1
     keep = np.flatnonzero(row_of >= 0)
     out_mean = np.empty((kept, 2))
-    out_cov = np.zeros((kept, 2, 2))
+    out_cov = np.empty((kept, 2, 2))
     for n in range(kept):
         out_mean[n, 0], out_mean[n, 1] = means[keep[n], 0], means[keep[n], 1]
     kept_start = np.zeros(blocks.shape[0] + 1, np.int64)  # the kept slots block by block, in ``order``
@@ -500,15 +501,18 @@ def marginal_map_kernel(w, pool_mean, pool_cov, table, rows, block, slots, point
                 kept_row[kept_start[b + 1]], kept_offset[kept_start[b + 1]] = row_of[order[q]], offset[q]
                 kept_start[b + 1] += 1
     for b in range(blocks.shape[0]):
-        for j in range(holders[b]):
-            wj, held = weight[b, j], phys[b, j]
-            for q in range(kept_start[b], kept_start[b + 1]):
-                n, k = kept_row[q], kept_offset[q]
-                r0, r1 = pool_mean[held, k, 0] - out_mean[n, 0], pool_mean[held, k, 1] - out_mean[n, 1]
-                out_cov[n, 0, 0] += wj * (pool_cov[held, k, 0, 0] + r0 * r0)
-                out_cov[n, 0, 1] += wj * (pool_cov[held, k, 0, 1] + r0 * r1)
-                out_cov[n, 1, 0] += wj * (pool_cov[held, k, 1, 0] + r0 * r1)
-                out_cov[n, 1, 1] += wj * (pool_cov[held, k, 1, 1] + r1 * r1)
+        for q in range(kept_start[b], kept_start[b + 1]):
+            n, k = kept_row[q], kept_offset[q]
+            mean0, mean1 = out_mean[n, 0], out_mean[n, 1]
+            v00, v01, v10, v11 = 0.0, 0.0, 0.0, 0.0
+            for j in range(holders[b]):
+                wj, held = weight[b, j], phys[b, j]
+                r0, r1 = pool_mean[held, k, 0] - mean0, pool_mean[held, k, 1] - mean1
+                v00 += wj * (pool_cov[held, k, 0, 0] + r0 * r0)
+                v01 += wj * (pool_cov[held, k, 0, 1] + r0 * r1)
+                v10 += wj * (pool_cov[held, k, 1, 0] + r0 * r1)
+                v11 += wj * (pool_cov[held, k, 1, 1] + r1 * r1)
+            out_cov[n, 0, 0], out_cov[n, 0, 1], out_cov[n, 1, 0], out_cov[n, 1, 1] = v00, v01, v10, v11
     return keep, out_mean, out_cov
 
 
