@@ -217,51 +217,53 @@ def select_kernel(table, mixed, index, refs, free_blocks, free_count):
 @njit
 def weighted_pose_kernel(pose, w, delta, delta_cov, moved):
     """(mean, covariance) of poses ``(P, 3)`` under weights ``w``; with ``moved``, of every pose ⊕ ``delta``, the
-    covariance plus the weighted J_p Σ_Δ J_pᵀ (J_p: the composition's Jacobian in the increment)."""
+    covariance plus the weighted J_p Σ_Δ J_pᵀ (J_p: the composition's Jacobian in the increment). Sums are kept in
+    local scalars, in particle order."""
     count = pose.shape[0]
     moved_pose = np.empty((count, 3))
-    extra = np.zeros((3, 3))
+    e00, e01, e02, e10, e11, e12, e20, e21, e22 = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
     q00, q01, q02 = delta_cov[0, 0], delta_cov[0, 1], delta_cov[0, 2]
     q10, q11, q12 = delta_cov[1, 0], delta_cov[1, 1], delta_cov[1, 2]
     q20, q21, q22 = delta_cov[2, 0], delta_cov[2, 1], delta_cov[2, 2]
+    dx, dy, dtheta = delta[0], delta[1], delta[2]
+    sum_sin, sum_cos, mean_x, mean_y = 0.0, 0.0, 0.0, 0.0
     for p in range(count):
         x, y, theta = pose[p, 0], pose[p, 1], pose[p, 2]
+        wp = w[p]
         if moved:
-            wp = w[p]
             c, s = math.cos(theta), math.sin(theta)  # J = [[c, −s, 0], [s, c, 0], [0, 0, 1]]
             a00, a01, a02 = c * q00 - s * q10, c * q01 - s * q11, c * q02 - s * q12  # rows of J Σ
             a10, a11, a12 = s * q00 + c * q10, s * q01 + c * q11, s * q02 + c * q12
-            extra[0, 0] += wp * (a00 * c - a01 * s)
-            extra[0, 1] += wp * (a00 * s + a01 * c)
-            extra[0, 2] += wp * a02
-            extra[1, 0] += wp * (a10 * c - a11 * s)
-            extra[1, 1] += wp * (a10 * s + a11 * c)
-            extra[1, 2] += wp * a12
-            extra[2, 0] += wp * (q20 * c - q21 * s)
-            extra[2, 1] += wp * (q20 * s + q21 * c)
-            extra[2, 2] += wp * q22
-            x, y, theta = x + c * delta[0] - s * delta[1], y + s * delta[0] + c * delta[1], wrap_angle(theta + delta[2])
+            e00 += wp * (a00 * c - a01 * s)
+            e01 += wp * (a00 * s + a01 * c)
+            e02 += wp * a02
+            e10 += wp * (a10 * c - a11 * s)
+            e11 += wp * (a10 * s + a11 * c)
+            e12 += wp * a12
+            e20 += wp * (q20 * c - q21 * s)
+            e21 += wp * (q20 * s + q21 * c)
+            e22 += wp * q22
+            x, y, theta = x + c * dx - s * dy, y + s * dx + c * dy, wrap_angle(theta + dtheta)
         moved_pose[p, 0], moved_pose[p, 1], moved_pose[p, 2] = x, y, theta
-    sum_sin, sum_cos, mean_x, mean_y = 0.0, 0.0, 0.0, 0.0
-    for p in range(count):
-        sum_sin += w[p] * math.sin(moved_pose[p, 2])
-        sum_cos += w[p] * math.cos(moved_pose[p, 2])
-        mean_x += w[p] * moved_pose[p, 0]
-        mean_y += w[p] * moved_pose[p, 1]
+        sum_sin += wp * math.sin(theta)
+        sum_cos += wp * math.cos(theta)
+        mean_x += wp * x
+        mean_y += wp * y
     mean = np.array([mean_x, mean_y, math.atan2(sum_sin, sum_cos)])
-    cov = np.zeros((3, 3))
+    mean_theta = mean[2]
+    v00, v01, v02, v11, v12, v22 = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
     for p in range(count):
-        d0, d1 = moved_pose[p, 0] - mean[0], moved_pose[p, 1] - mean[1]
-        d2 = wrap_angle(moved_pose[p, 2] - mean[2])
+        d0, d1 = moved_pose[p, 0] - mean_x, moved_pose[p, 1] - mean_y
+        d2 = wrap_angle(moved_pose[p, 2] - mean_theta)
         wp = w[p]
-        cov[0, 0] += wp * d0 * d0
-        cov[0, 1] += wp * d0 * d1
-        cov[0, 2] += wp * d0 * d2
-        cov[1, 1] += wp * d1 * d1
-        cov[1, 2] += wp * d1 * d2
-        cov[2, 2] += wp * d2 * d2
-    cov[1, 0], cov[2, 0], cov[2, 1] = cov[0, 1], cov[0, 2], cov[1, 2]
-    cov += extra
+        v00 += wp * d0 * d0
+        v01 += wp * d0 * d1
+        v02 += wp * d0 * d2
+        v11 += wp * d1 * d1
+        v12 += wp * d1 * d2
+        v22 += wp * d2 * d2
+    cov = np.array([[v00 + e00, v01 + e01, v02 + e02], [v01 + e10, v11 + e11, v12 + e12],
+                    [v02 + e20, v12 + e21, v22 + e22]])
     return mean, 0.5 * (cov + cov.T)
 
 
