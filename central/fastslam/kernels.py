@@ -19,6 +19,8 @@ arrays of a few hundred 2 × 2 blocks, more than the arithmetic. Each kernel doe
   reference counts (:meth:`~central.fastslam.aligned_map.AlignedMap.select`);
 - :func:`create`: new landmarks where the scan's detections put them, in each particle's copy of their blocks
   (:func:`central.fastslam.association.create_known`);
+- :func:`association_draw_kernel`: the particles the association's mixtures come from, drawn by weight, with
+  their shares (the systematic draw and run count in :func:`central.fastslam.shared.marginal_map`);
 - :func:`marginal_map`: the landmarks' particle mixtures near the robot (:func:`central.fastslam.shared.marginal_map`),
   reading only the blocks of the candidates the map's spatial index gives (:func:`refile_kernel` files the slots
   of the blocks written otherwise, :func:`refile_slots_kernel` those the FastSLAM 2.0 step updated,
@@ -447,6 +449,37 @@ def near_kernel(point, radius, cell, bucket, following, filed_state, filed_cell,
             count += 1
     slots = slots[:count]
     return slots[np.argsort(serial[slots], kind="mergesort")]
+
+
+@njit
+def association_draw_kernel(w, total, count, offset):
+    """(distinct rows ``(k,)``, their shares ``(k,)``) of ``count`` systematic draws by weight ``w`` (summed to
+    ``total`` by the caller, as numpy sums) at the fixed ``offset``: the same rows and shares as
+    :func:`robots.gaussian.systematic_resample` (its cumulative sum, last entry 1, and right-sided search) followed
+    by the run count of the sorted draw, in one pass over the weights instead of half a dozen numpy calls."""
+    size = w.shape[0]
+    rows = np.empty(count, np.int64)
+    shares = np.empty(count)
+    kept, row, cdf = 0, 0, w[0] / total
+    if size == 1:
+        cdf = 1.0
+    run = 0
+    for i in range(count):
+        point = (offset + i) / count
+        while row < size - 1 and cdf <= point:
+            row += 1
+            cdf = 1.0 if row == size - 1 else cdf + w[row] / total
+        if run > 0 and rows[kept - 1] == row:
+            run += 1
+            continue
+        if run > 0:
+            shares[kept - 1] = run / count
+        rows[kept] = row
+        kept += 1
+        run = 1
+    if run > 0:
+        shares[kept - 1] = run / count
+    return rows[:kept], shares[:kept]
 
 
 @njit
@@ -1048,6 +1081,7 @@ def warm_up() -> None:
     landmarks.select(np.array([1, 0]))
     landmarks.near(np.zeros(2), 10.0)  # files the written blocks and searches: the index's kernels
     keep, mean, cov = marginal_map(landmarks, weights, slots, np.zeros(2), 10.0)
+    association_draw_kernel(weights, 1.0, 1, 0.5)
     shared_gating_kernel(np.zeros(3), 0.0, 0.0, mean, cov, np.zeros(keep.size, np.bool_), np.eye(3), np.eye(3),
                          np.eye(2), np.array([[3.0, 0.0]]))
     propose(landmarks, RangeBearingSensor(), pose, np.zeros(3), np.eye(3) * 0.01, slots,
@@ -1060,7 +1094,7 @@ def warm_up() -> None:
     joint_blocks_kernel(np.ones((1, 1), np.bool_), h_x, np.ones((1, 2, 2)), drift)
 
 
-__all__ = ["AVAILABLE", "create", "drift_accumulate", "drift_condition", "integrate_controls", "joint_blocks_kernel",
+__all__ = ["association_draw_kernel", "AVAILABLE", "create", "drift_accumulate", "drift_condition", "integrate_controls", "joint_blocks_kernel",
            "known_update", "marginal_map", "near_kernel", "pose_belief_kernel", "private_blocks", "propose",
            "proposal_moments", "refile_slots_kernel", "select_kernel", "shared_gating_kernel", "vote", "warm_up",
            "weighted_pose"]

@@ -52,9 +52,13 @@ def marginal_map(slam: FastSlam, near: tuple[np.ndarray, float] | None = None
     rows = None  # every particle
     cap = slam.config.association_particles
     if near is not None and 0 < cap < w.size:  # the association's mixtures: from ``cap`` particles drawn by weight
-        drawn = systematic_resample(w, cap, None, offset=0.5)  # sorted: its runs are np.unique's counts
-        first = np.flatnonzero(np.concatenate(([True], drawn[1:] != drawn[:-1])))
-        rows, w = drawn[first], np.diff(np.append(first, cap)) / cap
+        total = float(w.sum())
+        if slam.config.compiled and 0.0 < total < math.inf:
+            rows, w = kernels.association_draw_kernel(w, total, cap, 0.5)
+        else:
+            drawn = systematic_resample(w, cap, None, offset=0.5)  # sorted: its runs are np.unique's counts
+            first = np.flatnonzero(np.concatenate(([True], drawn[1:] != drawn[:-1])))
+            rows, w = drawn[first], np.diff(np.append(first, cap)) / cap
     if slam.config.compiled and near is not None:
         point, radius = np.asarray(near[0], float), float(near[1])
         slots = slam.map.near(point, radius)

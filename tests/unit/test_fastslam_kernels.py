@@ -11,7 +11,7 @@ from central.fastslam import association, kernels, proposal, reacquire, resampli
 from central.fastslam.aligned_map import AlignedMap
 from central.fastslam.config import FastSlamConfig
 from central.fastslam.core import FastSlam
-from robots.gaussian import sandwich2
+from robots.gaussian import sandwich2, systematic_resample
 from robots.models import AckermannModel, RangeBearingSensor, UnicycleModel, integrate_controls, se2_compose
 from robots.simulator import simulate
 from schemas.contract import OdomEvent, ScanEvent
@@ -205,6 +205,22 @@ def test_joint_blocks_kernel_gives_the_reference_blocks():
     assert 4 not in reach and reach.size == expected_reach.size > 2
     np.testing.assert_array_equal(reach, expected_reach)
     np.testing.assert_allclose(joint, expected_joint, rtol=1e-12, atol=1e-14)
+
+
+@pytest.mark.parametrize("size, count", [(1, 5), (4, 2), (7, 3), (400, 50), (1000, 200), (50, 200)])
+def test_association_draw_kernel_gives_the_systematic_draw_and_its_runs(size, count):
+    rng = np.random.default_rng(size + count)
+    for trial in range(20):
+        w = rng.random(size) ** (1 + 10 * trial) if trial else np.ones(size)  # even (draws on the steps) to one heavy
+        if trial % 5 == 4:
+            w[rng.random(size) < 0.5] = 0.0
+            w[0] = max(w[0], 1e-3)
+        w = w / w.sum()
+        drawn = systematic_resample(w, count, None, offset=0.5)
+        first = np.flatnonzero(np.concatenate(([True], drawn[1:] != drawn[:-1])))
+        rows, shares = kernels.association_draw_kernel(w, float(w.sum()), count, 0.5)
+        np.testing.assert_array_equal(rows, drawn[first])
+        assert np.array_equal(shares, np.diff(np.append(first, count)) / count)  # bit for bit
 
 
 def test_marginal_map_and_gating_kernels_give_the_reference_on_a_run():
