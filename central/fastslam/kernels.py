@@ -588,10 +588,12 @@ def _sandwich3(h, k, m, out):
 
 
 @njit
-def shared_gating_kernel(pose, a, b, mean, cov, tentative, spread, drift, r, z):
-    """(ẑ ``(K, 2)``, H_x ``(K, 2, 3)``, H_m Σ H_mᵀ ``(K, 2, 2)``, ν ``(m, K, 2)``, d² ``(m, K)``) of detections
-    ``z`` against landmarks (``mean``, ``cov``) seen from the robot's mean ``pose``: S = H_m Σ H_mᵀ + H_x P H_xᵀ +
-    R, plus H_x D H_xᵀ (drift) for the confirmed ones; (a, b) is the sensor's offset."""
+def shared_gating_kernel(pose, a, b, mean, cov, tentative, spread, drift, r, z, gate, new_gate, view):
+    """(ẑ ``(K, 2)``, H_x ``(K, 2, 3)``, H_m Σ H_mᵀ ``(K, 2, 2)``, ν ``(m, K, 2)``, d² ``(m, K)``, gated
+    ``(m, K)``, fresh ``(m,)``, tentative in view ``(K,)``) of detections ``z`` against landmarks (``mean``,
+    ``cov``) seen from the robot's mean ``pose``: S = H_m Σ H_mᵀ + H_x P H_xᵀ + R, plus H_x D H_xᵀ (drift) for the
+    confirmed ones; (a, b) is the sensor's offset. Gated: d² < ``gate``; fresh: every d² > ``new_gate``; in view:
+    ẑ within ``view`` = (min range, max range, half the field of view)."""
     count = mean.shape[0]
     theta = pose[2]
     c, s = math.cos(theta), math.sin(theta)
@@ -633,13 +635,21 @@ def shared_gating_kernel(pose, a, b, mean, cov, tentative, spread, drift, r, z):
         s_inv[k, 1, 0], s_inv[k, 1, 1] = -total[1, 0] / safe, total[0, 0] / safe
     nu = np.empty((z.shape[0], count, 2))
     d2 = np.empty((z.shape[0], count))
+    gated = np.empty((z.shape[0], count), np.bool_)
+    fresh = np.empty(z.shape[0], np.bool_)
     for i in range(z.shape[0]):
+        fresh[i] = True
         for k in range(count):
             n0 = z[i, 0] - zhat[k, 0]
             n1 = wrap_angle(z[i, 1] - zhat[k, 1])
             nu[i, k, 0], nu[i, k, 1] = n0, n1
             d2[i, k] = s_inv[k, 0, 0] * n0 * n0 + (s_inv[k, 0, 1] + s_inv[k, 1, 0]) * n0 * n1 + s_inv[k, 1, 1] * n1 * n1
-    return zhat, h_x, own, nu, d2
+            gated[i, k] = d2[i, k] < gate
+            fresh[i] = fresh[i] and d2[i, k] > new_gate
+    in_view = np.empty(count, np.bool_)
+    for k in range(count):
+        in_view[k] = tentative[k] and view[0] < zhat[k, 0] < view[1] and abs(zhat[k, 1]) < view[2]
+    return zhat, h_x, own, nu, d2, gated, fresh, in_view
 
 
 @njit
@@ -1083,7 +1093,7 @@ def warm_up() -> None:
     keep, mean, cov = marginal_map(landmarks, weights, slots, np.zeros(2), 10.0)
     association_draw_kernel(weights, 1.0, 1, 0.5)
     shared_gating_kernel(np.zeros(3), 0.0, 0.0, mean, cov, np.zeros(keep.size, np.bool_), np.eye(3), np.eye(3),
-                         np.eye(2), np.array([[3.0, 0.0]]))
+                         np.eye(2), np.array([[3.0, 0.0]]), 9.2, 13.8, np.array([0.0, 10.0, 1.0]))
     propose(landmarks, RangeBearingSensor(), pose, np.zeros(3), np.eye(3) * 0.01, slots,
             np.array([[3.0, 0.0], [3.1, 0.3]]), np.eye(2) * 0.01, 1, np.zeros((2, 3)), 1e-12, 1.0, 6.0)
     vote(np.array([[0.0, 0.0], [1.0, 0.0]]), np.array([1, 2]), np.array([[0.1, 0.0], [1.1, 0.1]]), np.zeros(2),

@@ -118,9 +118,8 @@ def associate(slam: FastSlam, robot: RobotState, z: np.ndarray, r: np.ndarray) -
         # tentative landmarks were seen from about the present drift: they are gated without it, so clutter
         # does not confirm them by falling into a gate widened for old landmarks
         tentative = slam.map.hits[slots] < slam.config.confirm_hits
-        zhat, h_x, own, nu, d2 = _gating(slam, robot, pose, mean, cov, tentative, spread, drift, r, z)
-        gated = d2 < slam.gate
-        fresh = d2.min(1) > slam.new_gate
+        zhat, h_x, own, nu, d2, gated, fresh, in_view = _gating(slam, robot, pose, mean, cov, tentative, spread, drift,
+                                                                r, z)
         if slam.config.ambiguity_margin > 0.0:
             ambiguous = _ambiguous(slam, d2, gated, zhat, r)
             gated[ambiguous] = False
@@ -132,7 +131,7 @@ def associate(slam: FastSlam, robot: RobotState, z: np.ndarray, r: np.ndarray) -
         fresh &= unmatched
         unmatched_count = int(np.count_nonzero(unmatched))
         slam.counts["detections_ignored"] += unmatched_count - int(np.count_nonzero(fresh))  # fresh ⊆ unmatched
-        _age_tentative(slam, robot, known, slots, tentative, zhat, set(ids[rows].tolist()))
+        _age_tentative(slam, known, slots, in_view, set(ids[rows].tolist()))
     else:
         fresh, unmatched_count = np.ones(m, bool), m
     if rows_matched := m - unmatched_count:
@@ -150,11 +149,17 @@ def associate(slam: FastSlam, robot: RobotState, z: np.ndarray, r: np.ndarray) -
 
 
 def _gating(slam: FastSlam, robot: RobotState, pose, mean, cov, tentative, spread, drift, r, z) -> tuple:
-    """(ẑ, H_x, H_m Σ H_mᵀ, ν, d²) of the detections against the landmark mixtures, S = H_m Σ H_mᵀ + H_x P H_xᵀ +
-    R (+ H_x D H_xᵀ for confirmed landmarks): by the kernel, or by this numpy reference."""
+    """(ẑ, H_x, H_m Σ H_mᵀ, ν, d², gated, fresh, in view) of the detections against the landmark mixtures,
+    S = H_m Σ H_mᵀ + H_x P H_xᵀ + R (+ H_x D H_xᵀ for confirmed landmarks): a pair is gated within the gate, a
+    detection fresh outside every landmark's new-landmark gate, and the tentative landmarks whose predicted
+    detection lies in the sensor's view are those a scan may count a miss for. By the kernel, or by this numpy
+    reference."""
+    spec = robot.info.sensor
     if slam.config.compiled:
         a, b = robot.sensor.offset
-        return kernels.shared_gating_kernel(pose, float(a), float(b), mean, cov, tentative, spread, drift, r, z)
+        view = np.array([spec.min_range, spec.max_range, 0.5 * spec.fov])
+        return kernels.shared_gating_kernel(pose, float(a), float(b), mean, cov, tentative, spread, drift, r, z,
+                                            slam.gate, slam.new_gate, view)
     zhat = robot.sensor.observe(pose, mean)
     h_x, h_m = robot.sensor.jacobians(np.broadcast_to(pose, (mean.shape[0], 3)), mean)
     own = sandwich2(h_m, cov)
@@ -162,7 +167,8 @@ def _gating(slam: FastSlam, robot: RobotState, pose, mean, cov, tentative, sprea
     nu = z[:, None, :] - zhat[None]
     nu[..., 1] = wrap_angle(nu[..., 1])
     d2 = quad2(nu, inv2(s)[0][None])
-    return zhat, h_x, own, nu, d2
+    in_view = (zhat[:, 0] < spec.max_range) & (zhat[:, 0] > spec.min_range) & (np.abs(zhat[:, 1]) < 0.5 * spec.fov)
+    return zhat, h_x, own, nu, d2, d2 < slam.gate, d2.min(1) > slam.new_gate, in_view & tentative
 
 
 def _ambiguous(slam: FastSlam, d2: np.ndarray, gated: np.ndarray, zhat: np.ndarray, r: np.ndarray) -> np.ndarray:
@@ -221,14 +227,10 @@ def joint_blocks(gated: np.ndarray, h_x: np.ndarray, own: np.ndarray, pose_cov: 
     return reach, joint
 
 
-def _age_tentative(slam: FastSlam, robot: RobotState, ids: np.ndarray, slots: np.ndarray, tentative: np.ndarray,
-                   zhat: np.ndarray, seen: set) -> None:
-    """Count a miss for each ``tentative`` landmark inside the sensor's view and not seen; drop those missed
-    ``tentative_misses`` times."""
-    spec = robot.info.sensor
-    inside = (zhat[:, 0] < spec.max_range) & (zhat[:, 0] > spec.min_range) & (np.abs(zhat[:, 1]) < 0.5 * spec.fov)
-    inside &= tentative
-    for lid, slot in zip(ids[inside].tolist(), slots[inside].tolist()):
+def _age_tentative(slam: FastSlam, ids: np.ndarray, slots: np.ndarray, in_view: np.ndarray, seen: set) -> None:
+    """Count a miss for each tentative landmark in the sensor's view (``in_view``, :func:`_gating`) and not seen;
+    drop those missed ``tentative_misses`` times."""
+    for lid, slot in zip(ids[in_view].tolist(), slots[in_view].tolist()):
         if lid in seen:
             continue
         misses = slam.tentative_misses.get(lid, 0) + 1

@@ -240,17 +240,23 @@ def test_marginal_map_and_gating_kernels_give_the_reference_on_a_run():
     robot = slam.robots["r1"]
     _, _, mean, cov = results[True]
     rng = np.random.default_rng(0)
-    tentative = rng.random(mean.shape[0]) < 0.3
-    pose, spread, drift = np.array([point[0] - 1.0, point[1], 0.4]), np.diag([0.1, 0.2, 0.05]), np.diag([0.3, 0.3, 0.01])
-    z = np.column_stack([rng.uniform(0.5, 5.0, 5), rng.uniform(-3.0, 3.0, 5)])
+    tentative = np.arange(mean.shape[0]) % 2 == 0
+    pose, spread, drift = np.array([point[0] - 1.0, point[1], -0.2]), np.diag([0.1, 0.2, 0.05]), np.diag([0.3, 0.3, 0.01])
+    z = np.vstack([np.column_stack([rng.uniform(0.5, 5.0, 5), rng.uniform(-3.0, 3.0, 5)]), [[12.0, 0.0]]])  # the last: fresh
     r = np.diag([0.01, 0.002])
-    gating = {}
-    for compiled in (True, False):
-        slam.config = slam.config.model_copy(update={"compiled": compiled})
-        gating[compiled] = shared._gating(slam, robot, pose, mean, cov, tentative, spread, drift, r, z)
-    assert np.ptp(gating[False][4]) > 10.0
-    for got, expected in zip(gating[True], gating[False]):
-        np.testing.assert_allclose(got, expected, rtol=1e-10, atol=1e-12)
+    for flags in (tentative, ~tentative):  # the landmark in view is tentative, then not
+        gating = {}
+        for compiled in (True, False):
+            slam.config = slam.config.model_copy(update={"compiled": compiled})
+            gating[compiled] = shared._gating(slam, robot, pose, mean, cov, flags, spread, drift, r, z)
+        assert np.ptp(gating[False][4]) > 10.0
+        for got, expected in zip(gating[True][:5], gating[False][:5]):
+            np.testing.assert_allclose(got, expected, rtol=1e-10, atol=1e-12)
+        gated, fresh, in_view = gating[False][5:]
+        assert gated.any() and not gated.all() and fresh.any() and not in_view.all()
+        assert in_view.any() == (flags is tentative)
+        for got, expected in zip(gating[True][5:], gating[False][5:]):
+            np.testing.assert_array_equal(got, expected)
 
 
 @pytest.mark.parametrize("seed, offset", [(0, (0.0, 0.0)), (3, (0.4, -0.2))])
