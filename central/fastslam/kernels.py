@@ -26,8 +26,8 @@ arrays of a few hundred 2 × 2 blocks, more than the arithmetic. Each kernel doe
   of the blocks written otherwise, :func:`refile_slots_kernel` those the FastSLAM 2.0 step updated,
   :func:`near_kernel` lists the candidates of the grid cells within reach);
 - :func:`shared_gating_kernel`, :func:`joint_blocks_kernel`: the predicted detections, Jacobians and gating
-  distances of a scan against those mixtures, and the joint covariance JCBB searches with
-  (:func:`central.fastslam.shared.associate`);
+  distances of a scan against those mixtures (with the gates' verdicts), and the joint covariance JCBB
+  searches with (:func:`central.fastslam.shared.associate`);
 - :func:`drift_accumulate`, :func:`drift_condition`: a robot's drift grown by its motion and updated by its matches
   (:func:`central.fastslam.reacquire.accumulate`, :func:`~central.fastslam.reacquire.condition`);
 - :func:`propose`: every particle's FastSLAM 2.0 step, its motion prior updated by the scan's matched detections,
@@ -591,9 +591,9 @@ def _sandwich3(h, k, m, out):
 def shared_gating_kernel(pose, a, b, mean, cov, tentative, spread, drift, r, z, gate, new_gate, view):
     """(ẑ ``(K, 2)``, H_x ``(K, 2, 3)``, H_m Σ H_mᵀ ``(K, 2, 2)``, ν ``(m, K, 2)``, d² ``(m, K)``, gated
     ``(m, K)``, fresh ``(m,)``, tentative in view ``(K,)``) of detections ``z`` against landmarks (``mean``,
-    ``cov``) seen from the robot's mean ``pose``: S = H_m Σ H_mᵀ + H_x P H_xᵀ + R, plus H_x D H_xᵀ (drift) for the
-    confirmed ones; (a, b) is the sensor's offset. Gated: d² < ``gate``; fresh: every d² > ``new_gate``; in view:
-    ẑ within ``view`` = (min range, max range, half the field of view)."""
+    ``cov``) seen from the robot's mean ``pose``: S = H_m Σ H_mᵀ + H_x P H_xᵀ + R, plus H_x D H_xᵀ (drift)
+    for the confirmed ones; (a, b) is the sensor's offset. Gated: d² < ``gate``; fresh: every d² >
+    ``new_gate``; in view: ẑ within ``view`` = (min range, max range, half the field of view)."""
     count = mean.shape[0]
     theta = pose[2]
     c, s = math.cos(theta), math.sin(theta)
