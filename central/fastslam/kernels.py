@@ -638,14 +638,16 @@ def shared_gating_kernel(pose, a, b, mean, cov, tentative, spread, drift, r, z, 
     gated = np.empty((z.shape[0], count), np.bool_)
     fresh = np.empty(z.shape[0], np.bool_)
     for i in range(z.shape[0]):
-        fresh[i] = True
+        z0, z1, outside = z[i, 0], z[i, 1], True
         for k in range(count):
-            n0 = z[i, 0] - zhat[k, 0]
-            n1 = wrap_angle(z[i, 1] - zhat[k, 1])
+            n0 = z0 - zhat[k, 0]
+            n1 = wrap_angle(z1 - zhat[k, 1])
             nu[i, k, 0], nu[i, k, 1] = n0, n1
-            d2[i, k] = s_inv[k, 0, 0] * n0 * n0 + (s_inv[k, 0, 1] + s_inv[k, 1, 0]) * n0 * n1 + s_inv[k, 1, 1] * n1 * n1
-            gated[i, k] = d2[i, k] < gate
-            fresh[i] = fresh[i] and d2[i, k] > new_gate
+            value = s_inv[k, 0, 0] * n0 * n0 + (s_inv[k, 0, 1] + s_inv[k, 1, 0]) * n0 * n1 + s_inv[k, 1, 1] * n1 * n1
+            d2[i, k] = value
+            gated[i, k] = value < gate
+            outside &= value > new_gate  # as numpy's min > new_gate, NaN included
+        fresh[i] = outside
     in_view = np.empty(count, np.bool_)
     for k in range(count):
         in_view[k] = tentative[k] and view[0] < zhat[k, 0] < view[1] and abs(zhat[k, 1]) < view[2]
