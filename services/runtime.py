@@ -53,7 +53,6 @@ from schemas.keys import Keys
 from schemas.messages import MclPose, Odometry, RobotInfo, Scan, ServiceStats
 from schemas.streams import StreamLimits
 from schemas.transport import ConnectError, StreamPublisher, history_query, open_session, replier_zid, sample_source
-from services import compiled
 from services.checkpoint import CheckpointStore, encode_checkpoint
 from services.intake import Intake
 from services.roster import ReorderBuffer, Roster, StreamEvent, Takeover
@@ -74,6 +73,15 @@ def _malloc_trim():
         return ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").malloc_trim
     except (OSError, AttributeError):
         return None
+
+
+def _warm_kernels(groups: tuple[str, ...]) -> tuple[float, bool]:
+    """(seconds, whether numba compiled them) of :func:`services.compiled.warm_up` of the kernel ``groups``. Imported
+    here, not at the top: numba and scipy cost a process about 60 MB and half a second, and the shell's services
+    without kernels (monitor, evaluator, viewer) need neither."""
+    from services import compiled
+
+    return compiled.warm_up(groups), compiled.AVAILABLE
 
 
 def release_free_memory() -> bool:
@@ -669,7 +677,7 @@ class ServiceShell:
         previous_handlers = self._install_signal_handlers()
         # the kernels load (or compile) while the checkpoint is read and the router reached; nothing that uses them
         # runs before setup subscribes
-        warming = asyncio.create_task(asyncio.to_thread(compiled.warm_up, self.uses_kernels)) if self.uses_kernels \
+        warming = asyncio.create_task(asyncio.to_thread(_warm_kernels, self.uses_kernels)) if self.uses_kernels \
             else None
         if self.checkpoints is not None:
             self.resume()
@@ -677,10 +685,10 @@ class ServiceShell:
             self.session = await asyncio.to_thread(open_session, self.settings)
         finally:
             if warming is not None:
-                warm_up_s = await warming
+                warm_up_s, with_numba = await warming
                 self.extra["kernel_warm_up_s"] = warm_up_s
                 log.info("%s: kernels ready in %.2f s (%s)", self.name, warm_up_s,
-                         "numba" if compiled.AVAILABLE else "numpy references: numba is not installed")
+                         "numba" if with_numba else "numpy references: numba is not installed")
         tasks: list[asyncio.Task] = []
         try:
             self._stats_pub = StreamPublisher(self.session, self.keys.stats(self.name))

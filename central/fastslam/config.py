@@ -3,12 +3,14 @@
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 from pydantic import Field, model_validator
 
-from central.fastslam.reacquire import SearchRule
 from schemas.contract import CoreConfig
+
+if TYPE_CHECKING:  # the re-acquisition module loads numba and scipy: every process reads this config, few search
+    from central.fastslam.reacquire import SearchRule
 
 Probability = Field(gt=0.0, lt=1.0)
 
@@ -182,6 +184,8 @@ class FastSlamConfig(CoreConfig):
     @property
     def reacquire_rule(self) -> SearchRule:
         """When re-acquisition's search takes a correction (:class:`central.fastslam.reacquire.SearchRule`)."""
+        from central.fastslam.reacquire import SearchRule
+
         return SearchRule(self.reacquire_min_detections, self.reacquire_inlier_m, self.reacquire_span_m,
                           self.reacquire_margin, compiled=self.compiled, confirm_sigmas=self.reacquire_confirm_sigmas,
                           confirm_max_turn=self.reacquire_confirm_max_turn,
