@@ -83,17 +83,6 @@ class JcbbState:
                 bool(self.counters[3]), int(self.counters[2]))
 
 
-def jcbb_kernel(innovations, joint_blocks, noise, candidates, counts, order, bounds, max_nodes):
-    """(pair measurement indices, pair landmark indices, pairings, joint NIS, truncated, nodes): the whole search.
-
-    ``candidates`` (M, C) lists each measurement's gated landmarks (``counts`` of them, best first),
-    ``order`` the measurements to visit, ``bounds[k]`` the χ² bound of k + 1 pairings.
-    """
-    state = JcbbState(order.shape[0])
-    jcbb_search(innovations, joint_blocks, noise, candidates, counts, order, bounds, max_nodes, *state.arrays(), 0)
-    return state.result()
-
-
 @njit
 def jcbb_search(innovations, joint_blocks, noise, candidates, counts, order, bounds, max_nodes, lower, white, pair_m,
                 pair_n, d2_at, k_at, cursor, skipped, best_m, best_n, counters, best_d2, work_limit):
@@ -207,7 +196,8 @@ def jcbb_whole_kernel(innovations, joint_blocks, noise, gated, nis, bounds, max_
     """(pair measurement indices, pair landmark indices, joint NIS, truncated, nodes): the candidates
     (:func:`jcbb_candidates`) and the whole search in one call, with no time budget (FastSLAM's shared association
     once per scan: a dozen small arrays and a call with twenty arguments cost as much as the search).
-    ``bounds[k]`` is the χ² bound of k + 1 pairings, at least one per measurement."""
+    ``bounds[k]`` is the χ² bound of k + 1 pairings, at least one per measurement. The search state is a
+    :class:`JcbbState`'s arrays, made here: a compiled function cannot build the class."""
     table, counts, order = jcbb_candidates(gated, nis)
     depth_count = order.shape[0]
     size = 2 * depth_count
@@ -230,5 +220,6 @@ def warm_up() -> None:
         bounds.flags.writeable = False  # as :func:`services.association.solvers.chi2_bounds` shares them
         jcbb_whole_kernel(np.zeros((1, 1, 2)), np.zeros((1, 1, 2, 2)), np.eye(2), np.ones((1, 1), np.bool_),
                           np.zeros((1, 1)), bounds, 100)
-        jcbb_kernel(np.zeros((1, 1, 2)), np.zeros((1, 1, 2, 2)), np.eye(2), np.zeros((1, 1), np.int64),
-                    np.ones(1, np.int64), np.zeros(1, np.int64), np.full(1, 9.0), 100)
+        state = JcbbState(1)  # the search in slices, as a query with a time budget runs it
+        jcbb_search(np.zeros((1, 1, 2)), np.zeros((1, 1, 2, 2)), np.eye(2), np.zeros((1, 1), np.int64),
+                    np.ones(1, np.int64), np.zeros(1, np.int64), np.full(1, 9.0), 100, *state.arrays(), 0)
