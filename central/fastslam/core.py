@@ -258,7 +258,7 @@ class FastSlam:
         if self.config.association in ("known", "shared"):
             ids, slots, mean, cov = shared.marginal_map(self)
             if self.config.association == "shared":
-                keep = self.map.hits[slots] >= self.config.confirm_hits
+                keep = shared.confirmed_slots(self, slots)
                 return MapView(mean[keep], cov[keep], None)
             return MapView(mean, cov, ids) if ids.size else MapView.empty(with_ids=True)
         p = self.best_particle()

@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from central.fastslam import association, kernels, motion
+from central.fastslam import association, kernels, motion, shared
 from central.fastslam.lifecycle import RobotState
 from robots.gaussian import LOG_2PI, sandwich, sandwich2, sqrt_psd
 from robots.models import compose_jacobian, se2_compose, wrap_angle
@@ -157,7 +157,7 @@ def weighing(slam: FastSlam, slots: np.ndarray) -> np.ndarray:
     nothing until confirmed: clutter it was born of cannot select particles."""
     if slam.config.association != "shared" or not slots.size:
         return np.ones(slots.size, bool)
-    return slam.map.hits[slots] >= slam.config.confirm_hits
+    return shared.confirmed_slots(slam, slots)
 
 
 def _no_matches() -> tuple[np.ndarray, np.ndarray, np.ndarray]:

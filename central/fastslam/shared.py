@@ -117,7 +117,7 @@ def associate(slam: FastSlam, robot: RobotState, z: np.ndarray, r: np.ndarray) -
     if known.size:
         # tentative landmarks were seen from about the present drift: they are gated without it, so clutter
         # does not confirm them by falling into a gate widened for old landmarks
-        tentative = slam.map.hits[slots] < slam.config.confirm_hits
+        tentative = ~confirmed_slots(slam, slots)
         zhat, h_x, own, nu, d2, gated, fresh, in_view = _gating(slam, robot, pose, mean, cov, tentative, spread, drift,
                                                                 r, z)
         if slam.config.ambiguity_margin > 0.0:
@@ -246,10 +246,15 @@ def _age_tentative(slam: FastSlam, ids: np.ndarray, slots: np.ndarray, in_view: 
 def confirmed_near(slam: FastSlam, point: np.ndarray, radius: float) -> np.ndarray:
     """Means ``(K, 2)`` of the confirmed landmarks whose mixture mean lies within ``radius`` of ``point``."""
     _, slots, mean, _ = marginal_map(slam, (point, radius))
-    return mean[slam.map.hits[slots] >= slam.config.confirm_hits]
+    return mean[confirmed_slots(slam, slots)]
+
+
+def confirmed_slots(slam: FastSlam, slots: np.ndarray) -> np.ndarray:
+    """Which of the landmarks in ``slots`` are confirmed: associated ``confirm_hits`` times."""
+    return slam.map.hits[slots] >= slam.config.confirm_hits
 
 
 def confirmed(slam: FastSlam, ids: np.ndarray) -> np.ndarray:
-    """Which of the landmark ``ids`` (already in the map) are confirmed: associated ``confirm_hits`` times."""
+    """Which of the landmark ``ids`` (already in the map) are confirmed (:func:`confirmed_slots`)."""
     slots = np.array([slam.known_slots[int(i)] for i in ids], np.int64)
-    return slam.map.hits[slots] >= slam.config.confirm_hits if slots.size else np.zeros(0, bool)
+    return confirmed_slots(slam, slots) if slots.size else np.zeros(0, bool)
