@@ -58,9 +58,9 @@ def test_near_finds_the_landmarks_a_scan_moved_when_only_their_slots_are_filed_a
     lmap.near(np.zeros(2), 8.0)
     for _ in range(15):
         slots = np.sort(rng.choice(np.flatnonzero(lmap.valid), 6, replace=False))
-        lmap.reserve_private(slots, refile=False)  # as the kernel: private copies, the blocks not marked
-        kernels.private_blocks(lmap.table, np.unique(slots // BLOCK), lmap.refs, lmap.pool_mean, lmap.pool_cov,
-                               lmap.free_blocks, lmap.free_count)
+        blocks = lmap.reserve_private(slots, refile=False)  # as the kernel: private copies, the blocks not marked
+        kernels.private_blocks(lmap.table, blocks, lmap.refs, lmap.pool_mean, lmap.pool_cov, lmap.free_blocks,
+                               lmap.free_count)
         means, _ = lmap.gather(np.arange(PARTICLES)[:, None], slots[None])
         means = means + rng.normal(0.0, 1.0, (PARTICLES, slots.size, 2)) * np.where(rng.random(slots.size) < 0.4, 8.0, 0.3)[:, None]
         phys = lmap.table[:, slots // BLOCK]
