@@ -33,6 +33,23 @@ def wrap_angle(angle):
     return angle - 2.0 * math.pi * math.floor((angle + math.pi) / (2.0 * math.pi))
 
 
+@njit
+def ndtr(x):
+    """The standard normal CDF inside a kernel, as scipy.special.ndtr computes it (Cephes): from erf near 0, from
+    erfc in the tails, where 1 − erf would lose the digits. libm's erf/erfc differ from Cephes' in the last bits.
+    Beyond 8.5 the tail (below 1e-17) rounds 1 − tail to 1.0 exactly, and below −39 erfc underflows to 0: those
+    are returned without the call (most candidates of a scan are far inside the sensor's limits)."""
+    if x > 8.5:
+        return 1.0
+    if x < -39.0:
+        return 0.0
+    z = x * (0.5 * math.sqrt(2.0))
+    if abs(z) < 0.5 * math.sqrt(2.0):
+        return 0.5 + 0.5 * math.erf(z)
+    tail = 0.5 * math.erfc(abs(z))
+    return 1.0 - tail if z > 0.0 else tail
+
+
 KERNEL_GROUPS = ("association", "mcl", "fastslam")
 
 

@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from scipy.special import ndtr
 
+from central.fastslam import kernels
 from central.fastslam.lifecycle import RobotState
 from robots.gaussian import inv2, quad2
 
@@ -38,27 +39,46 @@ def negative_evidence(slam: FastSlam, robot: RobotState, scan: ScanState, r: np.
     if k == 0:
         return
     spec = robot.info.sensor
-    cand = scan.cand[:, :k]
-    zhat = scan.terms[0][:, :k]
     max_range = spec.max_range if config.max_obs_range is None else min(spec.max_range, config.max_obs_range)
     sigma_r, sigma_b = np.sqrt(np.diag(r))
-    visible = ndtr((max_range - zhat[..., 0]) / sigma_r) * ndtr((zhat[..., 0] - spec.min_range) / sigma_r)
-    if spec.fov < 2.0 * np.pi:
-        visible *= ndtr((0.5 * spec.fov - np.abs(zhat[..., 1])) / sigma_b)
-    visible = np.where(scan.mask[:, :k] & ~scan.hit[:, :k], visible, 0.0)
     p_detect = spec.detection_probability if config.detection_probability is None else config.detection_probability
-    log_miss = np.log1p(-min(p_detect, config.max_detection_probability) * visible)
+    limits = np.array([spec.min_range, max_range, 0.5 * spec.fov if spec.fov < 2.0 * np.pi else np.inf, sigma_r, sigma_b,
+                       min(p_detect, config.max_detection_probability), config.exist_miss, config.exist_min,
+                       np.inf if config.permanent_hits is None else config.permanent_hits])
+    considered = scan.mask[:, :k] & ~scan.hit[:, :k]
+    cand, zhat = np.ascontiguousarray(scan.cand[:, :k]), np.ascontiguousarray(scan.terms[0][:, :k])
+    if config.compiled:
+        log_miss = kernels.negative_evidence_kernel(cand, zhat, considered, limits, slam.map.exist, slam.map.hits,
+                                                    slam.map.valid)
+    else:
+        log_miss = negative_evidence_reference(cand, zhat, considered, limits, slam.map.exist, slam.map.hits,
+                                               slam.map.valid)
     if config.miss_weight:
-        slam.logw += log_miss.sum(1)
+        slam.logw += log_miss[:-1]
+    slam.counts["landmarks_deleted"] += int(log_miss[-1])
+
+
+def negative_evidence_reference(cand: np.ndarray, zhat: np.ndarray, considered: np.ndarray, limits: np.ndarray,
+                                exist: np.ndarray, hits: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """The numpy reference of :func:`central.fastslam.kernels.negative_evidence_kernel`.
+
+    ``cand`` ``(P, k)``: the slots of the candidates in view, ``zhat`` ``(P, k, 2)`` their predicted detections,
+    ``considered`` those neither masked out nor associated; ``limits``: (min range, max range, half field of view
+    (inf: all round), σ_r, σ_φ, P_D, exist_miss, exist_min, permanent_hits (inf: none)). Ages ``exist`` and clears
+    ``valid`` in place; returns ``(P + 1,)``: each particle's Σ ln(1 − P_D·v), then the number of landmarks deleted.
+    """
+    min_range, max_range, half_fov, sigma_r, sigma_b, p_detect, exist_miss, exist_min, permanent = limits
+    visible = ndtr((max_range - zhat[..., 0]) / sigma_r) * ndtr((zhat[..., 0] - min_range) / sigma_r)
+    if np.isfinite(half_fov):
+        visible *= ndtr((half_fov - np.abs(zhat[..., 1])) / sigma_b)
+    visible = np.where(considered, visible, 0.0)
+    log_miss = np.log1p(-p_detect * visible)
     rows, cols = np.nonzero(visible > 0.01)
     slots = cand[rows, cols]
-    slam.map.exist[rows, slots] += config.exist_miss * log_miss[rows, cols]
-    dead = slam.map.exist[rows, slots] < config.exist_min
-    if config.permanent_hits is not None:
-        dead &= slam.map.hits[rows, slots] < config.permanent_hits
-    slam.map.valid[rows[dead], slots[dead]] = False
-    slam.counts["landmarks_deleted"] += int(dead.sum())
-
+    exist[rows, slots] += exist_miss * log_miss[rows, cols]
+    dead = (exist[rows, slots] < exist_min) & (hits[rows, slots] < permanent)
+    valid[rows[dead], slots[dead]] = False
+    return np.append(log_miss.sum(1), dead.sum())
 
 def merge_duplicates(slam: FastSlam, scan: ScanState) -> None:
     """Delete a confirmed landmark that is statistically the same as one associated in this scan.

@@ -35,6 +35,9 @@ arrays of a few hundred 2 × 2 blocks, more than the arithmetic. Each kernel doe
   (:func:`central.fastslam.proposal.propose` then :func:`central.fastslam.association.update_known`;
   :func:`proposal_moments` gives the moments alone, against
   :func:`central.fastslam.proposal.proposal_moments_reference`, for the tests: the warm-up leaves it out).
+- :func:`negative_evidence_kernel`: the per-particle association's (``nn``, ``mht``) negative evidence, the visibility
+  of every candidate in view that the scan left unassociated, the particles' miss weights and the landmarks aged or
+  deleted (:func:`central.fastslam.evidence.negative_evidence_reference`).
 - :func:`vote_kernel`: the Hough vote of a blind robot's re-acquisition, every turn's binned shifts and the scores
   of its best ones (:func:`central.fastslam.reacquire.vote_reference`, about 60 turns of a dozen numpy calls each).
 
@@ -56,7 +59,7 @@ import numpy as np
 from robots import kernels as robot_kernels
 from robots.kernels import integrate_controls
 from robots.gaussian import LOG_2PI
-from services.compiled import AVAILABLE, njit, wrap_angle
+from services.compiled import AVAILABLE, ndtr, njit, wrap_angle
 
 @njit
 def _places(slots, block):
@@ -1072,6 +1075,39 @@ def joint_blocks_kernel(gated, h_x, own, pose_cov):
     return reach, joint
 
 
+@njit
+def negative_evidence_kernel(cand, zhat, considered, limits, exist, hits, valid):
+    """Negative evidence of one scan, one candidate at a time (:func:`central.fastslam.evidence.negative_evidence`;
+    the numpy reference and the meaning of the arguments: :func:`~central.fastslam.evidence.negative_evidence_reference`).
+    Returns ``(P + 1,)``: each particle's Σ ln(1 − P_D·v), then the number of landmarks deleted."""
+    min_range, max_range, half_fov, sigma_r, sigma_b = limits[0], limits[1], limits[2], limits[3], limits[4]
+    p_detect, exist_miss, exist_min, permanent = limits[5], limits[6], limits[7], limits[8]
+    limited_view = half_fov < np.inf
+    count, width = cand.shape
+    out = np.zeros(count + 1)
+    deleted = 0
+    for p in range(count):
+        total = 0.0
+        for j in range(width):
+            if not considered[p, j]:
+                continue
+            predicted_range = zhat[p, j, 0]
+            visible = ndtr((max_range - predicted_range) / sigma_r) * ndtr((predicted_range - min_range) / sigma_r)
+            if limited_view:
+                visible *= ndtr((half_fov - abs(zhat[p, j, 1])) / sigma_b)
+            log_miss = math.log1p(-p_detect * visible)
+            total += log_miss
+            if visible > 0.01:
+                slot = cand[p, j]
+                exist[p, slot] += exist_miss * log_miss
+                if exist[p, slot] < exist_min and hits[p, slot] < permanent:
+                    valid[p, slot] = False
+                    deleted += 1
+        out[p] = total
+    out[count] = deleted
+    return out
+
+
 def warm_up() -> None:
     """Compile (or load from the cache) every FastSLAM kernel on tiny inputs."""
     from central.fastslam.aligned_map import AlignedMap
@@ -1104,9 +1140,12 @@ def warm_up() -> None:
     h_x = np.ones((1, 2, 3))
     drift_condition(drift, h_x, np.eye(2)[None])
     joint_blocks_kernel(np.ones((1, 1), np.bool_), h_x, np.ones((1, 2, 2)), drift)
+    negative_evidence_kernel(np.zeros((1, 1), np.int64), np.ones((1, 1, 2)), np.ones((1, 1), np.bool_),
+                             np.array([0.0, 10.0, 1.0, 0.1, 0.01, 0.9, 1.0, 0.0, 5.0]), np.zeros((1, 1)),
+                             np.zeros((1, 1), np.int32), np.ones((1, 1), np.bool_))
 
 
 __all__ = ["association_draw_kernel", "AVAILABLE", "create", "drift_accumulate", "drift_condition", "integrate_controls", "joint_blocks_kernel",
-           "known_update", "marginal_map", "near_kernel", "pose_belief_kernel", "private_blocks", "propose",
+           "known_update", "marginal_map", "near_kernel", "negative_evidence_kernel", "pose_belief_kernel", "private_blocks", "propose",
            "proposal_moments", "refile_slots_kernel", "select_kernel", "shared_gating_kernel", "vote", "warm_up",
            "weighted_pose"]

@@ -26,12 +26,13 @@ def compiled_signatures() -> dict[str, int]:
     return found
 
 
-@pytest.mark.parametrize("estimator", ["fastslam", "dslam"])
-def test_a_run_without_ids_compiles_nothing_after_the_warm_up(estimator):
+@pytest.mark.parametrize("estimator, settings", [("fastslam", {}), ("fastslam", {"association": "nn"}),
+                                                 ("fastslam", {"association": "mht"}), ("dslam", {})])
+def test_a_run_without_ids_compiles_nothing_after_the_warm_up(estimator, settings):
     warm_up()
     before = compiled_signatures()
     data = simulate("arena", robots=2, seed=2, duration=12.0, clutter_rate=0.3)
-    run = run_estimator(data, RunOptions(estimator=estimator, association="unknown", particles=30, seed=1, settings={}))
+    run = run_estimator(data, RunOptions(estimator=estimator, association="unknown", particles=30, seed=1, settings=settings))
     assert run.events["scan"] > 100
     after = compiled_signatures()
     assert {name: (before.get(name), count) for name, count in after.items() if before.get(name) != count} == {}

@@ -7,7 +7,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from central.fastslam import association, kernels, proposal, reacquire, resampling, shared
+from central.fastslam import association, evidence, kernels, proposal, reacquire, resampling, shared
 from central.fastslam.aligned_map import AlignedMap
 from central.fastslam.config import FastSlamConfig
 from central.fastslam.core import FastSlam
@@ -311,3 +311,31 @@ def test_whole_run_with_kernels_matches_the_reference(association, proposal_name
     for rid, (pose, cov) in runs[False].poses().items():
         np.testing.assert_allclose(runs[True].poses()[rid][0], pose, atol=1e-8)
         np.testing.assert_allclose(runs[True].poses()[rid][1], cov, atol=1e-10)
+
+
+@pytest.mark.parametrize("half_fov, permanent", [(np.inf, np.inf), (0.5 * np.pi, 5.0)])
+def test_negative_evidence_kernel_gives_the_reference_weights_and_deletions(half_fov, permanent):
+    """Candidates on every side of the range limits and of the field of view's edge, some associated, some not: the
+    kernel's miss weights, existence scores, deletions and count are the reference's (libm's erf and log1p differ
+    from Cephes' and numpy's in the last bits only)."""
+    rng = np.random.default_rng(11)
+    particles, width, capacity = 30, 9, 40
+    cand = np.stack([rng.choice(capacity, width, replace=False) for _ in range(particles)])
+    zhat = np.stack([rng.uniform(-1.0, 32.0, (particles, width)), rng.uniform(-3.0, 3.0, (particles, width))], -1)
+    considered = rng.random((particles, width)) < 0.7
+    limits = np.array([0.5, 30.0, half_fov, 0.4, 0.05, 0.9, 1.0, 0.0, permanent])
+    exist = rng.uniform(0.0, 3.0, (particles, capacity))
+    hits = rng.integers(1, 9, (particles, capacity)).astype(np.int32)
+    state = {name: (exist.copy(), np.ones((particles, capacity), bool)) for name in ("kernel", "reference")}
+    got = kernels.negative_evidence_kernel(cand, zhat, considered, limits, state["kernel"][0], hits, state["kernel"][1])
+    expected = evidence.negative_evidence_reference(cand, zhat, considered, limits, state["reference"][0], hits,
+                                                    state["reference"][1])
+    assert 5 < expected[-1] < considered.sum() - 5  # some deleted, some not
+    assert np.all(expected[:-1] < 0.0) and np.any(np.isclose(zhat[..., 0], 30.0, atol=0.5) & considered)
+    np.testing.assert_allclose(got, expected, rtol=1e-12, atol=1e-14)
+    np.testing.assert_allclose(state["kernel"][0], state["reference"][0], rtol=1e-12, atol=1e-14)
+    np.testing.assert_array_equal(state["kernel"][1], state["reference"][1])
+    touched = np.zeros((particles, capacity), bool)
+    touched[np.nonzero(considered)[0], cand[considered]] = True
+    assert np.array_equal(state["kernel"][0][~touched], exist[~touched])  # only the unassociated candidates age
+    assert np.all(state["kernel"][1][~touched])
