@@ -93,7 +93,7 @@ class MclConfig(CoreConfig):
     map_margin: float = Field(2.0, ge=0, description="uniform samples lie within the map's bounding box grown by this (m)")
     converge_xy: float = Field(0.5, gt=0, description="evaluation: converged when localized within this distance of the truth (m)")
     converge_theta: float = Field(0.2, gt=0, description="... and this heading error (rad)")
-    compiled: bool = Field(True, description="scan likelihood and cluster merging by the numba kernels (False: the numpy "
+    compiled: bool = Field(True, description="scan likelihood, cluster merging and sensor resetting by the numba kernels (False: the numpy "
                            "and scipy references)")
     chunk_particles: int = Field(400, ge=1, description="particles weighed at a time (keeps the work in the processor's cache)")
 

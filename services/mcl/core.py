@@ -59,7 +59,7 @@ from services.mcl.history import ScanHistory
 from services.mcl import meeting as meetings
 from services.mcl.kld import bin_keys, kld_prefix_size, kld_sample_size, support
 from services.mcl.likelihood import (
-    LandmarkMap, ScanModel, poses_from_signatures, scan_log_likelihood, signed_log_likelihood,
+    LandmarkMap, MapCache, ScanModel, poses_from_signatures, scan_log_likelihood, signed_log_likelihood,
 )
 from services.mcl.resampling import two_stage_resample
 from services.mcl.resetting import poses_from_scan, uniform_poses
@@ -99,7 +99,8 @@ class MonteCarloLocalizer:
     """Particle filter over one robot's pose (x, y, θ) on a fixed landmark map."""
 
     def __init__(self, landmarks: np.ndarray, info: RobotInfo, config: MclConfig,
-                 rng: np.random.Generator | None = None, landmark_ids: np.ndarray | None = None):
+                 rng: np.random.Generator | None = None, landmark_ids: np.ndarray | None = None,
+                 maps: MapCache | None = None):
         if config.variant not in VARIANTS:
             raise ValueError(f"unknown MCL variant {config.variant!r}; choose from {', '.join(VARIANTS)}")
         self.config = config
@@ -110,7 +111,7 @@ class MonteCarloLocalizer:
             info.sensor, config.noise_scale, config.clutter_weight, config.miss_floor,
             config.view_margin_range, config.view_margin_bearing, config.match_sigmas,
         )
-        self.map = LandmarkMap(landmarks, self.model, config.lookup_cell, config.match_candidates)
+        self.map = self._prepared(landmarks, maps)
         self.slot_of: dict[int, int] = {}
         self._targets: np.ndarray | None = None  # landmarks of the current scan's signed detections
         self._set_ids(landmark_ids)
@@ -202,10 +203,16 @@ class MonteCarloLocalizer:
         self._confirmed.update(map(tuple, self._targets.tolist()))
         return False
 
-    def set_map(self, landmarks: np.ndarray, landmark_ids: np.ndarray | None = None) -> None:
+    def set_map(self, landmarks: np.ndarray, landmark_ids: np.ndarray | None = None,
+                maps: MapCache | None = None) -> None:
         """Replace the map (a newer estimate of it, with its landmark ids if it has them); the particles stay."""
-        self.map = LandmarkMap(landmarks, self.model, self.config.lookup_cell, self.config.match_candidates)
+        self.map = self._prepared(landmarks, maps)
         self._set_ids(landmark_ids)
+
+    def _prepared(self, landmarks: np.ndarray, maps: MapCache | None) -> LandmarkMap:
+        """The map prepared for this filter's sensor, from ``maps`` when given (shared with other filters)."""
+        build = LandmarkMap if maps is None else maps.get
+        return build(landmarks, self.model, self.config.lookup_cell, self.config.match_candidates)
 
     def _set_ids(self, landmark_ids: np.ndarray | None) -> None:
         if landmark_ids is None or not self.config.use_signatures:
@@ -290,7 +297,7 @@ class MonteCarloLocalizer:
         if self._targets is not None:
             return poses_from_signatures(observations, self._targets, self.model, count, self.rng)
         return poses_from_scan(observations, self.map, self.model, count, cfg.pair_sigmas, cfg.reset_jitter_xy,
-                               cfg.reset_jitter_theta, cfg.map_margin, self.rng, cfg.reset_draws)
+                               cfg.reset_jitter_theta, cfg.map_margin, self.rng, cfg.reset_draws, cfg.compiled)
 
     def _likelihood(self, poses: np.ndarray, observations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         return self._scored(poses, observations, self._targets)

@@ -25,7 +25,7 @@ from schemas.contract import MapView, OdomEvent, RunOptions, ScanEvent
 from schemas.messages import RobotInfo, SensorSpec
 from services.mcl.config import MclConfig
 from services.mcl.core import Hypothesis, MonteCarloLocalizer, UpdateReport
-from services.mcl.likelihood import scan_log_likelihood
+from services.mcl.likelihood import MapCache, scan_log_likelihood
 
 UNKNOWN_COV = np.diag([1e6, 1e6, 1e2])
 
@@ -65,6 +65,12 @@ class MclFleet:
         self.use_start_pose = use_start_pose
         self.robots: dict[str, RobotState] = {}
         self.filters_built: dict[str, int] = {}
+        self.maps = MapCache()  # the map prepared once for the robots and queries that share a sensor
+
+    def __setstate__(self, state: dict) -> None:
+        """Unpickle (a service checkpoint); one written before the map cache existed gets an empty one."""
+        self.__dict__.update(state)
+        self.__dict__.setdefault("maps", MapCache())
 
     # ------------------------------------------------------------ membership
 
@@ -87,7 +93,7 @@ class MclFleet:
             if state.mcl is None:
                 state.mcl = self._build(state.info)
             else:
-                state.mcl.set_map(self.landmarks, self.landmark_ids)
+                state.mcl.set_map(self.landmarks, self.landmark_ids, self.maps)
 
     def _build(self, info: RobotInfo) -> MonteCarloLocalizer | None:
         if self.landmarks is None:
@@ -98,7 +104,7 @@ class MclFleet:
         built = self.filters_built.get(rid, 0)
         self.filters_built[rid] = built + 1
         rng = np.random.default_rng([self.config.seed, zlib.crc32(rid.encode()), built])
-        return MonteCarloLocalizer(self.landmarks, info, self.config, rng, self.landmark_ids)
+        return MonteCarloLocalizer(self.landmarks, info, self.config, rng, self.landmark_ids, self.maps)
 
     # ---------------------------------------------------------------- events
 
@@ -220,7 +226,7 @@ class MclFleet:
 
         info = RobotInfo(robot_id=robot_id, stamp=0.0, motion_model="unicycle", sensor=sensor, odom_rate_hz=1.0,
                          scan_rate_hz=1.0)
-        mcl = MonteCarloLocalizer(landmarks, info, self.config, np.random.default_rng(seed))
+        mcl = MonteCarloLocalizer(landmarks, info, self.config, np.random.default_rng(seed), maps=self.maps)
         z = np.asarray(observations, float).reshape(-1, 2)
         mcl.initialize_global(z, particles)
         check("drawing poses from the scan")

@@ -1,5 +1,6 @@
 """Compiled (numba) kernels of MCL: the scan likelihood (:mod:`services.mcl.likelihood` keeps the numpy
-reference) and the merging of grid cells into clusters (:mod:`services.mcl.clustering` keeps the scipy one).
+reference), the merging of grid cells into clusters (:mod:`services.mcl.clustering` keeps the scipy one) and the
+candidate poses of sensor resetting (:mod:`services.mcl.resetting` keeps the numpy reference).
 
 One loop per particle does what the vectorised reference does with (P, n, K)
 temporaries: the observed points carried to the world, the best of the
@@ -146,6 +147,81 @@ def merge_cells_kernel(cells, ny, turns, steps, mean_xy, mean_theta, merge_xy, m
     return component
 
 
+@njit
+def pair_windows_kernel(points, point_var, first, second, pair_distance, pair_sigmas):
+    """For each draw, the window [lo, hi) of the landmark pairs (sorted by distance) whose distance agrees with that
+    of its two observed points ``first``, ``second`` within ``pair_sigmas`` standard deviations: the searchsorted
+    step of :func:`services.mcl.resetting._aligned_poses`, with the same arithmetic (so the same windows)."""
+    count = first.shape[0]
+    lo = np.empty(count, np.int64)
+    hi = np.empty(count, np.int64)
+    for d in range(count):
+        f, g = first[d], second[d]
+        dx = points[g, 0] - points[f, 0]
+        dy = points[g, 1] - points[f, 1]
+        seen = math.sqrt(dx * dx + dy * dy)
+        tolerance = pair_sigmas * math.sqrt(point_var[f] + point_var[g])
+        lo[d] = np.searchsorted(pair_distance, seen - tolerance, side="left")
+        hi[d] = np.searchsorted(pair_distance, seen + tolerance, side="right")
+    return lo, hi
+
+
+@njit
+def candidate_poses_kernel(points, first, second, lo, hi, pick_u, pair_first, pair_second, landmarks, single_theta,
+                           single_anchor, check, padded, match_table, match_origin, match_cell, match_nx, match_ny,
+                           match_radius):
+    """Sensor resetting's candidate poses ``(T, 3)`` and, with ``check`` (one more observation per pose), whether
+    that observation lands within ``match_radius`` of a landmark (``(T,)``; all False without it).
+
+    A draw with a window of landmark pairs (hi > lo) takes the pair at ``lo + ⌊u·(hi − lo)⌋`` (``pick_u``, one
+    uniform per such draw, in order) and aligns its two observed points onto it; the others put their first point
+    on a landmark (``single_anchor``) at heading ``single_theta`` (in order). The kernel of
+    :func:`services.mcl.resetting._aligned_poses` and its one-point check; the random draws come from the caller,
+    in the reference's order."""
+    count = first.shape[0]
+    poses = np.empty((count, 3))
+    paired_seen = 0
+    single_seen = 0
+    for d in range(count):
+        qa_x, qa_y = points[first[d], 0], points[first[d], 1]
+        if hi[d] > lo[d]:
+            pick = lo[d] + int(math.floor(pick_u[paired_seen] * (hi[d] - lo[d])))
+            paired_seen += 1
+            a = pair_first[pick]
+            b = pair_second[pick]
+            ax, ay = landmarks[a, 0], landmarks[a, 1]
+            qb_x, qb_y = points[second[d], 0], points[second[d], 1]
+            theta = (math.atan2(landmarks[b, 1] - ay, landmarks[b, 0] - ax)
+                     - math.atan2(qb_y - qa_y, qb_x - qa_x))
+        else:
+            theta = single_theta[single_seen]
+            anchor = single_anchor[single_seen]
+            single_seen += 1
+            ax, ay = landmarks[anchor, 0], landmarks[anchor, 1]
+        c, s = math.cos(theta), math.sin(theta)
+        poses[d, 0] = ax - (c * qa_x - s * qa_y)
+        poses[d, 1] = ay - (s * qa_x + c * qa_y)
+        poses[d, 2] = wrap_angle(theta)
+    hit = np.zeros(count, np.bool_)
+    if check.shape[0] == 0:
+        return poses, hit
+    radius2 = match_radius * match_radius
+    for d in range(count):
+        c, s = math.cos(poses[d, 2]), math.sin(poses[d, 2])
+        px, py = points[check[d], 0], points[check[d], 1]
+        ex = poses[d, 0] + c * px - s * py
+        ey = poses[d, 1] + s * px + c * py
+        row = _cell_row(ex, ey, match_origin, match_cell, match_nx, match_ny)
+        for k in range(match_table.shape[1]):
+            landmark = match_table[row, k]
+            dx = padded[landmark, 0] - ex
+            dy = padded[landmark, 1] - ey
+            if dx * dx + dy * dy <= radius2:
+                hit[d] = True
+                break
+    return poses, hit
+
+
 def warm_up() -> None:
     """Compile (or load from the cache) every kernel on tiny inputs (:func:`services.compiled.warm_up` times it)."""
     if AVAILABLE:
@@ -156,4 +232,11 @@ def warm_up() -> None:
                                    0.0, 0.0, 9.0, 5.0, 0.0, 1.0, False, -1.0)
         merge_cells_kernel(np.array([0, 1], np.int64), 3, 8, np.array([[0, 0, 1]], np.int64), np.zeros((2, 2)),
                            np.zeros(2), 1.0, 1.0)
+        # two observations √2 apart, two landmarks 1.5 apart: both draws find the pair (0, 1) or (1, 0)
+        points, landmarks = np.array([[1.0, 0.0], [0.0, 1.0]]), np.array([[0.0, 0.0], [1.5, 0.0]])
+        first, second, pairs = np.array([0, 1]), np.array([1, 0]), np.array([0, 1])
+        lo, hi = pair_windows_kernel(points, np.full(2, 0.01), first, second, np.full(2, 1.5), 3.0)
+        candidate_poses_kernel(points, first, second, lo, hi, np.full(2, 0.5), pairs, pairs[::-1].copy(), landmarks,
+                               np.zeros(0), np.zeros(0, np.int64), first, np.vstack([landmarks, [[1e9, 1e9]]]),
+                               np.zeros((1, 1), np.int64), np.zeros(2), 10.0, 1, 1, 0.5)
         robot_kernels.warm_up()

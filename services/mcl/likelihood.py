@@ -21,7 +21,9 @@ observations × a handful of candidates.
 
 from __future__ import annotations
 
+import hashlib
 import math
+import threading
 from dataclasses import dataclass
 
 import numpy as np
@@ -59,12 +61,13 @@ class CellIndex:
         centres = self.origin + (np.stack([ix.ravel(), iy.ravel()], -1) + 0.5) * cell
         reach = radius + cell * math.sqrt(0.5)
         tree = cKDTree(landmarks)
-        if limit is None:
-            lists = tree.query_ball_point(centres, reach)
-        else:
+        if limit is not None:
+            # nearest first; the neighbours beyond the reach come last, with the index L, which pads
             _, index = tree.query(centres, k=limit, distance_upper_bound=reach)
             index = index.reshape(len(centres), -1)
-            lists = [row[row < self.count] for row in index]
+            self.table = np.ascontiguousarray(index[:, :max(1, int((index < self.count).sum(1).max()))])
+            return
+        lists = tree.query_ball_point(centres, reach)
         lengths = np.fromiter((len(item) for item in lists), np.int64, len(lists))
         width = max(1, int(lengths.max()))
         self.table = np.full((len(lists), width), self.count, np.int64)
@@ -167,6 +170,46 @@ class LandmarkMap:
         if self.count == 0:
             return np.full(2, -margin), np.full(2, margin)
         return self.landmarks.min(0) - margin, self.landmarks.max(0) + margin
+
+
+class MapCache:
+    """The last few :class:`LandmarkMap` built, by landmarks and by what the map takes from the sensor.
+
+    Every robot of a fleet with the same sensor, and every localization query, weighs against the same map: built
+    once, not once per robot and query (a 200-landmark map takes longer to prepare than a 1000-particle query takes
+    to answer). Used from the stream and from the query worker, so under a lock; a pickled cache (a checkpoint)
+    comes back empty.
+    """
+
+    def __init__(self, size: int = 4):
+        self.size = size
+        self._maps: dict[tuple, LandmarkMap] = {}
+        self._lock = threading.Lock()
+
+    def get(self, landmarks: np.ndarray, model: ScanModel, cell: float, candidates: int) -> LandmarkMap:
+        landmarks = np.ascontiguousarray(landmarks, float).reshape(-1, 2)
+        key = (hashlib.blake2b(landmarks.tobytes(), digest_size=16).digest(), landmarks.shape[0],
+               model.match_radius(), float(model.max_range), float(cell), int(candidates))
+        with self._lock:
+            found = self._maps.pop(key, None)
+            if found is not None:
+                self._maps[key] = found  # most recently used last
+                return found
+        built = LandmarkMap(landmarks, model, cell, candidates)
+        with self._lock:
+            self._maps[key] = built
+            while len(self._maps) > self.size:
+                self._maps.pop(next(iter(self._maps)))
+        return built
+
+    def __len__(self) -> int:
+        return len(self._maps)
+
+    def __getstate__(self) -> dict:
+        return {"size": self.size}
+
+    def __setstate__(self, state: dict) -> None:
+        self.__init__(state["size"])
 
 
 def landmark_pairs(landmarks: np.ndarray, max_distance: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -27,12 +27,15 @@ def compiled_signatures() -> dict[str, int]:
 
 
 @pytest.mark.parametrize("estimator, settings", [("fastslam", {}), ("fastslam", {"association": "nn"}),
-                                                 ("fastslam", {"association": "mht"}), ("dslam", {})])
+                                                 ("fastslam", {"association": "mht"}), ("dslam", {}),
+                                                 ("mcl", {"variant": "csrl"})])
 def test_a_run_without_ids_compiles_nothing_after_the_warm_up(estimator, settings):
     warm_up()
     before = compiled_signatures()
     data = simulate("arena", robots=2, seed=2, duration=12.0, clutter_rate=0.3)
-    run = run_estimator(data, RunOptions(estimator=estimator, association="unknown", particles=30, seed=1, settings=settings))
+    landmarks = data.landmarks if estimator == "mcl" else None  # MCL localizes on the world's map, with resetting
+    run = run_estimator(data, RunOptions(estimator=estimator, association="unknown", particles=30, seed=1,
+                                         settings=settings, landmarks=landmarks))
     assert run.events["scan"] > 100
     after = compiled_signatures()
     assert {name: (before.get(name), count) for name, count in after.items() if before.get(name) != count} == {}

@@ -400,3 +400,37 @@ def test_the_service_localizes_against_a_map_only_once_it_can_tell_poses_apart(s
         taken.append(service.fleet.landmarks is not None and service.fleet.landmarks.shape[0] == count)
     assert taken == [count >= least for count in range(1, 9)]
     assert service.extra["maps_too_small"] == least - 1
+
+
+def test_the_map_is_prepared_once_for_the_robots_and_queries_that_share_it():
+    """Every robot of a fleet with one sensor and every localization query weigh against one prepared map; a new map,
+    another sensor or another landmark set gets its own; the cache holds a few and comes back empty from a pickle."""
+    import pickle
+
+    from services.mcl.fleet import MclFleet
+    from services.mcl.likelihood import MapCache
+
+    rng = np.random.default_rng(9)
+    landmarks = rng.uniform(0.0, 20.0, (40, 2))
+    fleet = MclFleet(MclConfig(particles=50), landmarks, use_start_pose=False)
+    for rid in ("r1", "r2"):
+        fleet.add_robot(info().model_copy(update={"robot_id": rid}))
+    maps = {rid: state.mcl.map for rid, state in fleet.robots.items()}
+    assert maps["r1"] is maps["r2"]
+    z = RangeBearingSensor().observe(np.array([10.0, 10.0, 0.0]), landmarks)[:6]
+    assert fleet.localize_once(z, sensor(), 100, seed=1).map is maps["r1"]
+    assert fleet.localize_once(z, sensor(max_range=4.0), 100, seed=1).map is not maps["r1"]
+    fleet.set_map(landmarks + 1.0)
+    assert fleet.robots["r1"].mcl.map is fleet.robots["r2"].mcl.map is not maps["r1"]
+    np.testing.assert_array_equal(fleet.robots["r1"].mcl.map.landmarks, landmarks + 1.0)
+    cache = MapCache(size=2)
+    model = scan_model(sensor(), MclConfig())
+    built = [cache.get(landmarks + k, model, 1.0, 4) for k in range(3)]
+    assert cache.get(landmarks + 2, model, 1.0, 4) is built[2] and cache.get(landmarks, model, 1.0, 4) is not built[0]
+    restored = pickle.loads(pickle.dumps(fleet))
+    assert len(fleet.maps) == 3 and len(restored.maps) == 0  # r1 and r2's two maps, the 4 m query's
+    np.testing.assert_array_equal(restored.robots["r1"].mcl.map.landmarks, landmarks + 1.0)
+    assert len(cache) == 2
+    old = pickle.loads(pickle.dumps(fleet))
+    del old.__dict__["maps"]  # a checkpoint written before the cache existed
+    assert isinstance(pickle.loads(pickle.dumps(old)).maps, MapCache)

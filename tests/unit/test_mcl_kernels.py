@@ -81,3 +81,27 @@ def test_cluster_kernel_gives_the_reference_labels(seed):
     compiled = grid_labels(poses, *args, compiled=True)
     np.testing.assert_array_equal(compiled, reference)
     assert 2 <= len(np.unique(reference)) < len(np.unique(np.floor(poses[:, :2] / 2.0), axis=0))  # cells do merge
+
+
+@pytest.mark.parametrize("seed, fov, observations, draws", [
+    (5, math.radians(120.0), None, 8),  # a whole scan, the one-point check ranking the draws
+    (6, 2 * math.pi, None, 1),
+    (7, math.radians(180.0), 2, 8),  # two observations: pairs, no check
+    (8, math.radians(120.0), 1, 8),  # one: circles round random landmarks
+])
+def test_resetting_kernels_draw_the_reference_poses(seed, fov, observations, draws):
+    """Sensor resetting by the kernels takes the same random draws in the same order as the numpy reference, so the
+    candidate poses agree to rounding (atan2, sin and cos of libm against numpy's), and so does the generator after."""
+    from services.mcl.resetting import poses_from_scan
+
+    _, z, lmap, model = scene(seed, fov, (0.2, 0.0), 1)
+    z = z[:observations]
+    got = {}
+    for compiled in (False, True):
+        rng = np.random.default_rng(seed)
+        poses = poses_from_scan(z, lmap, model, 1500, 3.0, 0.05, 0.02, 2.0, rng, draws, compiled=compiled)
+        got[compiled] = (poses, rng.random())
+    assert len(z) == (observations or len(z)) and len(z) >= 1
+    assert np.ptp(got[False][0][:, 0]) > 1.0  # candidates spread over the map: agreement is not trivial
+    np.testing.assert_allclose(got[True][0], got[False][0], atol=1e-9)
+    assert got[True][1] == got[False][1]
