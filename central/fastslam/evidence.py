@@ -80,6 +80,7 @@ def negative_evidence_reference(cand: np.ndarray, zhat: np.ndarray, considered: 
     valid[rows[dead], slots[dead]] = False
     return np.append(log_miss.sum(1), dead.sum())
 
+
 def merge_duplicates(slam: FastSlam, scan: ScanState) -> None:
     """Delete a confirmed landmark that is statistically the same as one associated in this scan.
 
