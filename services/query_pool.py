@@ -14,8 +14,8 @@ selector parameter ``timeout_s`` (``{key}?timeout_s=0.5``, as the association
 client does): the query's deadline is then the shorter of the two, so what
 its caller abandoned is not solved. Every query gets exactly one answer; a solve
 that raises is answered ``solve_error``. Refusals are counted by reason in
-the service's stats (in its loop), the queue wait and the solve time in its
-``extra`` (:meth:`put_timing`).
+the service's stats (in its loop, a burst of queries in one call), the queue
+wait and the solve time in its ``extra`` (:meth:`put_timing`).
 
 A pool may keep a light lane (``light_cost`` > 0): a second, smaller pool of
 one worker at the service's own priority for the queries whose ``prepare``
@@ -104,6 +104,8 @@ class QueryPool:
         self.clock = clock
         self._lock = threading.Lock()
         self._pending = 0  # admitted and not yet answered: waiting or being solved
+        self._tally: dict[tuple[str, str], list] = {}  # (kind, key) -> [count, first detail], for the loop to take
+        self._tally_taken = True  # no call to take the tally is waiting in the loop
         self._closing = False
         self._executor = ThreadPoolExecutor(workers, thread_name_prefix=f"{shell.name}-{name}", initializer=self._lower,
                                             initargs=(nice,))
@@ -130,7 +132,7 @@ class QueryPool:
         """Take one query (counted under ``tag``): ``busy`` when full; else ``prepare()`` (decode, validate, size:
         QueryRefused is answered at once) gives the solve, which a worker of its lane runs."""
         arrived = self.clock()
-        self.shell.call_in_loop(self._count_in, tag)
+        self._count("in", tag)
         if self._full() and (self.light is None or self.light._full()):  # nothing is decoded then
             lanes = [self] if self.light is None else [self, self.light]
             self.answer(query, QueryRefused("busy", f"{' and '.join(lane._load() for lane in lanes)}; ask again later"))
@@ -210,16 +212,32 @@ class QueryPool:
         finally:
             query.drop()
         if isinstance(outcome, QueryRefused):
-            self.shell.call_in_loop(self.shell.reject, outcome.reason, outcome.detail)
+            self._count("refused", outcome.reason, outcome.detail)
         else:
-            self.shell.call_in_loop(self._replied)
+            self._count("replied", "")
 
-    # ------------------------------------------------------------ counters (the service's loop)
-    def _count_in(self, tag: str) -> None:
-        self.shell.messages_in[tag] += 1
+    # ------------------------------------------------------------ counters
+    def _count(self, kind: str, key: str, detail: str = "") -> None:
+        """Count one query event from any thread. The counts reach the service's counters in its loop, a burst in
+        one call: 500 queries at once made 1,000 calls into the loop that handles the robots' streams."""
+        with self._lock:
+            entry = self._tally.setdefault((kind, key), [0, detail])
+            entry[0] += 1
+            schedule, self._tally_taken = self._tally_taken, False
+        if schedule:
+            self.shell.call_in_loop(self._take_tally)
 
-    def _replied(self) -> None:
-        self.replies += 1
+    def _take_tally(self) -> None:
+        """In the service's loop: queries in (by tag), refusals (by reason) and replies since the last call."""
+        with self._lock:
+            tally, self._tally, self._tally_taken = self._tally, {}, True
+        for (kind, key), (count, detail) in tally.items():
+            if kind == "in":
+                self.shell.messages_in[key] += count
+            elif kind == "refused":
+                self.shell.reject(key, detail, count)
+            else:
+                self.replies += count
 
     def _timed(self, wait_ms: float, solve_ms: float) -> None:
         self.wait_ms.append(wait_ms)

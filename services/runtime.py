@@ -526,8 +526,9 @@ class ServiceShell:
 
     def reject(self, reason: str, detail: str = "", count: int = 1) -> None:
         """Count ``count`` rejected messages by reason (and log the first few of each)."""
+        before = self.rejected[reason]
         self.rejected[reason] += count
-        if self.rejected[reason] <= 3:
+        if before < 3:
             log.warning("%s rejected a message (%s)%s", self.name, reason, f": {detail}" if detail else "")
 
     def localized_mcl_pose(self, payload: bytes, key: str) -> MclPose | None:

@@ -199,8 +199,8 @@ class Shell:
         self.rejected: Counter = Counter()
         self.extra: dict[str, float] = {}
 
-    def reject(self, reason: str, detail: str = "") -> None:
-        self.rejected[reason] += 1
+    def reject(self, reason: str, detail: str = "", count: int = 1) -> None:
+        self.rejected[reason] += count
 
     def call_in_loop(self, work, *args) -> None:
         work(*args)
@@ -252,6 +252,42 @@ def test_a_full_pool_answers_busy_at_once_and_the_admitted_are_solved():
     assert [wait_answered(q) for q in queries[:2]] == [("ok", b"done")] * 2
     pool.close()
     assert shell.rejected == Counter(busy=2) and shell.messages_in["q"] == 4 and pool.replies == 2
+
+
+class LoopShell(Shell):
+    """A shell whose loop runs the work handed to it only when the test says (as a busy service's loop would)."""
+
+    def __init__(self):
+        super().__init__()
+        self.handed: list = []
+
+    def call_in_loop(self, work, *args) -> None:
+        self.handed.append((work, args))
+
+    def run_loop(self) -> None:
+        handed, self.handed = self.handed, []
+        for work, args in handed:
+            work(*args)
+
+
+def test_a_burst_of_refused_queries_is_counted_in_one_call_into_the_loop():
+    """500 queries at a full pool: each answered busy at once, and the service's loop (where the robots' streams are
+    handled) gets one call for all their counts, not two per query; counts that come after it get the next call."""
+    shell, release = LoopShell(), threading.Event()
+    pool = QueryPool(shell, workers=1, queue=0, deadline_s=60.0)
+    pool.admit(Query(), "q", lambda: (lambda _budget: (release.wait(10), ("k", b"done"))[1]))
+    burst = [Query() for _ in range(500)]
+    for query in burst:
+        pool.admit(query, "q", lambda: pytest.fail("a busy query is never prepared"))
+    assert all(query.answers[0][1].startswith("busy:") for query in burst)
+    assert len(shell.handed) == 1
+    shell.run_loop()
+    assert shell.rejected == Counter(busy=500) and shell.messages_in["q"] == 501 and pool.replies == 0
+    release.set()
+    pool.close()
+    pool._executor.shutdown(wait=True)
+    shell.run_loop()  # the solved query's reply, counted after the burst was taken, and its timing
+    assert pool.replies == 1 and shell.rejected == Counter(busy=500)
 
 
 def test_a_query_that_waited_past_the_deadline_is_dropped_unsolved():
