@@ -185,7 +185,7 @@ def candidate_poses_kernel(points, first, second, lo, hi, pick_u, pair_first, pa
     for d in range(count):
         qa_x, qa_y = points[first[d], 0], points[first[d], 1]
         if hi[d] > lo[d]:
-            pick = lo[d] + int(math.floor(pick_u[paired_seen] * (hi[d] - lo[d])))
+            pick = min(lo[d] + int(math.floor(pick_u[paired_seen] * (hi[d] - lo[d]))), hi[d] - 1)  # u·n rounding to n
             paired_seen += 1
             a = pair_first[pick]
             b = pair_second[pick]
