@@ -20,7 +20,7 @@ arrays of a few hundred 2 × 2 blocks, more than the arithmetic. Each kernel doe
 - :func:`create`: new landmarks where the scan's detections put them, in each particle's copy of their blocks
   (:func:`central.fastslam.association.create_known`);
 - :func:`association_draw_kernel`: the particles the association's mixtures come from, drawn by weight, with
-  their shares (the systematic draw and run count in :func:`central.fastslam.shared.marginal_map`);
+  their shares (:func:`central.fastslam.shared.association_draw_reference`: the systematic draw and its run count);
 - :func:`marginal_map`: the landmarks' particle mixtures near the robot (:func:`central.fastslam.shared.marginal_map`),
   reading only the blocks of the candidates the map's spatial index gives (:func:`refile_kernel` files the slots
   of the blocks written otherwise, :func:`refile_slots_kernel` those the FastSLAM 2.0 step updated,

@@ -39,6 +39,14 @@ if TYPE_CHECKING:
     from central.fastslam.core import FastSlam
 
 
+def association_draw_reference(w: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray]:
+    """(distinct rows, their shares) of ``count`` systematic draws by weight ``w`` at offset 0.5: the numpy reference
+    of :func:`central.fastslam.kernels.association_draw_kernel`."""
+    drawn = systematic_resample(w, count, None, offset=0.5)  # sorted: its runs are np.unique's counts
+    first = np.flatnonzero(np.concatenate(([True], drawn[1:] != drawn[:-1])))
+    return drawn[first], np.diff(np.append(first, count)) / count
+
+
 def marginal_map(slam: FastSlam, near: tuple[np.ndarray, float] | None = None
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(ids, slots, means ``(K, 2)``, covariances ``(K, 2, 2)``) of every landmark with an id (known or shared
@@ -56,9 +64,7 @@ def marginal_map(slam: FastSlam, near: tuple[np.ndarray, float] | None = None
         if slam.config.compiled and 0.0 < total < math.inf:
             rows, w = kernels.association_draw_kernel(w, total, cap, 0.5)
         else:
-            drawn = systematic_resample(w, cap, None, offset=0.5)  # sorted: its runs are np.unique's counts
-            first = np.flatnonzero(np.concatenate(([True], drawn[1:] != drawn[:-1])))
-            rows, w = drawn[first], np.diff(np.append(first, cap)) / cap
+            rows, w = association_draw_reference(w, cap)
     if slam.config.compiled and near is not None:
         point, radius = np.asarray(near[0], float), float(near[1])
         slots = slam.map.near(point, radius)
