@@ -15,7 +15,8 @@ best-supported ones: that is sampling from p(y | x) over the map.
 
 The geometry of the draws (the pair windows, the aligned poses, the one-point
 check) runs in numba kernels (:mod:`services.mcl.kernels`); the numpy code
-here is their reference, and both take the same random draws in the same order.
+here is their reference. The random draws are taken in one place
+(:func:`_checked_poses`), the same for both.
 """
 
 from __future__ import annotations
@@ -54,15 +55,7 @@ def poses_from_scan(observations: np.ndarray, lmap: LandmarkMap, model: ScanMode
         return uniform_poses(lmap, count, margin, rng)
     points = model.sensor.inverse(np.zeros(3), z)  # observed points in the robot frame (n, 2)
     total = count * draws if n >= 3 else count
-    if compiled and kernels.AVAILABLE:
-        poses = _checked_poses_compiled(z, points, lmap, model, total, count, pair_sigmas, rng)
-    else:
-        poses = _aligned_poses(z, points, lmap, model, total, pair_sigmas, rng)
-        if total > count:
-            ends = transform_points(poses, points[rng.integers(n, size=total)])
-            nearest = lmap.padded[lmap.match_index.lookup(ends)] - ends[:, None, :]
-            hit = np.min(np.hypot(nearest[..., 0], nearest[..., 1]), axis=1) <= model.match_radius()
-            poses = poses[_shuffled_hits_first(hit, rng)[:count]]
+    poses = _checked_poses(z, points, lmap, model, total, count, pair_sigmas, rng, compiled and kernels.AVAILABLE)
     poses[:, :2] += rng.normal(0.0, jitter_xy, size=(count, 2))
     poses[:, 2] = wrap_angle(poses[:, 2] + rng.normal(0.0, jitter_theta, size=count))
     return poses
@@ -74,18 +67,18 @@ def _shuffled_hits_first(hit: np.ndarray, rng: np.random.Generator) -> np.ndarra
     return order[np.argsort(~hit[order], kind="stable")]
 
 
-def _checked_poses_compiled(z: np.ndarray, points: np.ndarray, lmap: LandmarkMap, model: ScanModel, total: int,
-                            count: int, pair_sigmas: float, rng: np.random.Generator) -> np.ndarray:
-    """``count`` of ``total`` aligned poses, those passing the one-point check first (when ``total`` > ``count``):
-    :func:`_aligned_poses` and the check of :func:`poses_from_scan` by the kernels, drawing the same random numbers
-    in the same order."""
+def _checked_poses(z: np.ndarray, points: np.ndarray, lmap: LandmarkMap, model: ScanModel, total: int, count: int,
+                   pair_sigmas: float, rng: np.random.Generator, compiled: bool) -> np.ndarray:
+    """``count`` of ``total`` aligned poses (:func:`_aligned_poses`), those passing the one-point check first (when
+    ``total`` > ``count``). The random draws are taken here, in one order for both ways of doing the geometry: by
+    the kernels (``compiled``) or by the numpy reference."""
     n = z.shape[0]
     first = rng.integers(n, size=total)
     second, lo, hi, pick_u = first, np.zeros(total, np.int64), np.zeros(total, np.int64), np.zeros(0)
     if n >= 2 and lmap.pair_distance.size:
         second = (first + rng.integers(1, n, size=total)) % n
-        lo, hi = kernels.pair_windows_kernel(points, _point_variance(z, model), first, second, lmap.pair_distance,
-                                             pair_sigmas)
+        windows = kernels.pair_windows_kernel if compiled else _pair_windows
+        lo, hi = windows(points, _point_variance(z, model), first, second, lmap.pair_distance, pair_sigmas)
         pick_u = rng.random(int(np.count_nonzero(hi > lo)))
     singles = total - pick_u.size
     single_theta, single_anchor = np.zeros(0), np.zeros(0, np.int64)
@@ -93,46 +86,63 @@ def _checked_poses_compiled(z: np.ndarray, points: np.ndarray, lmap: LandmarkMap
         single_theta = rng.uniform(-math.pi, math.pi, singles)
         single_anchor = rng.integers(lmap.count, size=singles)
     check = rng.integers(n, size=total) if total > count else np.zeros(0, np.int64)
-    index = lmap.match_index
-    poses, hit = kernels.candidate_poses_kernel(
-        points, first, second, lo, hi, pick_u, lmap.pair_first, lmap.pair_second, lmap.landmarks, single_theta,
-        single_anchor, check, lmap.padded, index.table, index.origin, index.cell, index.shape[0], index.shape[1],
-        model.match_radius())
+    if compiled:
+        index = lmap.match_index
+        poses, hit = kernels.candidate_poses_kernel(
+            points, first, second, lo, hi, pick_u, lmap.pair_first, lmap.pair_second, lmap.landmarks, single_theta,
+            single_anchor, check, lmap.padded, index.table, index.origin, index.cell, index.shape[0], index.shape[1],
+            model.match_radius())
+    else:
+        poses = _aligned_poses(points, first, second, lo, hi, pick_u, single_theta, single_anchor, lmap)
+        hit = _lands_on_landmark(poses, points, check, lmap, model) if check.size else np.zeros(total, bool)
     if total > count:
         poses = poses[_shuffled_hits_first(hit, rng)[:count]]
     return poses
 
 
-def _aligned_poses(z: np.ndarray, points: np.ndarray, lmap: LandmarkMap, model: ScanModel, count: int,
-                   pair_sigmas: float, rng: np.random.Generator) -> np.ndarray:
-    """Poses that put two random observations on two landmarks as far apart (one observation: on a circle)."""
-    n = z.shape[0]
-    point_var = _point_variance(z, model)
-    poses = np.empty((count, 3))
-    paired = np.zeros(count, bool)
-    first = rng.integers(n, size=count)
-    if n >= 2 and lmap.pair_distance.size:
-        second = (first + rng.integers(1, n, size=count)) % n
-        seen = np.linalg.norm(points[second] - points[first], axis=-1)
-        tolerance = pair_sigmas * np.sqrt(point_var[first] + point_var[second])
-        lo = np.searchsorted(lmap.pair_distance, seen - tolerance, side="left")
-        hi = np.searchsorted(lmap.pair_distance, seen + tolerance, side="right")
-        paired = hi > lo
-        pick = lo[paired] + np.floor(rng.random(int(paired.sum())) * (hi - lo)[paired]).astype(np.int64)
+def _pair_windows(points: np.ndarray, point_var: np.ndarray, first: np.ndarray, second: np.ndarray,
+                  pair_distance: np.ndarray, pair_sigmas: float) -> tuple[np.ndarray, np.ndarray]:
+    """For each draw, the window [lo, hi) of the landmark pairs (sorted by distance) as far apart as its observed
+    points ``first`` and ``second``, within ``pair_sigmas`` standard deviations (the reference of
+    :func:`services.mcl.kernels.pair_windows_kernel`)."""
+    seen = np.linalg.norm(points[second] - points[first], axis=-1)
+    tolerance = pair_sigmas * np.sqrt(point_var[first] + point_var[second])
+    return (np.searchsorted(pair_distance, seen - tolerance, side="left"),
+            np.searchsorted(pair_distance, seen + tolerance, side="right"))
+
+
+def _aligned_poses(points: np.ndarray, first: np.ndarray, second: np.ndarray, lo: np.ndarray, hi: np.ndarray,
+                   pick_u: np.ndarray, single_theta: np.ndarray, single_anchor: np.ndarray,
+                   lmap: LandmarkMap) -> np.ndarray:
+    """Poses that put two observations (``first``, ``second``) on a pair of landmarks as far apart, the pair at
+    ``lo + ⌊u·(hi − lo)⌋`` of the draw's window; a draw without a window puts its first observation on the landmark
+    ``single_anchor`` at heading ``single_theta`` (a circle round it). The reference of
+    :func:`services.mcl.kernels.candidate_poses_kernel`."""
+    poses = np.empty((first.size, 3))
+    paired = hi > lo
+    if pick_u.size:
+        pick = np.minimum(lo[paired] + np.floor(pick_u * (hi - lo)[paired]).astype(np.int64), hi[paired] - 1)
         a, b = lmap.landmarks[lmap.pair_first[pick]], lmap.landmarks[lmap.pair_second[pick]]
         qa, qb = points[first[paired]], points[second[paired]]
         theta = np.arctan2(b[:, 1] - a[:, 1], b[:, 0] - a[:, 0]) - np.arctan2(qb[:, 1] - qa[:, 1], qb[:, 0] - qa[:, 0])
         poses[paired, :2] = a - np.einsum("nij,nj->ni", rotation(theta), qa)
         poses[paired, 2] = theta
-    single = ~paired
-    k = int(single.sum())
-    if k:
-        theta = rng.uniform(-math.pi, math.pi, k)
-        anchor = lmap.landmarks[rng.integers(lmap.count, size=k)]
-        poses[single, :2] = anchor - np.einsum("nij,nj->ni", rotation(theta), points[first[single]])
-        poses[single, 2] = theta
+    if single_theta.size:
+        single = ~paired
+        anchor = lmap.landmarks[single_anchor]
+        poses[single, :2] = anchor - np.einsum("nij,nj->ni", rotation(single_theta), points[first[single]])
+        poses[single, 2] = single_theta
     poses[:, 2] = wrap_angle(poses[:, 2])
     return poses
+
+
+def _lands_on_landmark(poses: np.ndarray, points: np.ndarray, check: np.ndarray, lmap: LandmarkMap,
+                       model: ScanModel) -> np.ndarray:
+    """Whether the observed point ``check`` of each pose lands within the match radius of a landmark (the one-point
+    check)."""
+    ends = transform_points(poses, points[check])
+    nearest = lmap.padded[lmap.match_index.lookup(ends)] - ends[:, None, :]
+    return np.min(np.hypot(nearest[..., 0], nearest[..., 1]), axis=1) <= model.match_radius()
 
 
 def _point_variance(z: np.ndarray, model: ScanModel) -> np.ndarray:
