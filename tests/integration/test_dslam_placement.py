@@ -8,6 +8,8 @@ every robot's D-SLAM pose and the map onto the truth.
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import pytest
 import zenoh
@@ -48,9 +50,14 @@ def test_sim_robots_without_start_poses_or_ids_wait_for_the_anchor_and_for_mcl(p
             "--unknown-start", "--no-publish-ids", "--start-delay", "1.0")
     robots = [processes.start("r1", "robot", "--id", "r1", *args)]
     wait_until(lambda: "r1" in latest_poses(poses), 30, what="r1 to anchor the frame")
+    r2_started = time.time()
     robots.append(processes.start("r2", "robot", "--id", "r2", *args))
-    wait_until(lambda: "robot r2 waits for a pose from MCL" in processes.log("dslam")
-               and stats.decoded(ServiceStats)[-1].extra.get("waiting", 0) > 20, 30,
+
+    def r2_held() -> bool:  # stats from after r2 started: r1's messages, held until it anchored, are not counted
+        last = stats.decoded(ServiceStats)[-1]
+        return last.stamp > r2_started and last.extra.get("waiting", 0) > 20
+
+    wait_until(lambda: "robot r2 waits for a pose from MCL" in processes.log("dslam") and r2_held(), 30,
                what="r2's messages to wait for a pose")
     assert "r2" not in latest_poses(poses) and processes.log("dslam").count("anchors the world frame") == 1
     data = simulate("arena", robots=2, seed=0, duration=duration, rate=10.0)
