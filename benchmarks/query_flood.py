@@ -12,15 +12,21 @@ draws) with every service setting at its default. After a warm-up, the *flood* r
 
 and right after each heavy query an ordinary one (``ordinary_after_s``: how long it took to be answered). The *quiet*
 run sends nothing over the same wall time. Per query: the answer (ok, or the refusal's reason) and its seconds;
-per flood: answers by kind and the slowest answer. MCL's stream latency over the query phase two ways: p99 and
-median of scan → MclPose (a robot's scan arriving here, MCL's pose for that scan arriving here), and the p99 of
-MCL's own stats (``latency_ms_p99``, its last 2000 stream items) at the end of the phase, each against the quiet
-run of the same seed, and the scan → pose p99 of each probe's window (``{probe}_scan_to_pose_ms_p99``: from the
-probe to the end of the pause after it), to set against the slowest window of as many seconds (the pause + 0.5 s)
-of each run (``quiet_worst_window_scan_to_pose_ms_p99``: what a few seconds of an untouched run reach by chance); the services' largest resident memory over the phase above what they
-held before it. The payloads are encoded before the phase, so this process's own work stays out of it. The
-machine's load average at the end of each run says how far the figures can be trusted (the machine is shared).
-Over the seeds: median and worst of each figure.
+per flood: answers by kind and the slowest answer. The queries come from a process of their own (the asking client,
+as on another machine), which encodes their payloads before the phase: the process timing scans and poses sends and
+receives none of them. The services' largest resident memory over the phase above what they held before it.
+
+MCL's stream latency is scan → MclPose: a robot's scan arriving here, MCL's pose for that scan arriving here. Most of
+it is MCL's stamp-order wait for the other robot's stream (up to ``--reorder-window-s``), set by how far apart the two
+robots' clocks started: it differs from run to run (medians 10–66 ms in four quiet runs), not within a run. So each run
+is measured against itself: ``--baseline-s`` without queries right before the phase, cut into windows of the pause +
+0.5 s, whose slowest p99 is the run's yardstick (``baseline.worst_window_scan_to_pose_ms_p99``). Per probe, the p99
+of its window (from the probe to the end of the pause after it) and how far it is above the yardstick
+(``{probe}_over_baseline_ms``); per run, its phase's slowest window above the yardstick
+(``{run}_phase_worst_window_over_baseline_ms``): the quiet run's says how far above its yardstick a window of an
+untouched run goes by chance. MCL's own stats (``latency_ms_p99``: arrival to handled, its last 2000 stream items,
+without the stamp-order wait) at the end of the phase. The machine's load average at the end of each run says how far
+the figures can be trusted (the machine is shared). Over the seeds: median and worst of each figure.
 
 Targets (issue 16): no query blocks a service for more than 1 s (``ordinary_after_s`` < 1 s, MCL's stream latency
 p99 unchanged), each of 500 concurrent queries answered (a result or ``busy``) within 1 s.
@@ -31,6 +37,7 @@ p99 unchanged), each of 500 concurrent queries answered (a result or ``busy``) w
 from __future__ import annotations
 
 import argparse
+import multiprocessing
 import os
 import sys
 import tempfile
@@ -58,6 +65,8 @@ from report import emit, over_seeds  # noqa: E402
 
 PREFIX = "qflood"
 ROBOTS = ("r1", "r2")
+PROBES = ("assoc_jcbb_200", "assoc_ihgr_2000x5000", "mcl_3000x50000", "mcl_largest_admitted", "assoc_flood",
+          "mcl_flood")
 
 
 def ordinary_assoc(seed: int) -> AssociationRequest:
@@ -235,6 +244,51 @@ def flood(session: zenoh.Session, key: str, payloads: list[bytes]) -> dict:
             "more_than_one_reply": sum(1 for a in answers if a["replies"] > 1)}
 
 
+def asker(endpoint: str, prefix: str, seed: int, count: int, conn) -> None:
+    """The asking client, a process of its own as a client on another machine would be: it encodes the probes'
+    payloads, says ``ready``, then runs each probe it is sent by name and sends back its answers (None: stop)."""
+    keys = Keys(prefix)
+    payloads = probe_payloads(seed, count)
+    with client_session(endpoint) as session:
+        conn.send("ready")
+        while (name := conn.recv()) is not None:
+            service, heavy, ordinary = payloads[name]
+            key = keys.mcl_localize if service == "mcl" else keys.assoc(service)
+            ordinary_key = keys.mcl_localize if service == "mcl" else keys.assoc("auto")
+            if ordinary is None:
+                conn.send(flood(session, key, heavy))
+            else:
+                conn.send(heavy_then_ordinary(session, key, heavy, ordinary_key, ordinary))
+
+
+class AskingClient:
+    """:func:`asker` in a child process: the queries, and their hundreds of replies, cost this process (which times
+    the scans and poses) nothing, as they would cost the observer nothing on a real network."""
+
+    def __init__(self, endpoint: str, seed: int, count: int):
+        context = multiprocessing.get_context("spawn")
+        self.conn, theirs = context.Pipe()
+        self.process = context.Process(target=asker, args=(endpoint, PREFIX, seed, count, theirs), daemon=True)
+        self.process.start()
+        if not self.conn.poll(120) or self.conn.recv() != "ready":
+            raise RuntimeError("the asking client did not start")
+
+    def ask(self, probe: str) -> dict:
+        self.conn.send(probe)
+        if not self.conn.poll(300):
+            raise RuntimeError(f"the asking client did not answer probe {probe}")
+        return self.conn.recv()
+
+    def close(self) -> None:
+        try:
+            self.conn.send(None)
+        except OSError:
+            pass
+        self.process.join(10)
+        if self.process.is_alive():
+            self.process.kill()
+
+
 def run(seed: int, loud: bool, args: argparse.Namespace) -> dict:
     """One run: services and robots, a warm-up, the query phase (queries when ``loud``), the figures."""
     with tempfile.TemporaryDirectory(prefix="query_flood_") as folder:
@@ -245,6 +299,7 @@ def run(seed: int, loud: bool, args: argparse.Namespace) -> dict:
                                              "FLEETSLAM_PREFIX": PREFIX, "FLEETSLAM_CONNECT_TIMEOUT_S": "10"})
         session = None
         watch = None
+        client = None
         try:
             processes.start("router", "router", "--listen", endpoint)
             wait_for_port(port)
@@ -256,24 +311,21 @@ def run(seed: int, loud: bool, args: argparse.Namespace) -> dict:
             wait_until(lambda: watch.stats_at(time.monotonic()) is not None, 90, what="MCL's stats")
             wait_until(lambda: Asked(session, keys.assoc("nn"), encode(ordinary_assoc(seed)), 1.0).wait()["answer"] == "ok",
                        90, interval=0.5, what="the association service's first answer")
-            duration = args.warm_up_s + args.phase_s + 10.0
+            duration = args.warm_up_s + args.baseline_s + args.phase_s + 10.0
             for k, rid in enumerate(ROBOTS):
                 processes.start(rid, "robot", "--id", rid, "--world", "office", "--seed", str(seed * 10 + k),
                                 "--speedup", str(args.speedup), "--duration", str(duration * args.speedup),
                                 "--start-delay", "0.5")
+            client = AskingClient(endpoint, seed, args.flood)  # in both runs: the same processes, one of them idle
             wait_until(lambda: len(watch.poses) > 20, 60, what="MCL's poses of the robots")
-            payloads = probe_payloads(seed, args.flood) if loud else {}  # encoded before: none of it in the phase
             time.sleep(args.warm_up_s)
+            baseline = time.monotonic()
+            time.sleep(args.baseline_s)
             start = time.monotonic()
             queries, windows = {}, {}
-            for name, (service, heavy, ordinary) in payloads.items():
-                key = keys.mcl_localize if service == "mcl" else keys.assoc(service)
-                ordinary_key = keys.mcl_localize if service == "mcl" else keys.assoc("auto")
+            for name in PROBES if loud else ():
                 began = time.monotonic()
-                if ordinary is None:
-                    queries[name] = flood(session, key, heavy)
-                else:
-                    queries[name] = heavy_then_ordinary(session, key, heavy, ordinary_key, ordinary)
+                queries[name] = client.ask(name)
                 time.sleep(args.pause_s)
                 windows[name] = watch.latency(began, time.monotonic())
             left = start + args.phase_s - time.monotonic()
@@ -282,16 +334,23 @@ def run(seed: int, loud: bool, args: argparse.Namespace) -> dict:
             end = time.monotonic()
             time.sleep(1.0)  # the last poses of the phase come in
             stats = watch.stats_at(end + 0.6)
+            window = args.pause_s + 0.5
             return {"seed": seed, "run": "flood" if loud else "quiet", "phase_s": round(end - start, 1),
+                    "baseline": {**watch.latency(baseline, start), "worst_window_scan_to_pose_ms_p99":
+                                 watch.worst_window(baseline, start, window)},
                     "load_average": [round(v, 2) for v in os.getloadavg()],
                     "queries": queries, **watch.latency(start, end), "latency_by_probe": windows,
-                    "worst_window_scan_to_pose_ms_p99": watch.worst_window(start, end, args.pause_s + 0.5),
+                    "worst_window_scan_to_pose_ms_p99": watch.worst_window(start, end, window),
                     "stats_latency_ms_p99": None if stats is None else round(stats.latency_ms_p99, 2),
+                    "stats_hold_ms": {} if stats is None else {k: round(v, 2) for k, v in stats.extra.items()
+                                                               if k.startswith("hold_ms")},
                     "rejected": {} if stats is None else dict(stats.rejected),
                     "query_extra": {} if stats is None else {k: round(v, 2) for k, v in stats.extra.items()
                                                              if k.startswith("query_")},
                     "rss_growth_mb": watch.rss_growth(start, end)}
         finally:
+            if client is not None:
+                client.close()
             if watch is not None:
                 watch.close()
             if session is not None:
@@ -314,9 +373,21 @@ def seed_figures(quiet: dict, loud: dict) -> dict:
         out[f"flood_{figure}"] = loud[figure]
     for name, mb in loud["rss_growth_mb"].items():
         out[f"flood_rss_growth_mb_{name}"] = mb
+    for name, run in (("quiet", quiet), ("flood", loud)):
+        out[f"{name}_baseline_scan_to_pose_ms_p99"] = run["baseline"]["scan_to_pose_ms_p99"]
+        out[f"{name}_baseline_worst_window_scan_to_pose_ms_p99"] = run["baseline"]["worst_window_scan_to_pose_ms_p99"]
+        out[f"{name}_phase_worst_window_over_baseline_ms"] = over(run["worst_window_scan_to_pose_ms_p99"],
+                                                                  run["baseline"]["worst_window_scan_to_pose_ms_p99"])
     for name, window in loud["latency_by_probe"].items():
         out[f"{name}_scan_to_pose_ms_p99"] = window["scan_to_pose_ms_p99"]
+        out[f"{name}_over_baseline_ms"] = over(window["scan_to_pose_ms_p99"],
+                                               loud["baseline"]["worst_window_scan_to_pose_ms_p99"])
     return out
+
+
+def over(value: float | None, yardstick: float | None) -> float | None:
+    """How many ms ``value`` is above ``yardstick`` (negative: below); None when either is missing."""
+    return None if value is None or yardstick is None else round(value - yardstick, 2)
 
 
 def main() -> None:
@@ -325,6 +396,8 @@ def main() -> None:
     parser.add_argument("--flood", type=int, default=500, help="queries at once to each service")
     parser.add_argument("--speedup", type=float, default=2.0, help="robots' speed-up (MCL tracks 2 × 20 msg/s × this)")
     parser.add_argument("--warm-up-s", type=float, default=6.0, help="wall seconds of tracking before the queries")
+    parser.add_argument("--baseline-s", type=float, default=10.0,
+                        help="wall seconds without queries before the query phase, in both runs: each run's own yardstick")
     parser.add_argument("--phase-s", type=float, default=30.0, help="wall seconds of the query phase (both runs)")
     parser.add_argument("--pause-s", type=float, default=2.0, help="wall seconds between two probes")
     parser.add_argument("--out", help="also write the JSON here")
