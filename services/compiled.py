@@ -2,14 +2,18 @@
 
 Kernels are compiled on first use and cached on disk (``cache=True``; ``NUMBA_CACHE_DIR`` chooses where, the
 image compiles them at build). A service warms them up before it subscribes, so that no scan waits for the
-compiler. Without numba the numpy references run instead (numba is a declared dependency; this only keeps
-the references usable).
+compiler. A kernel's cache is emptied when the helpers it may inline (this module, ``robots/kernels.py``)
+changed, which numba does not see. Without numba the numpy references run instead (numba is a declared
+dependency; this only keeps the references usable).
 """
 
 from __future__ import annotations
 
+import hashlib
+import logging
 import math
 import time
+from pathlib import Path
 
 try:
     import numba
@@ -17,11 +21,61 @@ except ImportError:  # pragma: no cover - numba is a declared dependency
     numba = None
 
 AVAILABLE = numba is not None
+log = logging.getLogger(__name__)
+
+# The modules whose kernels other modules' kernels inline. numba renews a kernel's cache only when the kernel's own
+# file changes, so a kernel of another module would keep the old helper after an edit of one of these.
+HELPER_SOURCES = (Path(__file__), Path(__file__).resolve().parents[1] / "robots" / "kernels.py")
+
+
+def sources_digest(paths=HELPER_SOURCES) -> str:
+    """The SHA-256 of the files' contents (a missing file counts as empty)."""
+    digest = hashlib.sha256()
+    for path in paths:
+        try:
+            digest.update(Path(path).read_bytes())
+        except OSError:
+            pass
+        digest.update(b"\0")
+    return digest.hexdigest()
+
+
+HELPERS_DIGEST = sources_digest()
+
+
+def renew_cache_if_stale(dispatcher, digest: str) -> bool:
+    """Empty ``dispatcher``'s on-disk cache when it was written with other helper sources than ``digest`` says, and
+    note ``digest`` beside it (``{index}.helpers``): the kernel is then compiled afresh on its first call. True when
+    it emptied the cache. This reaches into numba's cache object (``_cache``, its index file); if that is not
+    there, the cache stays as it is."""
+    cache = getattr(dispatcher, "_cache", None)
+    index = getattr(getattr(cache, "_cache_file", None), "_index_path", None)
+    if index is None or not hasattr(cache, "flush"):
+        return False
+    stamp = Path(f"{index}.helpers")
+    try:
+        if stamp.read_text() == digest:
+            return False
+    except OSError:
+        pass
+    try:
+        cache.flush()
+        stamp.write_text(digest)
+    except OSError as exc:  # a read-only cache: numba itself falls back or compiles in memory
+        log.debug("cannot renew the kernel cache %s: %s", index, exc)
+        return False
+    return True
 
 
 def njit(function):
-    """Compile ``function`` in nopython mode, cached on disk, without the GIL (or leave it as it is)."""
-    return numba.njit(cache=True, nogil=True)(function) if AVAILABLE else function
+    """Compile ``function`` in nopython mode, cached on disk, without the GIL (or leave it as it is). The cache of a
+    kernel outside this module is renewed when the helpers it may inline changed (:func:`renew_cache_if_stale`)."""
+    if not AVAILABLE:
+        return function
+    dispatcher = numba.njit(cache=True, nogil=True)(function)
+    if function.__module__ != __name__:
+        renew_cache_if_stale(dispatcher, HELPERS_DIGEST)
+    return dispatcher
 
 
 @njit
