@@ -74,7 +74,7 @@ class FastSlamConfig(CoreConfig):
         "particle's own copies of the trees it has just mapped explain its scans as well as any other's, and the "
         "cloud spreads by the announced noise until one scan's weights pick a particle metres off (Victoria Park, "
         "held-out seeds 80-159: GPS RMSE 2.39 / 17.5 m, 8 seeds above 5 m, at 1; 1.79 / 5.91 m, 1 seed, at 0.25; "
-        "MR.CLAM worst robot 0.37 / 0.83 -> 0.46 / 0.65 m; README)")
+        "MR.CLAM worst robot 0.37 / 0.83 -> 0.46 / 0.65 m; docs/results-central-fastslam.md)")
     pose_noise_per_s: tuple[float, float, float] = Field(
         (0.0, 0.0, 0.0), description="extra σ (m, m, rad) per √s of motion: slip, unmodelled")
     turn_slip: bool = Field(
@@ -82,13 +82,13 @@ class FastSlamConfig(CoreConfig):
         "turn_slip_var, wheel slip) to the motion. Off: without ids it made MR.CLAM worse over 10 seeds (the wider "
         "heading spread lets the shared association pair a cluster's detections with a neighbouring cluster's "
         "landmark); with barcodes it helps when every start pose is given, but MCL then placed a robot 160° off in "
-        "1 of 10 seeds without start poses (README)")
+        "1 of 10 seeds without start poses (docs/results-central-fastslam.md)")
     turn_gain_std: float = Field(
         0.0, ge=0.0, le=0.5, description="σ of each particle's turn gain for each robot at placement: the particle "
         "turns by gain × the odometry's turn, so particles carry hypotheses of how much a robot's odometry over- or "
         "under-counts its turns (0: off, no draw). Off by default: on MR.CLAM without barcodes (40 seeds) 0.04 with "
         "a walk of 0.002 took the worst robot's median 1.37 -> 1.19 m but its worst seed 2.33 -> 3.16 m, and its "
-        "neighbours were not better (README)")
+        "neighbours were not better (docs/results-central-fastslam.md)")
     turn_gain_walk: float = Field(
         0.0, ge=0.0, le=0.5, description="σ per √s of motion of the turn gain's random walk (lets it follow a robot "
         "whose wheels or floor change, and keeps the particles' gains diverse after resampling)")
@@ -96,7 +96,7 @@ class FastSlamConfig(CoreConfig):
         True, description="shared: a robot whose dead reckoning (its drift, conditioned on each match) exceeds the "
         "thresholds below stops associating scan by scan and is put back on the map by one rigid correction of its "
         "recent detections (central/fastslam/reacquire.py). MR.CLAM without barcodes, 80 seeds: worst robot median "
-        "1.24 -> 0.64 m, seeds with a robot above 1.5 m 23 -> 2; Victoria Park and the car park unchanged (README)")
+        "1.24 -> 0.64 m, seeds with a robot above 1.5 m 23 -> 2; Victoria Park and the car park unchanged (docs/results-central-fastslam.md)")
     reacquire_heading_sd: float = Field(0.15, gt=0.0, description="... when the drift's heading σ exceeds this (rad)")
     reacquire_position_sd: float = Field(0.4, gt=0.0, description="... or its position σ exceeds this (m)")
     reacquire_window_s: float = Field(15.0, gt=0.0, description="... its detections of the last this many seconds count")
@@ -117,7 +117,7 @@ class FastSlamConfig(CoreConfig):
         0.0, ge=0.0, description="... the confirmation takes, of the near corrections within this many detections of "
         "the best, the one nearest the dead reckoning (0: the best, the prior breaking its ties). Off by default: on "
         "MR.CLAM without barcodes 1 took the worst robot 0.56 / 1.09 -> 0.49 / 1.52 m over 80 seeds (50 better, 30 "
-        "worse; 0.53 / 1.24 -> 0.51 / 1.28 m held out) and changed nothing clear on MR.CLAM Dataset 1 (README)")
+        "worse; 0.53 / 1.24 -> 0.51 / 1.28 m held out) and changed nothing clear on MR.CLAM Dataset 1 (docs/results-central-fastslam.md)")
     reacquire_prior_weight: float = Field(
         0.5, ge=0.0, description="... each correction scored by its detections less this times its squared size in σ "
         "of the drift (a Gaussian prior on the correction: of two that explain about as much, the one the dead "
@@ -130,7 +130,7 @@ class FastSlamConfig(CoreConfig):
         "0.38 / 2.92 m (64 better, 16 worse; seed 19 the one above 1.5 m), held out 0.53 / 1.24 -> 0.37 / 0.55 m; "
         "without start poses 0.49 / 1.42 -> 0.42 / 1.45 m; MR.CLAM 1 against its run with barcodes 3.43 / 4.39 -> "
         "1.82 / 4.48 m, spurious 32 -> 20; with the held window following the estimate (a later mend) 0.37 / 0.83 m, held "
-        "out 0.364 / 0.548 m, without start poses 0.43 / 0.91 m (README)")
+        "out 0.364 / 0.548 m, without start poses 0.43 / 0.91 m (docs/results-central-fastslam.md)")
     reacquire_robots_window_s: float = Field(10.0, gt=0.0, description="... over this many seconds")
     reacquire_robots_min: int = Field(6, ge=1, description="... this many unexplained detections of robots")
     reacquire_robots_veto: int = Field(
@@ -163,7 +163,7 @@ class FastSlamConfig(CoreConfig):
     robot_detections: bool = Field(
         True, description="weight particles by robot-to-robot detections (relative pose likelihood): a robot out of "
         "sight of landmarks stays tied to the ones it sees (MR.CLAM without barcodes, 40 seeds: worst robot median "
-        "2.57 -> 1.37 m, worst 4.46 -> 2.33 m; with barcodes better too; README)")
+        "2.57 -> 1.37 m, worst 4.46 -> 2.33 m; with barcodes better too; docs/results-central-fastslam.md)")
     robot_detection_noise_scale: float = Field(
         4.0, gt=0.0, description="multiplies the scan's noise covariance for robot-to-robot detections: on MR.CLAM "
         "their innovations against the true poses are heavy-tailed (bearing std 3.6x the scan's, median d² 0.4), and "
@@ -179,7 +179,7 @@ class FastSlamConfig(CoreConfig):
         "collapsed explain by turning the robot (MR.CLAM seed 1: r5 turned 17° in 8 s by its detections of r2). "
         "None: 0.1 with the shared association (MR.CLAM without barcodes, 110 seeds: worst robot 0.53 / 1.48 -> "
         "0.53 / 1.24 m, seeds above 1.0 m 9 -> 5; 0.2 and 0.4 had worse tails), 0 with known ids (with barcodes "
-        "0.1 was worse: 0.46 / 0.55 -> 0.53 / 0.65 m; README)")
+        "0.1 was worse: 0.46 / 0.55 -> 0.53 / 0.65 m; docs/results-central-fastslam.md)")
 
     @property
     def reacquire_rule(self) -> SearchRule:
