@@ -18,7 +18,7 @@ receives none of them. The services' largest resident memory over the phase abov
 
 MCL's stream latency is scan → MclPose: a robot's scan arriving here, MCL's pose for that scan arriving here. Most of
 it is MCL's stamp-order wait for the other robot's stream (up to ``--reorder-window-s``), set by how far apart the two
-robots' clocks started: it differs from run to run (medians 10–66 ms in four quiet runs), not within a run. So each run
+robots' clocks started: it differs from run to run (`hold_ms` medians 1.5–95 ms over 24 runs), not within a run. So each run
 is measured against itself: ``--baseline-s`` without queries right before the phase, cut into windows of the pause +
 0.5 s, whose slowest p99 is the run's yardstick (``baseline.worst_window_scan_to_pose_ms_p99``). Per probe, the p99
 of its window (from the probe to the end of the pause after it) and how far it is above the yardstick
