@@ -65,8 +65,6 @@ from report import emit, over_seeds  # noqa: E402
 
 PREFIX = "qflood"
 ROBOTS = ("r1", "r2")
-PROBES = ("assoc_jcbb_200", "assoc_ihgr_2000x5000", "mcl_3000x50000", "mcl_largest_admitted", "assoc_flood",
-          "mcl_flood")
 
 
 def ordinary_assoc(seed: int) -> AssociationRequest:
@@ -246,11 +244,12 @@ def flood(session: zenoh.Session, key: str, payloads: list[bytes]) -> dict:
 
 def asker(endpoint: str, prefix: str, seed: int, count: int, conn) -> None:
     """The asking client, a process of its own as a client on another machine would be: it encodes the probes'
-    payloads, says ``ready``, then runs each probe it is sent by name and sends back its answers (None: stop)."""
+    payloads, sends their names in order (it is ready), then runs each probe it is sent by name and sends back its
+    answers (None: stop)."""
     keys = Keys(prefix)
     payloads = probe_payloads(seed, count)
     with client_session(endpoint) as session:
-        conn.send("ready")
+        conn.send(list(payloads))
         while (name := conn.recv()) is not None:
             service, heavy, ordinary = payloads[name]
             key = keys.mcl_localize if service == "mcl" else keys.assoc(service)
@@ -270,8 +269,9 @@ class AskingClient:
         self.conn, theirs = context.Pipe()
         self.process = context.Process(target=asker, args=(endpoint, PREFIX, seed, count, theirs), daemon=True)
         self.process.start()
-        if not self.conn.poll(120) or self.conn.recv() != "ready":
+        if not self.conn.poll(120):
             raise RuntimeError("the asking client did not start")
+        self.probes: list[str] = self.conn.recv()  # in probe_payloads' order
 
     def ask(self, probe: str) -> dict:
         self.conn.send(probe)
@@ -323,7 +323,7 @@ def run(seed: int, loud: bool, args: argparse.Namespace) -> dict:
             time.sleep(args.baseline_s)
             start = time.monotonic()
             queries, windows = {}, {}
-            for name in PROBES if loud else ():
+            for name in client.probes if loud else ():
                 began = time.monotonic()
                 queries[name] = client.ask(name)
                 time.sleep(args.pause_s)
@@ -373,11 +373,11 @@ def seed_figures(quiet: dict, loud: dict) -> dict:
         out[f"flood_{figure}"] = loud[figure]
     for name, mb in loud["rss_growth_mb"].items():
         out[f"flood_rss_growth_mb_{name}"] = mb
-    for name, run in (("quiet", quiet), ("flood", loud)):
-        out[f"{name}_baseline_scan_to_pose_ms_p99"] = run["baseline"]["scan_to_pose_ms_p99"]
-        out[f"{name}_baseline_worst_window_scan_to_pose_ms_p99"] = run["baseline"]["worst_window_scan_to_pose_ms_p99"]
-        out[f"{name}_phase_worst_window_over_baseline_ms"] = over(run["worst_window_scan_to_pose_ms_p99"],
-                                                                  run["baseline"]["worst_window_scan_to_pose_ms_p99"])
+    for name, result in (("quiet", quiet), ("flood", loud)):
+        yardstick = result["baseline"]["worst_window_scan_to_pose_ms_p99"]
+        out[f"{name}_baseline_scan_to_pose_ms_p99"] = result["baseline"]["scan_to_pose_ms_p99"]
+        out[f"{name}_baseline_worst_window_scan_to_pose_ms_p99"] = yardstick
+        out[f"{name}_phase_worst_window_over_baseline_ms"] = over(result["worst_window_scan_to_pose_ms_p99"], yardstick)
     for name, window in loud["latency_by_probe"].items():
         out[f"{name}_scan_to_pose_ms_p99"] = window["scan_to_pose_ms_p99"]
         out[f"{name}_over_baseline_ms"] = over(window["scan_to_pose_ms_p99"],

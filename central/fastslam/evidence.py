@@ -47,12 +47,8 @@ def negative_evidence(slam: FastSlam, robot: RobotState, scan: ScanState, r: np.
                        np.inf if config.permanent_hits is None else config.permanent_hits])
     considered = scan.mask[:, :k] & ~scan.hit[:, :k]
     cand, zhat = np.ascontiguousarray(scan.cand[:, :k]), np.ascontiguousarray(scan.terms[0][:, :k])
-    if config.compiled:
-        log_miss = kernels.negative_evidence_kernel(cand, zhat, considered, limits, slam.map.exist, slam.map.hits,
-                                                    slam.map.valid)
-    else:
-        log_miss = negative_evidence_reference(cand, zhat, considered, limits, slam.map.exist, slam.map.hits,
-                                               slam.map.valid)
+    weigh = kernels.negative_evidence_kernel if config.compiled else negative_evidence_reference
+    log_miss = weigh(cand, zhat, considered, limits, slam.map.exist, slam.map.hits, slam.map.valid)
     if config.miss_weight:
         slam.logw += log_miss[:-1]
     slam.counts["landmarks_deleted"] += int(log_miss[-1])

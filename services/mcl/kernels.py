@@ -150,8 +150,8 @@ def merge_cells_kernel(cells, ny, turns, steps, mean_xy, mean_theta, merge_xy, m
 @njit
 def pair_windows_kernel(points, point_var, first, second, pair_distance, pair_sigmas):
     """For each draw, the window [lo, hi) of the landmark pairs (sorted by distance) whose distance agrees with that
-    of its two observed points ``first``, ``second`` within ``pair_sigmas`` standard deviations: the searchsorted
-    step of :func:`services.mcl.resetting._aligned_poses`, with the same arithmetic (so the same windows)."""
+    of its two observed points ``first``, ``second`` within ``pair_sigmas`` standard deviations: the kernel of
+    :func:`services.mcl.resetting._pair_windows`, with the same arithmetic (so the same windows)."""
     count = first.shape[0]
     lo = np.empty(count, np.int64)
     hi = np.empty(count, np.int64)
