@@ -66,6 +66,25 @@ def aligned_map_error(means: np.ndarray, truth: np.ndarray, anchors: np.ndarray 
     return map_error(aligned, truth, cutoff), aligned
 
 
+def passed_beacons(dataset, means: np.ndarray, within: float = 0.3) -> dict:
+    """Surveyed landmarks some robot's true track passes within sensor range of, how many of them the map
+    holds within ``within`` m after the rigid fit of the map to the survey (the survey's frame is not the
+    filter's), and the mapped landmarks farther than 1 m from every surveyed one after that fit (spurious in
+    the frame the beacons are judged in); empty without a surveyed map or a track."""
+    if dataset.landmarks is None or not len(means):
+        return {}
+    tracks = [log.truth_pose[np.all(np.isfinite(log.truth_pose[:, :2]), 1), :2] for log in dataset.robots.values()]
+    reach = max(log.info.sensor.max_range for log in dataset.robots.values())
+    track = np.concatenate(tracks)
+    if not len(track):
+        return {}
+    passed = np.array([np.min(np.hypot(*(track - b).T)) <= reach for b in dataset.landmarks])
+    fitted, aligned = aligned_map_error(means, dataset.landmarks)
+    nearest = np.linalg.norm(aligned[:, None] - dataset.landmarks[None], axis=-1).min(0)
+    return {"beacons_passed": int(passed.sum()), "beacons_mapped_within_0_3m": int((passed & (nearest <= within)).sum()),
+            "spurious_after_fit": fitted["spurious"]}
+
+
 def _ms(value: float | None) -> float | None:
     return None if value is None else round(value, 2)
 

@@ -69,12 +69,18 @@ class FastSlamConfig(CoreConfig):
     resample_ess: float = Field(0.5, ge=0.0, le=1.0, description="resample (systematic) when the ESS falls below this fraction")
     motion_noise_scale: float | None = Field(
         None, gt=0.0, description="multiplies the control covariance of every odometry message, in the particles' "
-        "draws and in the drift re-acquisition tracks. None: 0.25 with the shared association, 1 with known ids. "
-        "Without ids a scan pins the pose in few directions (Victoria Park's north-west: one to three trees), each "
-        "particle's own copies of the trees it has just mapped explain its scans as well as any other's, and the "
-        "cloud spreads by the announced noise until one scan's weights pick a particle metres off (Victoria Park, "
-        "held-out seeds 80-159: GPS RMSE 2.39 / 17.5 m, 8 seeds above 5 m, at 1; 1.79 / 5.91 m, 1 seed, at 0.25; "
-        "MR.CLAM worst robot 0.37 / 0.83 -> 0.46 / 0.65 m; docs/results-central-fastslam.md)")
+        "draws and in the drift re-acquisition tracks (None: 1, the covariance the robot announces). With "
+        "motion_noise_adapt each robot's gain on it then follows its scans")
+    motion_noise_adapt: bool = Field(
+        True, description="shared association: each robot's odometry covariance is scaled by a gain that follows the "
+        "pairs of its detections of one landmark placed by its own dead reckoning (robots/odometry_noise.py), between "
+        "motion_noise_min_gain and motion_noise_max_gain. Replaces the quarter of the announced covariance fitted on "
+        "Victoria Park, which left MR.CLAM's particles too narrow (docs/fastslam.md)")
+    motion_noise_min_gain: float = Field(
+        2.0**-6, gt=0.0, le=1.0, description="... the least gain: the announced covariance may be this much too loose")
+    motion_noise_max_gain: float = Field(
+        1.0, gt=0.0, description="... the largest gain (1: never looser than announced)")
+    motion_noise_step: float = Field(0.02, gt=0.0, le=1.0, description="... the gain's step per pair of detections, in powers of 2")
     pose_noise_per_s: tuple[float, float, float] = Field(
         (0.0, 0.0, 0.0), description="extra σ (m, m, rad) per √s of motion: slip, unmodelled")
     turn_slip: bool = Field(
@@ -208,10 +214,13 @@ class FastSlamConfig(CoreConfig):
 
     @property
     def motion_scale(self) -> float:
-        """``motion_noise_scale`` with None resolved: 0.25 with the shared association, else 1."""
-        if self.motion_noise_scale is not None:
-            return self.motion_noise_scale
-        return 0.25 if self.association == "shared" else 1.0
+        """``motion_noise_scale`` with None resolved: 1."""
+        return 1.0 if self.motion_noise_scale is None else self.motion_noise_scale
+
+    @property
+    def adapts_motion_noise(self) -> bool:
+        """Whether each robot's odometry noise gain follows its scans (shared association only)."""
+        return self.motion_noise_adapt and self.association == "shared"
 
     @property
     def fastslam2(self) -> bool:

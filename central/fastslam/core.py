@@ -27,7 +27,8 @@ from collections import Counter
 
 import numpy as np
 
-from central.fastslam import association, kernels, lifecycle, motion, proposal, resampling, robot_detections, shared
+from central.fastslam import (association, kernels, lifecycle, motion, noise_gain, proposal, resampling, robot_detections,
+                              shared)
 from central.fastslam.config import FastSlamConfig
 from central.fastslam.aligned_map import AlignedMap, SlotTable
 from central.fastslam.landmarks import LandmarkMap
@@ -170,6 +171,7 @@ class FastSlam:
             association.update_known(self, robot, z, r, ids, weigh_updates, updated)
         elif z.shape[0]:
             association.update_unknown(self, robot, z, r, ids, weigh_updates)
+        noise_gain.observe(self, robot, z, r, ids)
         if self.config.robot_detections and len(event.robot_ids):
             robot_detections.weigh(self, robot, event, r)
         resampling.normalise_and_resample(self)
@@ -188,7 +190,8 @@ class FastSlam:
     def __setstate__(self, state: dict) -> None:
         """Restore a pickled filter (a checkpoint), also one written before the weights were cached, the
         known-landmark table kept its arrays (such a checkpoint holds ``logw`` and a plain dict), the map
-        numbered its landmarks or the robots kept their detections of robots (``robot_checks``)."""
+        numbered its landmarks or the robots kept their detections of robots (``robot_checks``) and their odometry noise
+        gains (``odometry_noise``)."""
         if "logw" in state:
             state["_logw"] = state.pop("logw")
         state["_weights"] = None
@@ -196,8 +199,10 @@ class FastSlam:
             state["turn_gain"] = np.ones(state["pose"].shape[:2])
         if not isinstance(state.get("known_slots"), SlotTable):
             state["known_slots"] = SlotTable(state.get("known_slots", {}))
-        for robot in state.get("robots", {}).values():  # robots pickled before they kept their checks by robots
+        for robot in state.get("robots", {}).values():  # robots pickled before they kept these
             robot.__dict__.setdefault("robot_checks", [])
+            robot.__dict__.setdefault("odometry_noise", None)
+            robot.__dict__.setdefault("scaled_gain", None)
         self.__dict__.update(state)
         if isinstance(self.map, AlignedMap):  # a map pickled before it numbered its landmarks: the table's order
             self.map.set_order(self.known_slots.arrays()[1])
@@ -271,7 +276,10 @@ class FastSlam:
 
     def extra_metrics(self) -> dict:
         """Figures ``fleetslam run`` adds to its JSON: the filter's counters and particle statistics."""
-        return {"fastslam": self.stats()}
+        out = {"fastslam": self.stats()}
+        if self.config.adapts_motion_noise:
+            out["noise_gain"] = {rid: round(noise_gain.gain(robot), 4) for rid, robot in self.robots.items()}
+        return out
 
     def stats(self) -> dict[str, float]:
         """Counters and particle statistics (for the service's stats and the benchmarks)."""

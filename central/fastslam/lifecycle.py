@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from central.fastslam import noise_gain
 from robots.gaussian import sqrt_psd, valid_placement
 from robots.models import MotionModel, RangeBearingSensor, robot_models, wrap_angle
 from schemas.messages import RobotInfo
@@ -39,11 +40,13 @@ class RobotState:
     last_odom_stamp: float = -np.inf
     last_scan_stamp: float = -np.inf
     last_match_stamp: float | None = None  # shared association: the last scan with a detection matched
-    checked_cov: object = None  # the control covariance last validated (by identity) and its scaled copy
+    checked_cov: object = None  # the control covariance last validated (by identity), its scaled copy and its gain
     scaled_cov: np.ndarray | None = None
+    scaled_gain: float | None = None
     drift: np.ndarray | None = None  # shared association: covariance of the dead reckoning, conditioned on matches
     blind: object = None  # a reacquire.BlindWindow while the robot re-acquires the map
     robot_checks: list = field(default_factory=list)  # (stamp, robot seen, explained): reacquire.contradicted
+    odometry_noise: object = None  # robots.odometry_noise.OdometryNoiseGain: the gain on its odometry's covariance
 
     @property
     def robot_id(self) -> str:
@@ -120,7 +123,8 @@ def take_in(slam: FastSlam, info: RobotInfo, pose: np.ndarray, cov: np.ndarray) 
         gain += slam.config.turn_gain_std * slam.rng.standard_normal(n)
     slam.turn_gain = np.concatenate([slam.turn_gain, gain[:, None]], 1)
     model, sensor = robot_models(info)
-    slam.robots[info.robot_id] = RobotState(index=slam.pose.shape[1] - 1, info=info, model=model, sensor=sensor)
+    slam.robots[info.robot_id] = RobotState(index=slam.pose.shape[1] - 1, info=info, model=model, sensor=sensor,
+                                            odometry_noise=noise_gain.start(slam))
 
 
 def placed(slam: FastSlam, robot_id: str) -> RobotState | None:

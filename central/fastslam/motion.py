@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from central.fastslam import kernels, reacquire, resampling
+from central.fastslam import kernels, noise_gain, reacquire, resampling
 from central.fastslam.config import FastSlamConfig
 from central.fastslam.lifecycle import RobotState
 from robots.gaussian import diagonal_variances, sqrt_psd, turn_slip, valid_cov2
@@ -38,7 +38,10 @@ def take_control(slam: FastSlam, robot: RobotState, event: OdomEvent) -> bool:
         if not valid_cov2(cov):
             slam.rejected["bad_odometry"] += 1
             return False
-        robot.checked_cov, robot.scaled_cov = event.control_cov, cov * slam.config.motion_scale
+        robot.checked_cov, robot.scaled_cov, robot.scaled_gain = event.control_cov, None, None
+    if robot.scaled_gain != noise_gain.gain(robot):
+        robot.scaled_gain = noise_gain.gain(robot)
+        robot.scaled_cov = np.asarray(robot.checked_cov, float) * (slam.config.motion_scale * robot.scaled_gain)
     if stamp < robot.last_odom_stamp:
         slam.rejected["time_backwards"] += 1
         return False
@@ -105,6 +108,8 @@ def take_pending(slam: FastSlam, robot: RobotState) -> tuple[np.ndarray, np.ndar
     span = robot.pending_s
     clear(robot)
     config = slam.config
+    if motion is not None:
+        noise_gain.moved(slam, robot, motion[0], motion[1])
     if motion is not None and config.reacquire and config.association == "shared":
         heading = resampling.weighted_heading(slam.pose[:, robot.index, 2], slam.weights())
         slip = 0.0 if config.turn_slip else robot.info.turn_slip_var  # turn_slip: already in the motion's covariance

@@ -621,16 +621,19 @@ def test_robot_detection_position_sd_defaults_to_a_decimetre_without_ids_and_non
     assert FastSlamConfig(association="known", robot_detection_position_sd=0.3).robot_detection_relative_sd == 0.3
 
 
-def test_motion_noise_scale_defaults_to_a_quarter_without_ids_and_one_with_them():
-    """None resolves by the association (Victoria Park without ids: the cloud spreads by the announced noise); a
-    value set wins, and it scales the covariance the particles draw from."""
-    assert FastSlamConfig(association="shared").motion_scale == 0.25
+def test_motion_noise_scale_defaults_to_the_announced_covariance_times_the_robots_gain():
+    """None resolves to 1 for every association (the quarter fitted on Victoria Park is gone: each robot's gain adapts
+    instead, shared association only); a value set wins, and it scales the covariance the particles draw from."""
+    assert FastSlamConfig(association="shared").motion_scale == 1.0
     assert FastSlamConfig(association="known").motion_scale == 1.0
     assert FastSlamConfig(association="shared", motion_noise_scale=2.0).motion_scale == 2.0
+    assert FastSlamConfig(association="shared").adapts_motion_noise
+    assert not FastSlamConfig(association="known").adapts_motion_noise
     data = simulate("arena", robots=1, seed=0, duration=2.0)
     event = next(e for e in data.events() if isinstance(e, OdomEvent))
-    for association, scale in (("shared", 0.25), ("known", 1.0)):
-        slam = FastSlam(FastSlamConfig(particles=5, association=association, seed=0), [data.robots["r1"].info])
+    for association, scale in (("shared", 0.25), ("known", 0.25), ("known", 1.0)):
+        slam = FastSlam(FastSlamConfig(particles=5, association=association, seed=0, motion_noise_scale=scale),
+                        [data.robots["r1"].info])
         slam.on_odometry(event)
         np.testing.assert_allclose(slam.robots["r1"].scaled_cov, scale * np.asarray(event.control_cov))
 
@@ -669,3 +672,24 @@ def test_turn_gains_learn_how_much_a_robot_over_counts_its_turns():
         return slam.rng.bit_generator.state != state
 
     assert not draws_for_gains() and draws_for_gains(turn_gain_walk=0.002)
+
+
+@pytest.mark.parametrize("looser", [1.0, 16.0])
+def test_each_robots_odometry_noise_gain_follows_what_its_detections_show(looser):
+    """Shared association: a fleet whose odometry announces ``looser`` times its real covariance draws a gain of it
+    that falls towards 1 / ``looser`` (robots/odometry_noise.py: 0.16-0.2 after 120 s at 16 times), and stays near
+    1 when the announcement is right; with the adaptation off every robot draws the announced covariance."""
+    data = simulate("arena", robots=2, seed=2, duration=120.0)
+    for log in data.robots.values():
+        log.odom_cov = log.odom_cov * looser
+    infos = [log.info for log in data.robots.values()]
+    slam = FastSlam(FastSlamConfig(particles=20, association="shared", seed=0), infos)
+    feed(slam, data)
+    gains = slam.extra_metrics()["noise_gain"]
+    assert slam.counts["noise_gain_pairs"] > 20
+    for gain in gains.values():
+        assert (0.5 < gain <= 1.0) if looser == 1.0 else (1.0 / looser < gain < 0.35), gains
+    fixed = FastSlam(FastSlamConfig(particles=20, association="shared", seed=0, motion_noise_adapt=False), infos)
+    feed(fixed, data)
+    assert "noise_gain" not in fixed.extra_metrics()
+    assert all(robot.scaled_cov is None or np.allclose(robot.scaled_cov, robot.checked_cov) for robot in fixed.robots.values())
