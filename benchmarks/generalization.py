@@ -34,8 +34,9 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 
 import numpy as np
@@ -227,6 +228,27 @@ def one_run(name: str, estimator: str, association: str, start: str, seed: int, 
     return record
 
 
+def barcode_runs(pool, jobs: list[tuple], cache: Path | None) -> dict:
+    """The barcode runs of ``jobs``, (data, seed) → run; with ``cache``, each one kept there as JSON and reused by
+    later reports (the runs under test change, the barcode runs do not while the known-association code does not)."""
+    done, todo = {}, []
+    for job in jobs:
+        path = cache / f"{job[0]}-seed{job[4]}-p{job[5]}.json" if cache else None
+        if path and path.exists():
+            record = json.loads(path.read_text())
+            for key in ("trajectories", "ate_m"):  # JSON turned the robot ids into strings
+                record[key] = {int(rid) if rid.isdigit() else rid: v for rid, v in record.get(key, {}).items()}
+            done[(job[0], job[4])] = record
+        else:
+            todo.append(job)
+    for record in pool_map(pool, one_run, todo, "barcode run"):
+        done[(record["data"], record["seed"])] = record
+        if cache:
+            cache.mkdir(parents=True, exist_ok=True)
+            (cache / f"{record['data']}-seed{record['seed']}-p{jobs[0][5]}.json").write_text(json.dumps(record))
+    return done
+
+
 def reference_truth(record: dict) -> dict:
     return {rid: (np.asarray(s), np.asarray(p)) for rid, (s, p) in record["trajectories"].items()}
 
@@ -248,14 +270,55 @@ def ratios(runs: list[dict], yardstick: dict) -> None:
 
 
 def summarise(runs: list[dict]) -> dict:
+    """Per data set, estimator and start mode: the median and worst over the seeds of :data:`KEYS`; and without start
+    poses ``wall_ratio_to_known``: the median run time over the known-start run's (issue 52: within 3)."""
     out: dict = {}
     for run in runs:
         out.setdefault(run["data"], {}).setdefault(run["estimator"], {}).setdefault(run["start"], []).append(run)
-    return {data: {est: {start: {"seeds": len(group), "unplaced_runs": sum(bool(r.get("unplaced")) for r in group),
-                                 **over_seeds(group, KEYS)}
-                         for start, group in by_start.items()}
-                   for est, by_start in by_est.items()}
-            for data, by_est in out.items()}
+    table = {data: {est: {start: {"seeds": len(group), "unplaced_runs": sum(bool(r.get("unplaced")) for r in group),
+                                  **over_seeds(group, KEYS)}
+                          for start, group in by_start.items()}
+                    for est, by_start in by_est.items()}
+             for data, by_est in out.items()}
+    for data, by_est in out.items():  # the car park's target: every beacon passed within 0.3 m, in most seeds
+        for est, by_start in by_est.items():
+            for start, group in by_start.items():
+                counted = [r for r in group if r.get("beacons_passed")]
+                if counted:
+                    table[data][est][start]["seeds_with_every_beacon"] = (
+                        f"{sum(r['beacons_within_0_3m'] == r['beacons_passed'] for r in counted)} of {len(counted)}")
+    for by_est in table.values():
+        for modes in by_est.values():
+            if "known" in modes and "none" in modes and "wall_s" in modes["known"] and "wall_s" in modes["none"]:
+                modes["none"]["wall_ratio_to_known"] = round(modes["none"]["wall_s"]["median"]
+                                                             / max(modes["known"]["wall_s"]["median"], 1e-9), 2)
+    return table
+
+
+TABLE_KEYS = (("ate_robot_worst_m", "worst robot (m)"), ("ate_ratio_worst", "worst ratio"), ("map_rmse_m", "map (m)"),
+              ("spurious", "spurious"), ("missed", "missed"), ("gps_rmse_m", "GPS (m)"),
+              ("wall_s", "wall (s)"))
+
+
+def markdown_table(reports: list[dict], names: list[str]) -> str:
+    """One row per data set, estimator and start mode of any report; per figure 'median / worst' of each report
+    (``names``), joined by ' → ': the before-and-after table a change is judged by."""
+    extras = (("seeds_with_every_beacon", "every beacon ≤ 0.3 m"), ("wall_ratio_to_known", "wall / known start"))
+    rows = ["| data | estimator | start | " + " | ".join(label for _, label in TABLE_KEYS + extras) + " |",
+            "|---" * (3 + len(TABLE_KEYS) + len(extras)) + "|"]
+    groups = {(data, est, start) for report in reports for data, by_est in report["summary"].items()
+              for est, modes in by_est.items() for start in modes}
+    for data, est, start in sorted(groups, key=lambda g: (list(DATASETS).index(g[0]), g[1] != "fastslam", g[2])):
+        summaries = [report["summary"].get(data, {}).get(est, {}).get(start, {}) for report in reports]
+        cells = []
+        for key, _ in TABLE_KEYS:
+            parts = ["–" if s.get(key) is None else f"{s[key]['median']:g} / {s[key]['worst']:g}" for s in summaries]
+            cells.append(" → ".join(parts) if any(p != "–" for p in parts) else "")
+        for key, _ in extras:
+            parts = [str(s.get(key, "–")) for s in summaries]
+            cells.append(" → ".join(parts) if any(p != "–" for p in parts) else "")
+        rows.append(f"| {data} | {est} | {start} | " + " | ".join(cells) + " |")
+    return f"({' → '.join(names)}; median / worst over seeds)\n\n" + "\n".join(rows)
 
 
 def setting(text: str) -> tuple[str, object]:
@@ -268,8 +331,14 @@ def setting(text: str) -> tuple[str, object]:
         return key, value
 
 
-def pool_map(pool, function, jobs: list[tuple]) -> list:
-    return list(pool.map(function, *zip(*jobs))) if jobs else []
+def pool_map(pool, function, jobs: list[tuple], what: str) -> list:
+    """``function`` over ``jobs`` in the pool, in order; a line on stderr as each run ends (runs take 1-60 s)."""
+    futures = [pool.submit(function, *job) for job in jobs]
+    for done, future in enumerate(as_completed(futures), 1):
+        run = future.result()
+        print(f"{what} {done}/{len(jobs)}: {run['data']} {run['estimator']} start {run['start']} seed {run['seed']} "
+              f"{run['wall_s']:.0f} s", file=sys.stderr, flush=True)
+    return [future.result() for future in futures]
 
 
 def main() -> None:
@@ -287,8 +356,15 @@ def main() -> None:
     parser.add_argument("--jobs", type=int, default=2, help="runs in parallel (processes)")
     parser.add_argument("--derive-start-poses", action="store_true",
                         help=f"derive {START_POSES_FILE.name} for MR.CLAM 1, 2, 4 (and check it on MR.CLAM 6)")
+    parser.add_argument("--table", nargs="+", metavar="REPORT",
+                        help="print the markdown table of these reports (JSON written by --out), before → after")
+    parser.add_argument("--barcode-cache", metavar="DIR",
+                        help="keep the barcode runs here and reuse them (only while known association is unchanged)")
     parser.add_argument("--out")
     args = parser.parse_args()
+    if args.table:
+        print(markdown_table([json.loads(Path(f).read_text()) for f in args.table], args.table))
+        return
     if args.derive_start_poses:
         with ProcessPoolExecutor(max_workers=args.jobs) as pool:
             names = ["mrclam1", "mrclam2", "mrclam4", "mrclam6"]
@@ -312,7 +388,7 @@ def main() -> None:
         # the barcode runs: the truth of MR.CLAM 1, 2, 4 and the yardstick of MR.CLAM 6's ratios
         barcode_jobs = [(n, "fastslam", "known", "known", s, args.particles, {}, None)
                         for n in truthless + [n for n in names if n == "mrclam6"] for s in seeds]
-        barcode = {(r["data"], r["seed"]): r for r in pool_map(pool, one_run, barcode_jobs)}
+        barcode = barcode_runs(pool, barcode_jobs, Path(args.barcode_cache) if args.barcode_cache else None)
         jobs = []
         for n in names:
             for est in estimators:
@@ -320,7 +396,7 @@ def main() -> None:
                     for s in seeds[:1] if est in DETERMINISTIC and mode == "known" else seeds:
                         truth = reference_truth(barcode[(n, s)]) if n in truthless else None
                         jobs.append((n, est, "unknown", mode, s, args.particles, settings[est], truth))
-        runs = pool_map(pool, one_run, jobs)
+        runs = pool_map(pool, one_run, jobs, "run")
     ratios([r for r in runs if r["start"] == "known" and r["data"] == "mrclam6"],
            {k: v for k, v in barcode.items() if k[0] == "mrclam6"})
     for est in estimators:

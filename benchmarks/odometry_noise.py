@@ -8,7 +8,7 @@ scans, the measured RMS distance is set against the one the model predicts: the 
 with controls drawn from the model's covariance (``--draws``, the same pairs), the sensor's part from each
 detection's range and bearing variances. A model that fits predicts what is measured; a model too loose predicts
 more at every interval (the car park's ACFR example noise, σ 0.7 m/s and 7° per reading, predicts 2–5 times the
-measured scatter: README). The gate keeps far pairs out, so a model that fits predicts a little more than is
+measured scatter: docs/data.md). The gate keeps far pairs out, so a model that fits predicts a little more than is
 measured at the longest intervals; where the predicted scatter reaches the gate (Victoria Park's sensor model, σ
 0.5 m and 2°, predicts more than a 1 m gate lets through at every interval) the measured RMS is set against the
 model's RMS within the gate ("within the gate": the pairs' predicted distances, cut at the gate), and a model much

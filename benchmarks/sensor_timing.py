@@ -15,7 +15,7 @@ How far in time each robot's detections sit from its odometry, and (where there 
 Every δ says when what was stamped s happened: at s + δ. Negative: before its stamp (a scan stamped on
 arrival); positive: after it (odometry that announces a turn before the robot makes it). The stamps are measured
 as they are in the files: the car park is loaded with ``scan_delay_s=0`` (its loader moves the scans back by the
-−0.047 s measured here; the other loaders keep the stamps). The README says what shifting the stamps did.
+−0.047 s measured here; the other loaders keep the stamps). docs/data.md says what shifting the stamps did.
 """
 
 from __future__ import annotations

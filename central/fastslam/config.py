@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import math
 from typing import TYPE_CHECKING, Literal
 
 from pydantic import Field, model_validator
@@ -88,13 +89,13 @@ class FastSlamConfig(CoreConfig):
         "turn_slip_var, wheel slip) to the motion. Off: without ids it made MR.CLAM worse over 10 seeds (the wider "
         "heading spread lets the shared association pair a cluster's detections with a neighbouring cluster's "
         "landmark); with barcodes it helps when every start pose is given, but MCL then placed a robot 160° off in "
-        "1 of 10 seeds without start poses (docs/results-central-fastslam.md)")
+        "1 of 10 seeds without start poses (measured when it was chosen; git show 300b99e:docs/results-central-fastslam.md)")
     turn_gain_std: float = Field(
         0.0, ge=0.0, le=0.5, description="σ of each particle's turn gain for each robot at placement: the particle "
         "turns by gain × the odometry's turn, so particles carry hypotheses of how much a robot's odometry over- or "
         "under-counts its turns (0: off, no draw). Off by default: on MR.CLAM without barcodes (40 seeds) 0.04 with "
         "a walk of 0.002 took the worst robot's median 1.37 -> 1.19 m but its worst seed 2.33 -> 3.16 m, and its "
-        "neighbours were not better (docs/results-central-fastslam.md)")
+        "neighbours were not better (measured when it was chosen; git show 300b99e:docs/results-central-fastslam.md)")
     turn_gain_walk: float = Field(
         0.0, ge=0.0, le=0.5, description="σ per √s of motion of the turn gain's random walk (lets it follow a robot "
         "whose wheels or floor change, and keeps the particles' gains diverse after resampling)")
@@ -102,7 +103,7 @@ class FastSlamConfig(CoreConfig):
         True, description="shared: a robot whose dead reckoning (its drift, conditioned on each match) exceeds the "
         "thresholds below stops associating scan by scan and is put back on the map by one rigid correction of its "
         "recent detections (central/fastslam/reacquire.py). MR.CLAM without barcodes, 80 seeds: worst robot median "
-        "1.24 -> 0.64 m, seeds with a robot above 1.5 m 23 -> 2; Victoria Park and the car park unchanged (docs/results-central-fastslam.md)")
+        "1.24 -> 0.64 m, seeds with a robot above 1.5 m 23 -> 2; Victoria Park and the car park unchanged (measured when it was chosen; git show 300b99e:docs/results-central-fastslam.md)")
     reacquire_heading_sd: float = Field(0.15, gt=0.0, description="... when the drift's heading σ exceeds this (rad)")
     reacquire_position_sd: float = Field(0.4, gt=0.0, description="... or its position σ exceeds this (m)")
     reacquire_window_s: float = Field(15.0, gt=0.0, description="... its detections of the last this many seconds count")
@@ -112,8 +113,16 @@ class FastSlamConfig(CoreConfig):
     reacquire_span_m: float = Field(1.0, ge=0.0, description="... reaching landmarks at least this far apart (m)")
     reacquire_margin: float = Field(
         3.0, ge=0.0, description="... and explain this many detections more than any distinct correction")
-    reacquire_max_turn: float = Field(0.785, ge=0.0, description="... turning it by at most this (rad)")
-    reacquire_max_shift_m: float = Field(2.0, ge=0.0, description="... and shifting it by at most this (m)")
+    reacquire_max_turn: float = Field(
+        math.pi, ge=0.0, description="... turning it by at most this (rad); within that, by at most 3σ of its drift. "
+        "Half a turn: the drift bounds the search. The cap was 45° (fitted on MR.CLAM 6), and a robot turned further "
+        "(MR.CLAM 1's r1, 90-110° off for 200 s) never came back; with 2 m for the shift below, over 5 seeds without "
+        "barcodes, worst robot against the run with barcodes: MR.CLAM 1 2.29 / 2.58 -> 1.08 / 2.70 m, MR.CLAM 2 1.07 / "
+        "1.61 -> 0.73 / 1.64 m, MR.CLAM 4 0.59 / 2.97 -> 0.63 / 1.12 m, without start poses 4.33 / 4.39 -> 1.86 / "
+        "3.02 m (with reacquire_confirmations 2); MR.CLAM 6 0.39 / 0.67 -> 0.47 / 0.85 m (docs/results.md)")
+    reacquire_max_shift_m: float = Field(
+        8.0, ge=0.0, description="... and shifting it by at most this (m); within that, by at most 3σ of its drift "
+        "plus reacquire_inlier_m (was 2 m, with the turn's cap above)")
     reacquire_confirm_sigmas: float = Field(
         1.0, ge=0.0, description="... or, failing that, a correction within this many σ of the drift that explains "
         "as many detections (one landmark in view is enough: the drift bounds the turn); 0: off")
@@ -123,7 +132,11 @@ class FastSlamConfig(CoreConfig):
         0.0, ge=0.0, description="... the confirmation takes, of the near corrections within this many detections of "
         "the best, the one nearest the dead reckoning (0: the best, the prior breaking its ties). Off by default: on "
         "MR.CLAM without barcodes 1 took the worst robot 0.56 / 1.09 -> 0.49 / 1.52 m over 80 seeds (50 better, 30 "
-        "worse; 0.53 / 1.24 -> 0.51 / 1.28 m held out) and changed nothing clear on MR.CLAM Dataset 1 (docs/results-central-fastslam.md)")
+        "worse; 0.53 / 1.24 -> 0.51 / 1.28 m held out) and changed nothing clear on MR.CLAM Dataset 1 (measured when it was chosen; git show 300b99e:docs/results-central-fastslam.md)")
+    reacquire_confirmations: int = Field(
+        2, ge=1, description="... a correction the search finds is taken only once this many searches in a row, each "
+        "with reacquire_min_detections new detections, agree on it (one rigid transform within the distinct bounds): "
+        "a window's chance alignment is not confirmed by the next (1: at once, the default before)")
     reacquire_prior_weight: float = Field(
         0.5, ge=0.0, description="... each correction scored by its detections less this times its squared size in σ "
         "of the drift (a Gaussian prior on the correction: of two that explain about as much, the one the dead "
@@ -136,7 +149,7 @@ class FastSlamConfig(CoreConfig):
         "0.38 / 2.92 m (64 better, 16 worse; seed 19 the one above 1.5 m), held out 0.53 / 1.24 -> 0.37 / 0.55 m; "
         "without start poses 0.49 / 1.42 -> 0.42 / 1.45 m; MR.CLAM 1 against its run with barcodes 3.43 / 4.39 -> "
         "1.82 / 4.48 m, spurious 32 -> 20; with the held window following the estimate (a later mend) 0.37 / 0.83 m, held "
-        "out 0.364 / 0.548 m, without start poses 0.43 / 0.91 m (docs/results-central-fastslam.md)")
+        "out 0.364 / 0.548 m, without start poses 0.43 / 0.91 m (measured when it was chosen; git show 300b99e:docs/results-central-fastslam.md)")
     reacquire_robots_window_s: float = Field(10.0, gt=0.0, description="... over this many seconds")
     reacquire_robots_min: int = Field(6, ge=1, description="... this many unexplained detections of robots")
     reacquire_robots_veto: int = Field(
@@ -169,7 +182,7 @@ class FastSlamConfig(CoreConfig):
     robot_detections: bool = Field(
         True, description="weight particles by robot-to-robot detections (relative pose likelihood): a robot out of "
         "sight of landmarks stays tied to the ones it sees (MR.CLAM without barcodes, 40 seeds: worst robot median "
-        "2.57 -> 1.37 m, worst 4.46 -> 2.33 m; with barcodes better too; docs/results-central-fastslam.md)")
+        "2.57 -> 1.37 m, worst 4.46 -> 2.33 m; with barcodes better too; measured when it was chosen; git show 300b99e:docs/results-central-fastslam.md)")
     robot_detection_noise_scale: float = Field(
         4.0, gt=0.0, description="multiplies the scan's noise covariance for robot-to-robot detections: on MR.CLAM "
         "their innovations against the true poses are heavy-tailed (bearing std 3.6x the scan's, median d² 0.4), and "
@@ -185,7 +198,7 @@ class FastSlamConfig(CoreConfig):
         "collapsed explain by turning the robot (MR.CLAM seed 1: r5 turned 17° in 8 s by its detections of r2). "
         "None: 0.1 with the shared association (MR.CLAM without barcodes, 110 seeds: worst robot 0.53 / 1.48 -> "
         "0.53 / 1.24 m, seeds above 1.0 m 9 -> 5; 0.2 and 0.4 had worse tails), 0 with known ids (with barcodes "
-        "0.1 was worse: 0.46 / 0.55 -> 0.53 / 0.65 m; docs/results-central-fastslam.md)")
+        "0.1 was worse: 0.46 / 0.55 -> 0.53 / 0.65 m; measured when it was chosen; git show 300b99e:docs/results-central-fastslam.md)")
 
     @property
     def reacquire_rule(self) -> SearchRule:

@@ -110,10 +110,13 @@ class BlindWindow:
     contradicted: bool = False  # held because its detections of other robots contradicted it
     reckoned: np.ndarray | None = None  # the robot's estimate at the last add, before that scan's odometry
     odometry: np.ndarray = field(default_factory=lambda: np.zeros(3))  # Δ̄ applied to the robot since (its frame)
+    added: int = 0  # detections added since the robot was held
+    candidate: tuple | None = None  # (world transform 3x3, agreeing searches, ``added`` then): :meth:`confirms`
 
     def add(self, stamp: float, points: np.ndarray, window_s: float) -> None:
         self.stamps.append(stamp)
         self.points.append(points)
+        self.added += len(points)
         old = 0
         while self.stamps[old] < stamp - window_s:
             old += 1
@@ -134,7 +137,31 @@ class BlindWindow:
             self.points = [turned(points, expected[:2], turn) + shift for points in self.points]
             self.robots = [(stamp, np.r_[turned(pair[:2], expected[:2], turn) + shift, pair[2:]])
                            for stamp, pair in self.robots]
+            if self.candidate is not None:  # the candidate took the points where they were: A' = A ∘ jump⁻¹
+                jump = rigid(turn, expected[:2], shift)
+                self.candidate = (self.candidate[0] @ np.linalg.inv(jump),) + self.candidate[1:]
         self.reckoned, self.odometry = np.array(before, float), np.zeros(3)
+
+    def confirms(self, correction: Correction, position: np.ndarray, needed: int, fresh: int,
+                 apart_m: float) -> bool:
+        """Whether ``correction`` (found now, the robot at ``position``) is the ``needed``-th of searches in a row
+        that agree on one rigid transform of the window (turn within ``DISTINCT_TURN``, the robot moved to within
+        ``apart_m`` of the same place), each with at least ``fresh`` detections added since the one before: a
+        correction is taken on independent confirmations, not on one window's chance alignment (MR.CLAM 1: a
+        robot turned 42° by one search mapped a turned copy for 200 s)."""
+        transform = rigid(correction.turn, correction.centre, correction.shift)
+        agreeing = 1
+        if self.candidate is not None:
+            before, count, added = self.candidate
+            if self.added - added < fresh:
+                return False  # the same detections again: no new evidence yet, keep the candidate
+            turn_apart = abs(wrap_angle(math.atan2(transform[1, 0], transform[0, 0])
+                                        - math.atan2(before[1, 0], before[0, 0])))
+            here = np.r_[position, 1.0]
+            if turn_apart <= DISTINCT_TURN and np.hypot(*((transform - before) @ here)[:2]) <= apart_m:
+                agreeing = count + 1
+        self.candidate = (transform, agreeing, self.added)
+        return agreeing >= needed
 
     def moved(self, delta: np.ndarray) -> None:
         """The robot's particles were moved by the odometry Δ̄ ``delta`` (its frame): not a jump of its estimate."""
@@ -146,6 +173,8 @@ class BlindWindow:
         state.setdefault("contradicted", False)
         state.setdefault("reckoned", None)
         state.setdefault("odometry", np.zeros(3))
+        state.setdefault("added", 0)
+        state.setdefault("candidate", None)
         self.__dict__.update(state)
 
     def robot_pairs(self) -> np.ndarray | None:
@@ -176,6 +205,16 @@ class Correction:
         out[..., :2] = turned(out[..., :2], self.centre, self.turn) + self.shift
         out[..., 2] = wrap_angle(out[..., 2] + self.turn)
         return out
+
+
+def rigid(turn: float, centre: np.ndarray, shift: np.ndarray) -> np.ndarray:
+    """The world transform (3x3, homogeneous) of turning by ``turn`` about ``centre`` and then shifting by ``shift``."""
+    c, s = math.cos(turn), math.sin(turn)
+    rotation = np.array([[c, -s], [s, c]])
+    out = np.eye(3)
+    out[:2, :2] = rotation
+    out[:2, 2] = np.asarray(centre, float) + np.asarray(shift, float) - rotation @ np.asarray(centre, float)
+    return out
 
 
 def turned(points: np.ndarray, centre: np.ndarray, turn: float) -> np.ndarray:
@@ -490,6 +529,11 @@ def step(slam: FastSlam, robot: RobotState, pose: np.ndarray, z: np.ndarray, lan
             correction = search_window(window, pose[:2], math.sqrt(drift[2, 2]), math.sqrt(max(drift[0, 0], drift[1, 1])),
                                        config.reacquire_max_turn, config.reacquire_max_shift_m, landmarks,
                                        config.reacquire_rule)
+            if correction is not None and not window.confirms(
+                    correction, pose[:2], config.reacquire_confirmations, config.reacquire_min_detections,
+                    DISTINCT_SHIFT * config.reacquire_inlier_m):
+                slam.counts["reacquire_unconfirmed"] += 1
+                correction = None
         if correction is not None:
             col = robot.index
             slam.pose[:, col] = correction.apply(slam.pose[:, col])

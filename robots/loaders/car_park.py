@@ -21,7 +21,7 @@ detections of a beacon from scans 1–40 s apart lie 0.10–0.17 m apart (RMS), 
 still about as large as the whole scatter measured, sensor included (``benchmarks/odometry_noise.py``, no truth). Too loose a motion model
 spreads the particles where the laser must pull them back, and FastSLAM's particles then share a map of the
 far beacons drawn from a worse path: all 15 beacons within 0.3 m of the survey in 68 of 80 seeds (0–79) with the
-example's σ, 79 of 80 with half (README). The sensor's σ are looser than this run too (the sensor part alone
+example's σ, 79 of 80 with half (docs/data.md). The sensor's σ are looser than this run too (the sensor part alone
 predicts 0.21 m where 0.06 m is measured at 0–1 s) but are kept: shrinking them did not pay (both covariances
 halved: 77 of 80; the odometry's alone halved: 78 of 80).
 
@@ -31,7 +31,7 @@ placed from the dead-reckoned pose at stamp + δ, the δ at which detections of 
 best: −0.047 s); the survey agrees (the beacons fitted from the first 25 s of dead reckoning: −0.053 s). At
 3 m/s a scan 47 ms off is placed 0.14 m along the track, and turned by ω·47 ms (up to 1.4°) in turns, the same
 way on every pass: FastSLAM, whose particles end up sharing the first pass's map of a beacon, kept that bias
-(all 15 beacons within 0.3 m of the survey in 27 of 40 seeds as stamped, 36 of 40 with the delay; README).
+(all 15 beacons within 0.3 m of the survey in 27 of 40 seeds as stamped, 36 of 40 with the delay; docs/data.md).
 ``scan_delay_s=0`` gives the stamps as they are.
 """
 

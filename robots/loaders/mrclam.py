@@ -22,8 +22,8 @@ The odometry's heading error is not white: it grows with the angle turned (wheel
 the five robots, σ_ω alone leaves 28 % of the windows with more than 0.5 rad turned outside 3σ. Each robot
 announces it as ``RobotInfo.turn_slip_var`` (``turn_slip_var``, rad² of heading variance per radian turned;
 0.013-0.015 fits Dataset 6 over 1-30 s windows, 0.015 by default): with it every window is within 3σ.
-Estimators choose whether to model it (D-SLAM does by default, FastSLAM does not: README, D-SLAM and FastSLAM
-results).
+Estimators choose whether to model it (D-SLAM does by default, FastSLAM does not: docs/dslam.md and
+docs/fastslam.md).
 
 The camera misses most landmarks it could see: of the landmarks inside its view (0.3 m and 0.05 rad within its
 limits) at a scan's Vicon pose, 23-32 % per robot are detected in that scan, 30 % over Dataset 6's five robots

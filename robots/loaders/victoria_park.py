@@ -21,7 +21,7 @@ Default noise: σ_range 0.5 m, σ_bearing 2°; controls σ_speed 0.7 m/s and
 are looser than the data's own scatter, measured without truth by
 ``benchmarks/odometry_noise.py --data victoria-park --gate 0.5 --sensor-scale
 0.01`` (within the gate, the odometry's σ halved fits), but neither smaller
-odometry σ tried held up in the filters (README, Victoria Park rows): σ halved
+odometry σ tried held up in the filters (git show 300b99e:README.md, Victoria Park rows): σ halved
 lost D-SLAM (GPS RMSE 4.83 → 24.0 m); σ/√2 (0.495 m/s, 4.95°) made FastSLAM's
 median over seeds 0–19 worse (2.35 → 2.53 m), so the example's values stay.
 """

@@ -30,7 +30,7 @@ class DslamConfig(CoreConfig):
         "the placement's covariance: until it is localized against the map it maps its raw observations (phase I) "
         "while its position std is at most bootstrap_std and it sees fewer than two mapped features, as the robots "
         "with start poses do (MR.CLAM without start poses: map RMSE 0.58 -> 0.13 m with barcodes, 0.62 -> 0.11 m "
-        "without; README). Off: it starts localized, its covariance widened by placement_floor, and maps only "
+        "without; docs/dslam.md). Off: it starts localized, its covariance widened by placement_floor, and maps only "
         "through z_map")
     placement_floor: tuple[NonNegativeFloat, NonNegativeFloat, NonNegativeFloat] = Field(
         (0.3, 0.3, 0.1), description="with placement_bootstrap off: σ (m, m, rad) added to the covariance of a pose "
@@ -103,7 +103,7 @@ class DslamConfig(CoreConfig):
         "pose), its detections are held as points from its dead-reckoned pose, and a search for one rigid correction "
         "(services/dslam/core.py, the Hough vote of central/fastslam/reacquire.py) puts it back on the map. Victoria "
         "Park: the car's std grows to 4 m in the sparse north-west, trees mapped from there were wrongly paired, and "
-        "the map they made in a wrong frame held it 100 m off for the rest of the run (README)")
+        "the map they made in a wrong frame held it 100 m off for the rest of the run (docs/dslam.md)")
     reacquire_position_sd: float = Field(
         2.0, gt=0.0, description="... lost beyond this position std (m). Victoria Park, GPS RMSE by this limit: 0.75 m "
         "13.0, 1 m 7.0, 1.25 m 5.5, 1.5 m 5.1, 2 m 4.8, 2.5 m 4.0, 3 m 21.3 (lost before it counts as lost), none 58.0")

@@ -331,16 +331,19 @@ def test_a_robot_sure_of_a_wrong_pose_is_put_back_when_the_robots_it_sees_contra
 
 
 def test_a_robot_half_a_turn_off_is_put_back_by_the_robots_it_sees():
-    """160° is beyond any search of the landmarks (``reacquire_max_turn``). With ``reacquire_robots_veto`` (off by
-    default in FastSLAM, on in D-SLAM) the corrections within it that the landmarks offer are refused while they
-    leave most of its robot detections off their robots, until the rigid fit of those detections onto the robots
-    puts it back; without the fit it stays off."""
-    error, heading, slam = robots_seen_run(True, 160.0, reacquire_robots_veto=3)
+    """With the landmarks' search capped at 45° (``reacquire_max_turn``), 160° is beyond it. With
+    ``reacquire_robots_veto`` (off by default in FastSLAM, on in D-SLAM) the corrections within it that the landmarks
+    offer are refused while they leave most of its robot detections off their robots, until the rigid fit of those
+    detections onto the robots puts it back; without the fit it stays off. Uncapped (the default), the landmarks'
+    search finds the half turn itself."""
+    capped = {"reacquire_robots_veto": 3, "reacquire_max_turn": math.radians(45.0)}
+    error, heading, slam = robots_seen_run(True, 160.0, **capped)
     assert slam.counts["reacquired_by_robots"] >= 1
     assert error < 0.2 and heading < math.radians(4.0)
-    plain_error, plain_heading, plain = robots_seen_run(True, 160.0, reacquire_robots_veto=3,
-                                                        reacquire_robots_fit_min=10**6)
+    plain_error, plain_heading, plain = robots_seen_run(True, 160.0, **capped, reacquire_robots_fit_min=10**6)
     assert plain.counts["reacquired_by_robots"] == 0 and plain_error > 1.0 and plain_heading > math.radians(45.0)
+    error, heading, uncapped = robots_seen_run(True, 160.0, reacquire_robots_veto=3)
+    assert uncapped.counts["reacquired"] >= 1 and error < 0.2 and heading < math.radians(4.0)
 
 
 def test_the_robots_fit_takes_any_turn_and_refuses_what_the_pairs_cannot_fix():
@@ -494,3 +497,65 @@ def test_the_kernel_finds_the_correction_of_the_search_test():
     assert found[0] is not None and found[1] is not None
     assert found[0].turn == found[1].turn and found[0].detections == found[1].detections
     np.testing.assert_allclose(found[0].shift, found[1].shift, rtol=0.0, atol=1e-9)
+
+
+def _correction(turn: float, centre, shift) -> reacquire.Correction:
+    return reacquire.Correction(turn, np.asarray(shift, float), np.asarray(centre, float), 10.0, 3)
+
+
+def test_a_correction_is_taken_only_when_the_next_search_with_new_detections_agrees():
+    """One window's chance alignment (a turn of 40°) is not confirmed by the next search, which finds the true
+    correction; that one needs its own confirmation, with new detections in between; the same detections searched
+    again confirm nothing."""
+    window = reacquire.BlindWindow()
+    position = np.array([1.0, 2.0])
+    window.add(0.0, np.zeros((6, 2)), 15.0)
+    assert not window.confirms(_correction(math.radians(40.0), position, [0.3, -0.2]), position, 2, 5, 0.4)
+    window.add(0.5, np.zeros((6, 2)), 15.0)
+    true = _correction(math.radians(5.0), position, [0.1, 0.1])
+    assert not window.confirms(true, position, 2, 5, 0.4)  # disagrees with the 40° one: a new candidate
+    assert not window.confirms(true, position, 2, 5, 0.4)  # no new detections since: no confirmation yet
+    window.add(1.0, np.zeros((6, 2)), 15.0)
+    # the same world transform found about another centre (the robot moved on): the same correction
+    moved = position + np.array([0.5, 0.0])
+    again = reacquire.rigid(true.turn, true.centre, true.shift)
+    shift = again[:2, :2] @ moved + again[:2, 2] - moved
+    assert window.confirms(_correction(true.turn, moved, shift), moved, 2, 5, 0.4)
+    assert reacquire.BlindWindow().confirms(true, position, 1, 5, 0.4)  # one confirmation: at once (the old rule)
+
+
+def test_a_candidate_correction_follows_the_window_when_the_estimate_jumps():
+    """The window's points move with the robot's estimate (resampling by other robots' scans); the candidate moves
+    with them, so the same correction of the moved points is recognised as a confirmation."""
+    window = reacquire.BlindWindow()
+    pose = np.array([0.0, 0.0, 0.0])
+    window.follow(pose, None)
+    window.add(0.0, np.array([[2.0, 0.0], [3.0, 1.0]]), 15.0)
+    first = _correction(0.3, pose[:2], [0.2, 0.0])
+    assert not window.confirms(first, pose[:2], 2, 1, 0.4)
+    jumped = np.array([0.5, -0.5, 0.3])  # farther than a distinct correction: without following, no confirmation
+    window.follow(jumped, None)
+    window.add(0.5, np.array([[2.0, 0.5]]), 15.0)
+    # the map-frame target of every point is unchanged: the correction of the jumped points is A ∘ jump⁻¹
+    expected = reacquire.rigid(0.3, pose[:2], [0.2, 0.0]) @ np.linalg.inv(reacquire.rigid(0.3, pose[:2], [0.5, -0.5]))
+    turn = math.atan2(expected[1, 0], expected[0, 0])
+    centre = jumped[:2]
+    shift = expected[:2, :2] @ centre + expected[:2, 2] - centre
+    assert window.confirms(_correction(turn, centre, shift), centre, 2, 1, 0.4)
+
+
+def test_a_robot_turned_past_the_old_caps_is_searched_as_far_as_its_drift_says():
+    """A robot thrown 70° and 0.5 m off, with a drift that says so: the search reaches 3σ of the drift (the caps
+    default to half a turn and 8 m, bounds of the work rather than of the answer) and puts it back; with the old caps
+    (45°, 2 m, fitted on MR.CLAM 6) the correction it needs lies outside them and the robot stays off."""
+    def run(**caps) -> tuple[float, float, FastSlam]:
+        data = simulate("arena", robots=1, seed=0, duration=60.0)
+        slam = FastSlam(FastSlamConfig(particles=30, association="shared", seed=0, **caps), [data.robots["r1"].info])
+        drift = np.diag([0.4**2, 0.4**2, math.radians(40.0) ** 2])
+        return (*thrown_off_run(data, slam, drift, turn_deg=70.0), slam)
+
+    assert FastSlamConfig().reacquire_max_turn >= math.pi - 1e-3
+    error, heading, slam = run()
+    assert slam.counts["reacquired"] >= 1 and error < 0.3 and heading < math.radians(4.0)
+    capped_error, capped_heading, capped = run(reacquire_max_turn=0.785, reacquire_max_shift_m=2.0)
+    assert capped_error > 1.0 and capped_heading > math.radians(20.0)
