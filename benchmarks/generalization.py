@@ -358,6 +358,8 @@ def main() -> None:
                         help=f"derive {START_POSES_FILE.name} for MR.CLAM 1, 2, 4 (and check it on MR.CLAM 6)")
     parser.add_argument("--table", nargs="+", metavar="REPORT",
                         help="print the markdown table of these reports (JSON written by --out), before → after")
+    parser.add_argument("--barcode-particles", type=int,
+                        help="particles of the barcode runs (default --particles): one yardstick for several counts")
     parser.add_argument("--barcode-cache", metavar="DIR",
                         help="keep the barcode runs here and reuse them (only while known association is unchanged)")
     parser.add_argument("--out")
@@ -386,7 +388,7 @@ def main() -> None:
     started = time.time()
     with ProcessPoolExecutor(max_workers=args.jobs) as pool:
         # the barcode runs: the truth of MR.CLAM 1, 2, 4 and the yardstick of MR.CLAM 6's ratios
-        barcode_jobs = [(n, "fastslam", "known", "known", s, args.particles, {}, None)
+        barcode_jobs = [(n, "fastslam", "known", "known", s, args.barcode_particles or args.particles, {}, None)
                         for n in truthless + [n for n in names if n == "mrclam6"] for s in seeds]
         barcode = barcode_runs(pool, barcode_jobs, Path(args.barcode_cache) if args.barcode_cache else None)
         jobs = []

@@ -117,9 +117,10 @@ class FastSlamConfig(CoreConfig):
         math.pi, ge=0.0, description="... turning it by at most this (rad); within that, by at most 3σ of its drift. "
         "Half a turn: the drift bounds the search. The cap was 45° (fitted on MR.CLAM 6), and a robot turned further "
         "(MR.CLAM 1's r1, 90-110° off for 200 s) never came back; with 2 m for the shift below, over 5 seeds without "
-        "barcodes, worst robot against the run with barcodes: MR.CLAM 1 2.29 / 2.58 -> 1.08 / 2.70 m, MR.CLAM 2 1.07 / "
-        "1.61 -> 0.73 / 1.64 m, MR.CLAM 4 0.59 / 2.97 -> 0.63 / 1.12 m, without start poses 4.33 / 4.39 -> 1.86 / "
-        "3.02 m (with reacquire_confirmations 2); MR.CLAM 6 0.39 / 0.67 -> 0.47 / 0.85 m (docs/results.md)")
+        "barcodes, worst robot against the run with barcodes: MR.CLAM 1 2.29 / 2.58 -> 1.43 / 1.72 m, MR.CLAM 2 1.07 / "
+        "1.61 -> 0.82 / 1.11 m, MR.CLAM 4 0.59 / 2.97 -> 0.61 / 0.73 m, without start poses 4.33 / 4.39 -> 1.77 / "
+        "2.82 m (with reacquire_confirmations 2); MR.CLAM 6 (10 seeds) 0.41 / 1.30 m against Vicon, r4 above 1.2 m in "
+        "2 seeds where either change alone keeps it below 0.4 m (docs/results.md)")
     reacquire_max_shift_m: float = Field(
         8.0, ge=0.0, description="... and shifting it by at most this (m); within that, by at most 3σ of its drift "
         "plus reacquire_inlier_m (was 2 m, with the turn's cap above)")
