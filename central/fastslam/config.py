@@ -80,7 +80,10 @@ class FastSlamConfig(CoreConfig):
     motion_noise_min_gain: float = Field(
         2.0**-6, gt=0.0, le=1.0, description="... the least gain: the announced covariance may be this much too loose")
     motion_noise_max_gain: float = Field(
-        1.0, gt=0.0, description="... the largest gain (1: never looser than announced)")
+        1.0, gt=0.0, description="... the largest gain (1: never looser than announced). Most MR.CLAM robots sit at "
+        "1; with 4 the gains ran to 3-4, pairs of detections of two different landmarks pushing them up, and the data "
+        "sets not tuned on got worse (5 seeds: MR.CLAM 2 worst robot 0.82 / 1.11 -> 1.38 / 3.53 m, MR.CLAM 4 without "
+        "start poses 1.77 / 2.82 -> 2.08 / 5.57 m)")
     motion_noise_step: float = Field(0.02, gt=0.0, le=1.0, description="... the gain's step per pair of detections, in powers of 2")
     pose_noise_per_s: tuple[float, float, float] = Field(
         (0.0, 0.0, 0.0), description="extra σ (m, m, rad) per √s of motion: slip, unmodelled")
