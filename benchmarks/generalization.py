@@ -41,7 +41,7 @@ from pathlib import Path
 
 import numpy as np
 
-from report import emit, over_seeds
+from report import emit, over_seeds, setting
 from robots.dataset import Dataset
 from robots.loaders import load_dataset
 from robots.models import dead_reckon, integrate_controls, robot_models, se2_compose, wrap_angle
@@ -319,16 +319,6 @@ def markdown_table(reports: list[dict], names: list[str]) -> str:
             cells.append(" → ".join(parts) if any(p != "–" for p in parts) else "")
         rows.append(f"| {data} | {est} | {start} | " + " | ".join(cells) + " |")
     return f"({' → '.join(names)}; median / worst over seeds)\n\n" + "\n".join(rows)
-
-
-def setting(text: str) -> tuple[str, object]:
-    key, sep, value = text.partition("=")
-    if not sep:
-        raise argparse.ArgumentTypeError(f"{text!r}: expected KEY=VALUE")
-    try:
-        return key, json.loads(value)
-    except json.JSONDecodeError:
-        return key, value
 
 
 def pool_map(pool, function, jobs: list[tuple], what: str) -> list:

@@ -24,12 +24,11 @@ Median and worst over the seeds, never the best.
 from __future__ import annotations
 
 import argparse
-import json
 from concurrent.futures import ProcessPoolExecutor
 
 import numpy as np
 
-from report import emit, over_seeds
+from report import emit, over_seeds, setting
 from robots.loaders import load_dataset
 from schemas.contract import RunOptions
 from services.evaluation.metrics import fleet_alignment, map_alignment
@@ -63,17 +62,6 @@ def one_run(estimator: str, seed: int, association: str, particles: int, setting
             "unplaced": unplaced, "ate_robot_worst_m": None if unplaced else max(errors.values(), default=None),
             "ate_robot_median_m": float(np.median(list(errors.values()))) if errors else None,
             **map_figures(dataset, out.map_means)}
-
-
-def setting(text: str) -> tuple[str, object]:
-    """``KEY=VALUE`` with VALUE read as JSON when it parses (numbers, booleans, lists), else as a string."""
-    key, sep, value = text.partition("=")
-    if not sep:
-        raise argparse.ArgumentTypeError(f"{text!r}: expected KEY=VALUE")
-    try:
-        return key, json.loads(value)
-    except json.JSONDecodeError:
-        return key, value
 
 
 def main() -> None:
