@@ -44,15 +44,13 @@ def moved(slam: FastSlam, robot: RobotState, delta: np.ndarray, cov: np.ndarray)
 
 def observe(slam: FastSlam, robot: RobotState, z: np.ndarray, r: np.ndarray, ids: np.ndarray | None) -> None:
     """The scan's detections of confirmed landmarks (their ids by the association) step the robot's gain."""
+    from central.fastslam.shared import confirmed  # here: shared imports motion, which imports this module
+
     if robot.odometry_noise is None or ids is None or not len(ids):
         return
-    keep = []
-    hits, least = slam.map.hits, slam.config.confirm_hits
-    for j, lid in enumerate(ids.tolist()):  # a few detections: plain Python
-        slot = slam.known_slots.get(lid) if lid >= 0 else None
-        if slot is not None and hits[slot] >= least:
-            keep.append(j)
-    if not keep:
+    keep = ids >= 0  # after the update every such id is in the map
+    keep[keep] = confirmed(slam, ids[keep])
+    if not keep.any():
         return
     before = robot.odometry_noise.pairs
     robot.odometry_noise.scan(robot.sensor.offset, ids[keep].tolist(), z[keep], r)
