@@ -98,7 +98,7 @@ def survey_start_pose(log, survey: np.ndarray, survey_ids: np.ndarray, min_detec
 
     def residuals(start: np.ndarray) -> np.ndarray:
         poses = se2_compose(start, relative[which])
-        return (wrap_innovation(measured - sensor.observe(poses, marks)) / sigma).ravel()
+        return (sensor.innovation(measured, sensor.observe(poses, marks)) / sigma).ravel()
 
     tries = []
     for heading in np.linspace(-np.pi, np.pi, 16, endpoint=False):
@@ -114,12 +114,6 @@ def survey_start_pose(log, survey: np.ndarray, survey_ids: np.ndarray, min_detec
     return {"pose": pose.tolist(), "cov": (fit_cov + odometry_cov).tolist(), "detections": len(rows),
             "landmarks": len(seen), "window_s": round(float(stamps[-1] - begin), 2),
             "residual_rms_sigma": round(float(np.sqrt(np.mean(best.fun ** 2))), 2)}
-
-
-def wrap_innovation(delta: np.ndarray) -> np.ndarray:
-    delta = np.array(delta, float)
-    delta[..., 1] = wrap_angle(delta[..., 1])
-    return delta
 
 
 SURVEY_SWAPS = {"mrclam1": (11, 17)}  # Dataset 1's survey holds landmarks 11 and 17 at each other's place (its loader)
@@ -145,10 +139,6 @@ def with_start_poses(dataset: Dataset, name: str) -> Dataset:
             log.info = log.info.model_copy(update={"start_pose": np.asarray(entry["pose"]),
                                                    "start_pose_cov": np.asarray(entry["cov"])})
     return dataset
-
-
-def has_robot_truth(dataset: Dataset) -> bool:
-    return all(log.truth_stamp.size for log in dataset.robots.values())
 
 
 # ---------------------------------------------------------------- one run
