@@ -24,14 +24,14 @@ import time
 
 
 from robots.dataset import Dataset, RobotLog
-from schemas.contract import OdomEvent, ScanEvent, TruthEvent
 from robots.simulator import simulate
 from schemas.codec import encode
 from schemas.config import RobotSettings, add_settings_arguments, settings_from_args
 from schemas.keys import Keys
 from schemas.messages import WorldTruth
-from schemas.transport import (Shutdown, StreamPublisher, answer_history, answer_with, cache_samples,
-                               declare_robot_tokens, linger_time, run_command, session_scope, undeclare_all)
+from schemas.transport import (Shutdown, StreamPublisher, answer_with, cache_samples, linger_time, run_command,
+                               session_scope, undeclare_all)
+from services.client import RobotLink
 
 log = logging.getLogger("fleetslam.robot")
 
@@ -86,36 +86,27 @@ def run(settings: RobotSettings, shutdown: Shutdown) -> dict[str, int]:
     rid = robot.robot_id
     keys = Keys(settings.prefix)
     until = None if settings.replay is None else robot.start_stamp + settings.duration
-    info_payload = encode(robot.info)
     world_payload = None
     if dataset.landmarks is not None and settings.publish_truth and settings.publish_world:
         world_payload = encode(WorldTruth(world=dataset.name, stamp=robot.start_stamp, landmarks=dataset.landmarks,
                                           landmark_ids=dataset.landmark_ids))
-    counts = {"odom": 0, "scan": 0, "truth": 0}
     with session_scope(settings) as session:
         rates = {**robot.stream_rates(), "info": 1.0 / settings.info_period_s}
         caches = {name: cache_samples(settings, rates[name] * settings.speedup) for name in rates}
-        pubs = {name: StreamPublisher(session, keys.robot(rid, name), cache=caches[name],
-                                      keep=caches[name] if name in ("odom", "scan") else 0)
-                for name in ("info", "odom", "scan", "truth")}
-        answer_info = answer_with(session, keys.info(rid), info_payload)
-        answer_history_query = answer_history(session, keys.history(rid), [pubs["odom"], pubs["scan"]])
-        answer_world = None
-        world_pub = None
-        if world_payload is not None:
+        answer_world = world_pub = None
+        if world_payload is not None:  # before the link's tokens: alive means every queryable answers
             answer_world = answer_with(session, keys.world_truth, world_payload)
             world_pub = StreamPublisher(session, keys.world_truth)
-        tokens = declare_robot_tokens(session, keys, rid)  # last: alive means its queryables already answer
+        link = RobotLink(session, robot.info, settings.prefix, caches=caches, info_period_s=settings.info_period_s)
         try:
             shutdown.wait(settings.start_delay)
-            pubs["info"].put(info_payload)
+            link.publish_info()
             if world_pub is not None:
                 world_pub.put(world_payload)
             log.info("robot %s publishing %s (%s) at speed-up %g", rid, robot.info.source, robot.info.motion_model,
                      settings.speedup)
             wall0 = time.monotonic()
             data0 = min(robot.start_stamp, dataset.meta.get("fleet_start", robot.start_stamp))  # one clock for a fleet
-            next_info = wall0 + settings.info_period_s
             for event in robot.events(until=until, with_truth=settings.publish_truth):
                 due = wall0 + (event.stamp - data0) / settings.speedup
                 now = time.monotonic()
@@ -123,18 +114,8 @@ def run(settings: RobotSettings, shutdown: Shutdown) -> dict[str, int]:
                     break
                 if shutdown.is_set():
                     break
-                if isinstance(event, OdomEvent):
-                    pubs["odom"].put(event.to_message())
-                    counts["odom"] += 1
-                elif isinstance(event, ScanEvent):
-                    pubs["scan"].put(event.to_message(with_ids=settings.publish_ids))
-                    counts["scan"] += 1
-                elif isinstance(event, TruthEvent):
-                    pubs["truth"].put(event.to_message())
-                    counts["truth"] += 1
-                if time.monotonic() >= next_info:
-                    pubs["info"].put(info_payload)
-                    next_info += settings.info_period_s
+                link.put_event(event, with_ids=settings.publish_ids)
+            counts = {name: link.counts[name] for name in ("odom", "scan", "truth")}
             log.info("robot %s done: %s", rid, ", ".join(f"{k} {v}" for k, v in counts.items()))
             linger_s = linger_time(settings.linger_s, shutdown.is_set())
             if linger_s > 0:
@@ -142,7 +123,8 @@ def run(settings: RobotSettings, shutdown: Shutdown) -> dict[str, int]:
                          linger_s)
                 time.sleep(linger_s)
         finally:
-            undeclare_all([*pubs.values(), answer_info, answer_history_query, answer_world, world_pub, *tokens])
+            link.close()
+            undeclare_all([answer_world, world_pub])
     return counts
 
 

@@ -216,6 +216,10 @@ class DemoSettings(FleetSettings):
                                "(fleetslam record; replay it with fleetslam replay, or fleetslam run --dataset mcap:FILE)")
     open: bool = Field(False, description="run the router open, without passwords or access control, as before: any "
                        "process that reaches the port reads and writes everything (default: secured)")
+    guest_robots: str = Field("guest", pattern=r"^([A-Za-z0-9_-]{1,64}(,[A-Za-z0-9_-]{1,64})*)?$",
+                              description="robot ids the secured demo's router also admits, for robots of your own "
+                              "(services.client.RobotLink, docs/robots.md); each logs in with "
+                              "SECRETS_DIR/ID.password")
     secrets_dir: str = Field(".fleetslam/secrets", description="folder of the secured demo's credentials: one random "
                              "password per robot and service, made on the first run and reused (never commit it)")
 

@@ -104,9 +104,16 @@ def access_control(prefix: str, robots: list[str], services: dict[str, tuple[str
     for rid in robots:
         rules.append({"id": f"robot-{rid}-writes", "permission": "allow", "flows": ["ingress"], "messages": WRITE,
                       "key_exprs": _own(f"{prefix}/robots/{rid}")})
+        estimates = [key for root in (f"{prefix}/central/estimate", f"{prefix}/dslam/pose/{rid}",
+                                      f"{prefix}/mcl/{rid}/pose") for key in (root, f"{root}/@adv/**")]
+        rules.append({"id": f"robot-{rid}-follows-its-estimates", "permission": "allow", "flows": ["ingress"],
+                      "messages": ["declare_subscriber"], "key_exprs": estimates})
+        rules.append({"id": f"robot-{rid}-receives-its-estimates", "permission": "allow", "flows": ["egress"],
+                      "messages": ["put"], "key_exprs": estimates})
         subjects.append(_subject(f"robot-{rid}", rid, auth))
         policies.append({"id": f"robot-{rid}", "subjects": [f"robot-{rid}"],
-                         "rules": ["told-about-readers", f"robot-{rid}-writes"]})
+                         "rules": ["told-about-readers", f"robot-{rid}-writes", f"robot-{rid}-follows-its-estimates",
+                                   f"robot-{rid}-receives-its-estimates"]})
     for name, roots in services.items():
         rules.append({"id": f"service-{name}-writes", "permission": "allow", "flows": ["ingress"], "messages": WRITE,
                       "key_exprs": [key for root in roots for key in _own(f"{prefix}/{root}")]})

@@ -196,7 +196,8 @@ def run_demo(settings: DemoSettings, shutdown: Shutdown, console: Console) -> di
     summary: dict = {"settings": settings.model_dump(mode="json"), "services": [s.name for s in services],
                      "secured": fleet.secrets is not None}
     robot_ids = [f"r{i + 1}" for i in range(settings.robots + settings.unknown_start_robots)]
-    router = fleet.start("router", *fleet.router_words(robot_ids))
+    guests = [rid for rid in settings.guest_robots.split(",") if rid and rid not in robot_ids]
+    router = fleet.start("router", *fleet.router_words(robot_ids + guests))
     try:
         fleet.wait_for_router()
         monitor = fleet.start("monitor", "monitor", "--plain", "--json-out", str(out / "monitor.json"), user="monitor")
@@ -229,6 +230,10 @@ def run_demo(settings: DemoSettings, shutdown: Shutdown, console: Console) -> di
                       f"(+{settings.unknown_start_robots} with no start pose) in world "
                       f"'{settings.world}', services: {', '.join(s.name for s in services) or 'none yet'}; "
                       f"{settings.duration:g} s (Ctrl-C stops early)")
+        if guests and fleet.secrets is not None:
+            console.print(f"a robot of your own joins as {guests[0]}: FLEETSLAM_ZENOH_CONNECT={fleet.endpoint} "
+                          f"FLEETSLAM_ZENOH_USER={guests[0]} FLEETSLAM_ZENOH_PASSWORD_FILE="
+                          f"{fleet.secrets / (guests[0] + '.password')} (services.client.RobotLink, docs/robots.md)")
         started = time.monotonic()
         deadline = started + settings.duration + 15.0
         memory: dict[str, float | None] = {}

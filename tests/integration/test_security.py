@@ -164,6 +164,24 @@ def test_a_robot_cannot_write_into_another_robots_keys(secured, processes, keep)
     assert not any(payload == b"forged" for _, payload in seen.snapshot())
 
 
+def test_a_robot_reads_the_estimates_of_itself_but_not_the_other_robots_streams(secured, keep):
+    """What RobotLink.estimates() follows is open to a robot (the central estimate, its own D-SLAM pose); another
+    robot's odometry and another robot's D-SLAM pose are not."""
+    p = secured.prefix
+    r1, r2, central, monitor = (keep(secured.session(user)) for user in ("r1", "r2", "central", "monitor"))
+    estimate, own_pose = Collector(r1, f"{p}/central/estimate"), Collector(r1, f"{p}/dslam/pose/r1")
+    others = Collector(r1, f"{p}/robots/r2/odom")
+    other_pose = Collector(r1, f"{p}/dslam/pose/r2")
+    seen = Collector(monitor, f"{p}/**")
+    put_until_seen(central, f"{p}/central/estimate", b"fused", estimate)
+    put_until_seen(r2, f"{p}/robots/r2/odom", b"r2 moves", seen)
+    with open_session(secured.settings("r1")) as writer:  # r1 itself may not write a pose: only services do
+        writer.put(f"{p}/dslam/pose/r1", b"self-made")
+    put_until_seen(central, f"{p}/central/estimate", b"fused again", estimate)
+    assert others.count() == 0 and other_pose.count() == 0
+    assert (f"{p}/dslam/pose/r1", b"self-made") not in own_pose.snapshot() + seen.snapshot()
+
+
 def test_only_the_world_user_writes_or_answers_the_world_map(secured, keep):
     """A robot (which used to publish it) can neither put the true map nor answer queries for it: it cannot move
     MCL's robots or the evaluator's map score. The user ``world`` can, and only there."""
