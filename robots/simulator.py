@@ -6,17 +6,22 @@ real log, and ``fleetslam run --dataset sim:WORLD`` feeds the same data to an
 estimator offline. Same seed, same data: the world comes from ``seed``,
 robot i's motion, sensor noise and sightings of other robots from three
 streams of ``(seed, i)``, so a robot simulated alone equals the same robot in a fleet.
+
+:func:`simulate_laser` is opt-in and separate: the raw planar laser scans a robot at given poses would
+take of the world's landmarks, as poles, in front of the walls around the world (:func:`robots.worlds.world_walls`),
+to test a landmark extractor (:mod:`robots.features`) against known truth. It leaves :func:`simulate` unchanged.
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
 from robots.dataset import Dataset, RobotLog
 from robots.models import RangeBearingSensor, UnicycleModel, in_field_of_view, wrap_angle
-from robots.worlds import World, make_world
+from robots.worlds import World, make_world, world_walls
 from schemas.messages import RobotInfo
 
 
@@ -194,3 +199,80 @@ def simulate(
         )
     return Dataset(name=f"sim:{world.name}", robots=logs, landmarks=world.landmarks.copy(),
                    landmark_ids=world.landmark_ids, meta={"world": world.name, "seed": seed, "description": world.description})
+
+
+@dataclass(frozen=True)
+class LaserConfig:
+    """A simulated planar laser (a SICK-like 2D lidar) and the poles it sees."""
+
+    beams: int = 361  # beams, evenly spread over the field of view, first at −fov/2
+    fov: float = math.pi  # rad, the laser's field of view, centred on the robot's heading
+    max_range: float = 30.0  # m: a farther hit, or none, reads +inf (no return)
+    range_std: float = 0.02  # m: Gaussian range noise of every return
+    pole_radius: float = 0.1  # m: each landmark of the world is a pole (a disc) of this radius
+    wall_margin: float = 2.0  # m: the walls lie this far outside the world's bounds and landmarks
+
+
+@dataclass
+class LaserScans:
+    """Scans of :func:`simulate_laser`: ranges and the beam angles, and which pole each beam hit (the truth)."""
+
+    ranges: np.ndarray  # (S, B) m; +inf where nothing is within max_range
+    angle_min: float  # rad, the angle of beam 0 in the laser frame (x along the robot's heading)
+    angle_increment: float  # rad between neighbouring beams
+    pole: np.ndarray  # (S, B) the landmark whose pole the beam hit, −1 for a wall or no return
+
+
+def _ray_distances(origins: np.ndarray, directions: np.ndarray, centres: np.ndarray, radius: float,
+                   walls: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Distance along each ray ``(S, B)`` to the first pole (a disc at each of ``centres``) or wall it meets, and the
+    index of that pole (−1: a wall or nothing)."""
+    relative = centres[None, None] - origins[:, None, None]  # (S, 1, L, 2)
+    along = np.sum(directions[:, :, None] * relative, axis=-1)  # (S, B, L): distance to the point nearest the centre
+    off_axis_sq = np.sum(relative**2, axis=-1) - along**2
+    half_chord_sq = radius**2 - off_axis_sq
+    with np.errstate(invalid="ignore"):
+        entry = along - np.sqrt(half_chord_sq)
+    entry = np.where((half_chord_sq >= 0) & (entry > 0), entry, np.inf)
+    pole_distance = entry.min(axis=-1, initial=np.inf)
+    pole_index = np.where(np.isfinite(pole_distance), entry.argmin(axis=-1) if centres.size else -1, -1)
+
+    start, span = walls[:, 0], walls[:, 1] - walls[:, 0]  # (W, 2)
+    to_start = start[None, None] - origins[:, None, None]  # (S, 1, W, 2)
+
+    def cross(a, b):
+        return a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
+
+    denominator = cross(directions[:, :, None], span[None, None])  # (S, B, W)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        distance = cross(to_start, span[None, None]) / denominator
+        fraction = cross(to_start, directions[:, :, None]) / denominator
+    hit = (denominator != 0) & (distance > 0) & (fraction >= 0) & (fraction <= 1)
+    wall_distance = np.where(hit, distance, np.inf).min(axis=-1, initial=np.inf)
+    return np.minimum(pole_distance, wall_distance), np.where(pole_distance < wall_distance, pole_index, -1)
+
+
+def simulate_laser(world: str | World, poses: np.ndarray, config: LaserConfig = LaserConfig(), seed: int = 0,
+                   chunk: int = 32) -> LaserScans:
+    """The scans a planar laser takes at ``poses`` ``(S, 3)`` (robot poses; the laser sits at the world's sensor
+    offset, its x axis along the heading): each beam's range to the nearest pole or wall, plus Gaussian noise of
+    ``config.range_std`` drawn from ``seed`` (same seed, same scans), +inf beyond ``config.max_range``. Rays are
+    cast ``chunk`` scans at a time to bound the memory."""
+    world = make_world(world, seed) if isinstance(world, str) else world
+    poses = np.atleast_2d(np.asarray(poses, float))
+    angle_min = -0.5 * config.fov
+    angle_increment = config.fov / (config.beams - 1)
+    beam_angles = angle_min + angle_increment * np.arange(config.beams)
+    origins, _ = RangeBearingSensor(tuple(world.sensor.offset)).sensor_position(poses)
+    walls = world_walls(world, config.wall_margin)
+    ranges = np.empty((poses.shape[0], config.beams))
+    pole = np.empty((poses.shape[0], config.beams), np.int64)
+    for begin in range(0, poses.shape[0], chunk):
+        part = slice(begin, begin + chunk)
+        angles = poses[part, 2, None] + beam_angles
+        directions = np.stack([np.cos(angles), np.sin(angles)], axis=-1)
+        ranges[part], pole[part] = _ray_distances(origins[part], directions, world.landmarks, config.pole_radius, walls)
+    noisy = ranges + config.range_std * np.random.default_rng([seed, 3]).standard_normal(ranges.shape)
+    returned = noisy <= config.max_range
+    return LaserScans(ranges=np.where(returned, noisy, np.inf), angle_min=angle_min, angle_increment=angle_increment,
+                      pole=np.where(returned, pole, -1))

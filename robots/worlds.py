@@ -168,6 +168,19 @@ def _office(seed: int) -> World:
     )
 
 
+def world_walls(world: World, margin: float = 2.0) -> np.ndarray:
+    """Walls ``(4, 2, 2)`` (segments, each from one end to the other) of the rectangle ``margin`` m outside both the
+    world's bounds and its landmarks: what a simulated laser sees behind the landmarks (the worlds hold no other
+    structure)."""
+    xmin, xmax, ymin, ymax = world.bounds
+    if world.landmarks.size:
+        xmin, ymin = np.minimum([xmin, ymin], world.landmarks.min(axis=0))
+        xmax, ymax = np.maximum([xmax, ymax], world.landmarks.max(axis=0))
+    xmin, ymin, xmax, ymax = xmin - margin, ymin - margin, xmax + margin, ymax + margin
+    corners = np.array([[xmin, ymin], [xmax, ymin], [xmax, ymax], [xmin, ymax]], float)
+    return np.stack([corners, np.roll(corners, -1, axis=0)], axis=1)
+
+
 WORLDS: dict[str, Callable[[int], World]] = {
     "random": _random,
     "paper000": _paper000,

@@ -44,10 +44,17 @@ from pathlib import Path
 import numpy as np
 
 from robots.dataset import Dataset, RobotLog
+from robots.features import ExtractorConfig, extract_point_landmarks
 from robots.loaders.common import find_file, median_rate, odometry_intervals, read_table, without_gps_spikes
 from robots.loaders.victoria_park import ackermann_info
-from robots.models import AckermannModel, dead_reckon, fit_se2, transform_points, wrap_angle
+from robots.models import AckermannModel, dead_reckon, fit_se2, transform_points
 from schemas.messages import SensorSpec
+
+
+BEACON_CLUSTERS = ExtractorConfig(min_range=0.0, max_range=math.inf, range_jump_m=math.inf, max_width_m=math.inf,
+                                  min_intensity=math.ulp(0.0), require_discontinuity=False)
+"""The car park's beacon clusters: runs of beams with any non-zero intensity (``math.ulp(0.0)`` is the smallest
+positive float) and a positive finite range, whatever their range steps and width."""
 
 
 @dataclass
@@ -68,27 +75,15 @@ def detect_beacons(ranges: np.ndarray, intensity: np.ndarray, min_range: float =
     As in the ACFR example: the range is the mean range of the cluster, the
     angle the mean beam angle; beam k (0-based) is at k·``beam_step`` in the
     laser frame (0 = the vehicle's right, π/2 = ahead), so the vehicle-frame
-    bearing is that angle − π/2. Vectorised over all scans at once.
+    bearing is that angle − π/2. The clusters are :func:`robots.features.extract_point_landmarks`'s in
+    intensity mode (:data:`BEACON_CLUSTERS`: every reflective beam with a return, no range split, no width
+    bound, no occlusion test); the range window applies to the cluster's mean range, as in the ACFR example,
+    so a cluster outside it is counted as rejected. Vectorised over all scans at once.
     """
-    ranges = np.asarray(ranges, float)
-    reflective = np.asarray(intensity) > 0
-    scans, beams = ranges.shape
-    padded = np.zeros((scans, beams + 2), bool)
-    padded[:, 1:-1] = reflective
-    edges = np.diff(padded.astype(np.int8), axis=1)
-    start_scan, start_beam = np.nonzero(edges == 1)
-    _, stop_beam = np.nonzero(edges == -1)
-    size = stop_beam - start_beam
-    cumulative = np.zeros((scans, beams + 1))
-    cumulative[:, 1:] = np.cumsum(np.where(reflective, ranges, 0.0), axis=1)
-    mean_range = (cumulative[start_scan, stop_beam] - cumulative[start_scan, start_beam]) / size
-    mean_beam = 0.5 * (start_beam + stop_beam - 1)
-    inside = (mean_range >= min_range) & (mean_range <= max_range)
-    return BeaconDetections(
-        scan=start_scan[inside], range=mean_range[inside],
-        bearing=wrap_angle(mean_beam[inside] * beam_step - math.pi / 2), beams=size[inside],
-        rejected=int((~inside).sum()),
-    )
+    found = extract_point_landmarks(ranges, -math.pi / 2, beam_step, intensity, BEACON_CLUSTERS)
+    inside = (found.range >= min_range) & (found.range <= max_range)
+    return BeaconDetections(scan=found.scan[inside], range=found.range[inside], bearing=found.bearing[inside],
+                            beams=found.beams[inside], rejected=int((~inside).sum()))
 
 
 def fit_start_pose(stamps: np.ndarray, dt: np.ndarray, controls: np.ndarray, model: AckermannModel,
