@@ -418,9 +418,13 @@ class RunSettings(ProcessSettings):
 
     dataset: str = Field(
         "sim:arena", description="mrclam:PATH[:N], victoria-park:PATH, car-park:PATH, mcap:FILE (a fleetslam record "
-        "file) or sim:WORLD "
+        "file), rosbag2:PATH (a ROS 2 bag, with --fleet) or sim:WORLD "
         "(a relative PATH is also looked for under FLEETSLAM_DATA)",
     )
+    fleet_file: str | None = Field(
+        None, description="fleet file (YAML) of a rosbag2:PATH data set: which topics are whose odometry and "
+        "landmarks (default: the bag folder's fleet.yaml, as fleetslam export rosbag2 writes it)",
+        json_schema_extra={"cli": "--fleet"})
     estimator: ESTIMATORS = Field("odometry", description="estimator")
     association: ASSOCIATIONS = Field(
         "known", description="data association: known (true ids); unknown (each estimator's recommended method "
@@ -464,6 +468,36 @@ class RunSettings(ProcessSettings):
         None, pattern=r"\.rrd$", description="also write a Rerun recording (FILE.rrd) of the run on the data's clock: "
         "true and estimated trajectories, true landmarks, the final map with covariance ellipses (open: rerun FILE.rrd)")
     progress: bool = Field(True, description="show a progress bar on the terminal")
+    log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = Field("INFO", description="log level")
+
+
+class Ros2Settings(FleetSettings):
+    """``fleetslam ros2``: ROS 2 robots on rmw_zenoh join fleetslam; their estimates go back as ROS 2 messages."""
+
+    fleet_file: str = Field(description="fleet file (YAML): the ROS 2 robots, their topics and models (docs/robots.md)",
+                            json_schema_extra={"cli": "--fleet"})
+    duration: float | None = Field(None, gt=0, description="stop after this many seconds (default: until SIGINT/SIGTERM)")
+    node_name: str = Field("fleetslam", pattern=r"^[A-Za-z_][A-Za-z0-9_]*$",
+                           description="ROS 2 node name of the bridge (what ros2 node list shows)")
+    pose_topic: str = Field("fleetslam/odom", pattern=r"^[A-Za-z_][A-Za-z0-9_/]*$",
+                            description="each robot's fused pose (nav_msgs/Odometry), under the robot's namespace")
+    map_topic: str = Field("/fleetslam/map", description="the central and D-SLAM maps (visualization_msgs/MarkerArray)")
+    tf_topic: str = Field("/tf", description="where each robot's map → odom transform goes (tf2_msgs/TFMessage)")
+    map_period_s: float = Field(1.0, gt=0, description="the map markers are sent at most this often (s)")
+
+
+class ExportSettings(ProcessSettings):
+    """``fleetslam export rosbag2``: a data set as a ROS 2 bag plus its fleet file."""
+
+    dataset: str = Field(description="data set spec, as fleetslam run takes it: mrclam:PATH[:N], victoria-park:PATH, "
+                         "car-park:PATH, mcap:FILE or sim:WORLD")
+    out: str = Field(description="bag folder to write (must not exist, unless --force)")
+    storage: Literal["mcap", "sqlite3"] = Field("mcap", description="rosbag2 storage plugin")
+    distro: Literal["humble", "jazzy", "kilted", "rolling"] = Field(
+        "jazzy", description="ROS distribution whose message definitions and type hashes the bag carries")
+    duration: float | None = Field(None, gt=0, description="seconds of data from the start (default: all; sim: 60)")
+    seed: int = Field(0, description="seed of the simulator (sim: data sets only)")
+    force: bool = Field(False, description="replace an existing bag folder at --out (nothing else is removed)")
     log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = Field("INFO", description="log level")
 
 

@@ -57,6 +57,11 @@ def _record() -> ModuleType:
     return record
 
 
+def _export() -> ModuleType:
+    from services import export
+    return export
+
+
 def _replay() -> ModuleType:
     from services import replay
     return replay
@@ -87,6 +92,11 @@ def _mcl() -> ModuleType:
     return service
 
 
+def _ros2() -> ModuleType:
+    from services.ros2 import service
+    return service
+
+
 def _viz() -> ModuleType:
     from services.viz import service
     return service
@@ -100,12 +110,14 @@ COMMANDS: dict[str, tuple[Callable[[], ModuleType], str]] = {
     "demo": (_demo, "start a router, robots, the monitor and every service; print what was measured"),
     "run": (_run, "offline: feed a data set straight into an estimator, no Zenoh; results and plots in reports/run/"),
     "record": (_record, "record every message under the prefix to an MCAP file (ROS 2, Foxglove, Rerun read it)"),
+    "export": (_export, "write a data set as a ROS 2 bag (MCAP or sqlite3) with its fleet file"),
     "replay": (_replay, "publish the robots of an MCAP recording again as live robots"),
     "evaluate": (_evaluate, "live evaluator: compare estimates with truth, write a report folder"),
     "assoc": (_assoc, "data-association queryable on {prefix}/assoc/{method}"),
     "central": (_central, "central multi-robot FastSLAM service"),
     "dslam": (_dslam, "D-SLAM map service (sparse information-filter map) and localization"),
     "mcl": (_mcl, "Monte Carlo localization service (global localization, kidnapping)"),
+    "ros2": (_ros2, "ROS 2 robots on rmw_zenoh join fleetslam (no bridge, no ROS install); estimates back as ROS 2 messages"),
     "viz": (_viz, "live view of the fleet in Rerun: trajectories, maps with ellipses, MCL hypotheses, latency"),
 }
 

@@ -51,10 +51,15 @@ class OfflineRun:
 
 
 def load(settings: RunSettings) -> Dataset:
-    """The data set of ``settings.dataset`` (a simulation takes the run's seed, duration and robots)."""
+    """The data set of ``settings.dataset`` (a simulation takes the run's seed, duration and robots; a ROS 2 bag
+    the fleet file ``settings.fleet_file``, default the bag's own ``fleet.yaml``)."""
     from robots.loaders import load_dataset
 
     kind = settings.dataset.partition(":")[0]
+    if settings.fleet_file is not None and kind != "rosbag2":
+        raise ValueError(f"--fleet is for rosbag2: data sets only (the data set is {settings.dataset})")
+    if kind == "rosbag2":
+        return load_dataset(settings.dataset, fleet=settings.fleet_file)
     if kind != "sim":
         return load_dataset(settings.dataset)
     robot_ids = settings.robot_ids.split(",") if settings.robot_ids else None

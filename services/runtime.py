@@ -495,12 +495,14 @@ class ServiceShell:
 
         return callback
 
-    def enqueue(self, tag: str, key: str, payload, source: str | None = None) -> None:
+    def enqueue(self, tag: str, key: str, payload, source: str | None = None, nbytes: int | None = None) -> None:
         """Queue an item from any thread (subscriptions, liveliness, replies, queries...): a robot's messages in the
-        lane of (robot, publishing session), anything else in the lane of its tag; counted when refused."""
+        lane of (robot, publishing session), anything else in the lane of its tag; counted when refused. ``nbytes``
+        sizes a payload that is not bytes (default: its length if bytes, else 0)."""
         head = f"{self.settings.prefix}/robots/"
         lane = (key[len(head):].split("/", 1)[0], source) if tag in ROBOT_TAGS and key.startswith(head) else tag
-        nbytes = len(payload) if isinstance(payload, (bytes, bytearray)) else 0
+        if nbytes is None:
+            nbytes = len(payload) if isinstance(payload, (bytes, bytearray)) else 0
         self.intake.put(tag, lane, (tag, key, payload, time.perf_counter(), source), nbytes)
 
     def _wake_up(self) -> None:

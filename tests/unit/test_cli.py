@@ -68,7 +68,8 @@ def _settings_classes() -> dict[str, type]:
             "demo": config.DemoSettings, "run": config.RunSettings, "evaluate": config.EvaluateSettings,
             "assoc": config.AssocSettings, "central": config.CentralSettings, "dslam": config.DslamSettings,
             "mcl": config.MclSettings, "viz": config.VizSettings, "record": config.RecordSettings,
-            "replay": config.ReplaySettings, "world": config.WorldSettings}
+            "replay": config.ReplaySettings, "world": config.WorldSettings, "export": config.ExportSettings,
+            "ros2": config.Ros2Settings}
 
 
 @pytest.mark.parametrize("command", list(COMMANDS))
