@@ -128,6 +128,41 @@ class RobotLog:
         return out
 
 
+def robot_log_from_streams(info: RobotInfo, odom: list, scans: list, truth_stamps=(), truth_poses=()) -> RobotLog:
+    """A RobotLog from one robot's items in time order, as a recorded fleet holds them (MCAP, rosbag2).
+
+    ``odom`` items have ``stamp``, ``dt``, ``control``, ``control_cov`` (an Odometry message or an OdomEvent);
+    ``scans`` items ``stamp``, ``ranges``, ``bearings``, ``landmark_ids``, ``noise_cov`` and the other robots'
+    ``robot_ids``, ``robot_ranges``, ``robot_bearings`` (a Scan or a ScanEvent). The controls keep one covariance
+    when all have the same, else one each; landmark ids are kept when any scan has them (-1 where one has none).
+    """
+    counts = np.array([len(s.ranges) for s in scans], np.int64)
+    robot_counts = np.array([len(s.robot_ids) for s in scans], np.int64)
+    covs = np.array([m.control_cov for m in odom], float).reshape(-1, 2, 2)
+    odom_cov = np.zeros((2, 2)) if not covs.shape[0] else covs[0] if np.all(covs == covs[0]) else covs
+    with_ids = any(s.landmark_ids is not None for s in scans)
+    return RobotLog(
+        info=info,
+        odom_stamp=np.array([m.stamp for m in odom], float),
+        odom_dt=np.array([m.dt for m in odom], float),
+        odom_control=np.array([m.control for m in odom], float).reshape(-1, 2),
+        odom_cov=odom_cov,
+        scan_stamp=np.array([s.stamp for s in scans], float),
+        scan_offsets=np.concatenate([[0], np.cumsum(counts)]).astype(np.int64),
+        det_range=np.concatenate([s.ranges for s in scans]) if scans else np.zeros(0),
+        det_bearing=np.concatenate([s.bearings for s in scans]) if scans else np.zeros(0),
+        det_id=np.concatenate([s.landmark_ids if s.landmark_ids is not None else np.full(len(s.ranges), -1, np.int64)
+                               for s in scans]).astype(np.int64) if with_ids else None,
+        scan_cov=scans[0].noise_cov if scans else info.sensor.noise_cov,
+        truth_stamp=np.asarray(truth_stamps, float).reshape(-1),
+        truth_pose=np.asarray(truth_poses, float).reshape(-1, 3),
+        robot_det_offsets=np.concatenate([[0], np.cumsum(robot_counts)]).astype(np.int64),
+        robot_det_ids=[rid for s in scans for rid in s.robot_ids],
+        robot_det_range=np.concatenate([s.robot_ranges for s in scans]) if scans else np.zeros(0),
+        robot_det_bearing=np.concatenate([s.robot_bearings for s in scans]) if scans else np.zeros(0),
+    )
+
+
 @dataclass
 class Dataset:
     """A fleet's logs and, where known, the true landmark map."""

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from robots.dataset import Dataset, RobotLog
+from robots.dataset import Dataset, robot_log_from_streams
 from schemas.codec import DecodeError, decode
 from schemas.mcap_file import Recording, read_recording
 from schemas.messages import GroundTruth, Odometry, RobotInfo, Scan, WorldTruth
@@ -28,42 +28,6 @@ from schemas.recording import KIND_MODELS, RecordingError, robot_of, topic_kind
 from schemas.streams import StreamTracker, Verdict
 
 log = logging.getLogger(__name__)
-
-
-def _control_covs(odom: list[Odometry]) -> np.ndarray:
-    """The controls' covariances: one (2, 2) when every message has the same, else one per message (K, 2, 2)."""
-    covs = np.array([m.control_cov for m in odom], float).reshape(-1, 2, 2)
-    if not covs.shape[0]:
-        return np.zeros((2, 2))
-    return covs[0] if np.all(covs == covs[0]) else covs
-
-
-def _robot_log(info: RobotInfo, odom: list[Odometry], scans: list[Scan], truth: list[GroundTruth]) -> RobotLog:
-    """One robot's log from its decoded, in-order messages."""
-    counts = np.array([len(s) for s in scans], np.int64)
-    robot_counts = np.array([len(s.robot_ids) for s in scans], np.int64)
-    with_ids = any(s.landmark_ids is not None for s in scans)
-    return RobotLog(
-        info=info,
-        odom_stamp=np.array([m.stamp for m in odom], float),
-        odom_dt=np.array([m.dt for m in odom], float),
-        odom_control=np.array([m.control for m in odom], float).reshape(-1, 2),
-        odom_cov=_control_covs(odom),
-        scan_stamp=np.array([s.stamp for s in scans], float),
-        scan_offsets=np.concatenate([[0], np.cumsum(counts)]).astype(np.int64),
-        det_range=np.concatenate([s.ranges for s in scans]) if scans else np.zeros(0),
-        det_bearing=np.concatenate([s.bearings for s in scans]) if scans else np.zeros(0),
-        det_id=np.concatenate([s.landmark_ids if s.landmark_ids is not None else np.full(len(s), -1, np.int64)
-                               for s in scans]).astype(np.int64) if with_ids else None,
-        scan_cov=scans[0].noise_cov if scans else info.sensor.noise_cov,
-        truth_stamp=np.array([t.stamp for t in truth], float),
-        truth_pose=np.array([t.pose if t.heading_known else [t.pose[0], t.pose[1], np.nan] for t in truth],
-                            float).reshape(-1, 3),
-        robot_det_offsets=np.concatenate([[0], np.cumsum(robot_counts)]).astype(np.int64),
-        robot_det_ids=[rid for s in scans for rid in s.robot_ids],
-        robot_det_range=np.concatenate([s.robot_ranges for s in scans]) if scans else np.zeros(0),
-        robot_det_bearing=np.concatenate([s.robot_bearings for s in scans]) if scans else np.zeros(0),
-    )
 
 
 def dataset_from_recording(recording: Recording, name: str | None = None) -> Dataset:
@@ -102,7 +66,9 @@ def dataset_from_recording(recording: Recording, name: str | None = None) -> Dat
         elif not got["odom"] and not got["scan"]:
             left_out[rid] = "no odometry or scans recorded"
         else:
-            robots[rid] = _robot_log(infos[rid], got["odom"], got["scan"], got["truth"])
+            robots[rid] = robot_log_from_streams(
+                infos[rid], got["odom"], got["scan"], [t.stamp for t in got["truth"]],
+                [t.pose if t.heading_known else [t.pose[0], t.pose[1], np.nan] for t in got["truth"]])
             if got["odom"] and got["odom"][0].seq > 0:
                 late[rid] = got["odom"][0].seq
                 log.warning("recording %s: robot %s's first %d odometry messages were not recorded: its announced "

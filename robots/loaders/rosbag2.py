@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from robots.dataset import Dataset, RobotLog
+from robots.dataset import Dataset, robot_log_from_streams
 from schemas.contract import OdomEvent, ScanEvent
 
 log = logging.getLogger(__name__)
@@ -38,33 +38,6 @@ def bag_fleet(path: Path, fleet=None):
     if (folder / FLEET_FILE_NAME).is_file():
         return load_fleet(folder / FLEET_FILE_NAME)
     raise ValueError(f"rosbag2 {path}: no fleet file given (--fleet FILE.yaml) and no {FLEET_FILE_NAME} in {folder}")
-
-
-def _control_covs(events: list[OdomEvent]) -> np.ndarray:
-    """One (2, 2) covariance when every control has the same, else one per control (K, 2, 2)."""
-    covs = np.array([e.control_cov for e in events], float).reshape(-1, 2, 2)
-    if not covs.shape[0]:
-        return np.zeros((2, 2))
-    return covs[0] if np.all(covs == covs[0]) else covs
-
-
-def _robot_log(info, odom: list[OdomEvent], scans: list[ScanEvent], truth: list[tuple[float, np.ndarray]]) -> RobotLog:
-    counts = np.array([len(s.ranges) for s in scans], np.int64)
-    return RobotLog(
-        info=info,
-        odom_stamp=np.array([e.stamp for e in odom], float),
-        odom_dt=np.array([e.dt for e in odom], float),
-        odom_control=np.array([e.control for e in odom], float).reshape(-1, 2),
-        odom_cov=_control_covs(odom),
-        scan_stamp=np.array([s.stamp for s in scans], float),
-        scan_offsets=np.concatenate([[0], np.cumsum(counts)]).astype(np.int64),
-        det_range=np.concatenate([s.ranges for s in scans]) if scans else np.zeros(0),
-        det_bearing=np.concatenate([s.bearings for s in scans]) if scans else np.zeros(0),
-        det_id=None,
-        scan_cov=scans[0].noise_cov if scans else info.sensor.noise_cov,
-        truth_stamp=np.array([t for t, _ in truth], float),
-        truth_pose=np.array([p for _, p in truth], float).reshape(-1, 3),
-    )
 
 
 def load_rosbag2(path: str | Path, fleet=None) -> Dataset:
@@ -122,7 +95,8 @@ def load_rosbag2(path: str | Path, fleet=None) -> Dataset:
                 continue
             first_stamp.setdefault(robot, float(inputs[robot].last_odom_stamp if kind == "odometry"
                                                 else inputs[robot].last_scan_stamp))
-    logs = {rid: _robot_log(inputs[rid].info(first_stamp[rid]), odom[rid], scans[rid], truth[rid])
+    logs = {rid: robot_log_from_streams(inputs[rid].info(first_stamp[rid]), odom[rid], scans[rid],
+                                        [t for t, _ in truth[rid]], [pose for _, pose in truth[rid]])
             for rid in inputs if odom[rid] or scans[rid]}
     if not logs:
         raise ValueError(f"rosbag2 {path}: no odometry or landmarks of any robot of the fleet file")
