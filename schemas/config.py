@@ -105,6 +105,11 @@ class RouterSettings(FleetSettings):
     """``fleetslam router``: the Zenoh router every other process connects to."""
 
     listen: str = Field("tcp/0.0.0.0:7447", description="endpoint(s) to listen on, comma-separated")
+    connect_routers: str | None = Field(
+        None, description="other routers of the fleet to connect to, comma-separated (tcp/HOST:7447): the routers form "
+        "a mesh, a client of any reaches every other; secured, every router needs the same secrets folder and "
+        "mutual TLS (tls_dir, its certificate named 'router'): routers know each other by their certificates",
+        json_schema_extra={"cli": "--connect"})
     router_config: str | None = Field(
         None, description="JSON5 file merged into the router config (access control, users, TLS); without it or "
         "secrets_dir the router is open: any process that reaches it reads and writes everything"

@@ -43,12 +43,14 @@ def _endpoints(text: str) -> list[str]:
 
 
 def zenoh_config(
-    settings: FleetSettings, mode: str = "client", listen: str | None = None, base_file: str | None = None
+    settings: FleetSettings, mode: str = "client", listen: str | None = None, base_file: str | None = None,
+    routers: str | None = None,
 ) -> zenoh.Config:
     """A Zenoh config for ``mode`` ("client", "peer" or "router") from the shared settings.
 
     ``base_file`` is a JSON5 zenoh config (access control, users, TLS) that the
-    settings are laid over.
+    settings are laid over. ``routers`` (router mode): the other routers this one connects to, comma-separated;
+    it starts without them and keeps trying (every second at most), so sites come up in any order.
     """
     conf = zenoh.Config.from_file(base_file) if base_file else zenoh.Config()
     entries: dict[str, object] = {
@@ -58,6 +60,11 @@ def zenoh_config(
     }
     if mode == "router":
         entries["listen/endpoints"] = _endpoints(listen or "tcp/0.0.0.0:7447")
+        if routers:
+            entries["connect/endpoints"] = _endpoints(routers)
+            entries["connect/timeout_ms"] = 0
+            entries["connect/exit_on_failure"] = False
+            entries["connect/retry"] = {"period_init_ms": 100, "period_max_ms": 1000, "period_increase_factor": 1.5}
     else:
         entries["connect/endpoints"] = _endpoints(settings.zenoh_connect)
         entries["connect/timeout_ms"] = int(settings.connect_timeout_s * 1000)
@@ -87,11 +94,12 @@ def zenoh_cause(error: Exception) -> str:
 
 
 def open_session(
-    settings: FleetSettings, mode: str = "client", listen: str | None = None, base_file: str | None = None
+    settings: FleetSettings, mode: str = "client", listen: str | None = None, base_file: str | None = None,
+    routers: str | None = None,
 ) -> zenoh.Session:
     """Open a Zenoh session (logging where it connects or listens); a router that does not answer in time, or an
     endpoint that cannot be listened on, raises :class:`ConnectError` with one line giving the real cause."""
-    conf = zenoh_config(settings, mode, listen, base_file)
+    conf = zenoh_config(settings, mode, listen, base_file, routers)
     where = (listen or "tcp/0.0.0.0:7447") if mode == "router" else settings.zenoh_connect
     if mode == "router":
         log.info("listening on %s", where)

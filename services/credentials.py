@@ -47,6 +47,7 @@ DEFAULT_SERVICES = {
     "record": ("record",),
 }
 WORLD_USER = "world"  # the one client allowed to publish the true landmark map
+ROUTER_USER = "router"  # the user routers of one fleet log in to each other with (a mesh of sites)
 USER_NAME = re.compile(r"^[A-Za-z0-9_-]{1,64}$")  # robot ids' pattern: no ':' (the dictionary's separator)
 WRITE = ["put", "delete", "declare_queryable", "reply", "liveliness_token"]
 READ = ["declare_subscriber", "query", "declare_liveliness_subscriber", "liveliness_query"]
@@ -70,13 +71,14 @@ def _subject(subject_id: str, user: str, auth: str) -> dict:
 
 def check_users(robots: list[str], services: dict[str, tuple[str, ...]]) -> list[str]:
     """Every user name (robots, services, ``world``), each valid and given once (ValueError otherwise)."""
-    users = [*robots, *services, WORLD_USER]
+    users = [*robots, *services, WORLD_USER, ROUTER_USER]
     bad = [u for u in users if not USER_NAME.match(u)]
     if bad:
         raise ValueError(f"user names must match {USER_NAME.pattern}: {', '.join(map(repr, bad))}")
     twice = sorted({u for u in users if users.count(u) > 1})
     if twice:
-        raise ValueError(f"user names given twice (robot ids, service names and {WORLD_USER!r} must differ): "
+        raise ValueError(f"user names given twice (robot ids, service names, {WORLD_USER!r} and {ROUTER_USER!r} "
+                         "must differ): "
                          f"{', '.join(twice)}")
     return users
 
@@ -99,8 +101,18 @@ def access_control(prefix: str, robots: list[str], services: dict[str, tuple[str
         {"id": "world-writes", "permission": "allow", "flows": ["ingress"], "messages": WRITE,
          "key_exprs": [truth, f"{truth}/@adv/**"]},
     ]
-    subjects: list[dict] = [_subject(WORLD_USER, WORLD_USER, auth)]
-    policies: list[dict] = [{"id": WORLD_USER, "subjects": [WORLD_USER], "rules": ["told-about-readers", "world-writes"]}]
+    # Another router of the fleet: everything under the prefix passes its link both ways. Each router enforces the
+    # rules on its own clients' ingress and egress, so a client has the same rights through any router of the mesh.
+    rules.append({"id": "router-link", "permission": "allow", "flows": ["ingress", "egress"],
+                  "messages": [*WRITE, *READ], "key_exprs": _own(prefix)})
+    # With certificates a router is known by its certificate alone: the router that opens a link sees the other's
+    # certificate but never a user name (password authentication is one-way). Only routers get certificates named
+    # "router" from the fleet's CA (deploy/make-certs.sh).
+    router = {"id": ROUTER_USER, "cert_common_names": [ROUTER_USER]} if auth in ("certificate", "both") \
+        else _subject(ROUTER_USER, ROUTER_USER, auth)
+    subjects: list[dict] = [_subject(WORLD_USER, WORLD_USER, auth), router]
+    policies: list[dict] = [{"id": WORLD_USER, "subjects": [WORLD_USER], "rules": ["told-about-readers", "world-writes"]},
+                            {"id": ROUTER_USER, "subjects": [ROUTER_USER], "rules": ["router-link"]}]
     for rid in robots:
         rules.append({"id": f"robot-{rid}-writes", "permission": "allow", "flows": ["ingress"], "messages": WRITE,
                       "key_exprs": _own(f"{prefix}/robots/{rid}")})
@@ -137,6 +149,8 @@ def router_config(prefix: str, robots: list[str], services: dict[str, tuple[str,
             "root_ca_certificate": f"{tls_dir}/ca.pem",
             "listen_certificate": f"{tls_dir}/router.pem",
             "listen_private_key": f"{tls_dir}/router-key.pem",
+            "connect_certificate": f"{tls_dir}/router.pem",  # shown to the routers this one connects to
+            "connect_private_key": f"{tls_dir}/router-key.pem",
             "enable_mtls": True,
         }}
     return {"transport": transport, "access_control": access_control(prefix, robots, services, auth)}

@@ -20,7 +20,7 @@ from pathlib import Path
 from schemas.config import RouterSettings, add_settings_arguments, settings_from_args
 from schemas.contract import SettingsError
 from schemas.transport import ConnectError, Shutdown, open_session
-from services.credentials import parse_robots, parse_services, secure_folder
+from services.credentials import ROUTER_USER, parse_robots, parse_services, secure_folder
 
 log = logging.getLogger("fleetslam.router")
 
@@ -57,14 +57,24 @@ def main(args: argparse.Namespace) -> int:
                  ",".join(services), settings.prefix, Path(settings.secrets_dir).resolve())
     elif not base_file:
         log.warning(OPEN_WARNING, settings.listen)
+    if settings.connect_routers and settings.secrets_dir and not settings.tls_dir:
+        raise SettingsError("--connect with --secrets-dir needs --tls-dir too: routers of a secured fleet know each "
+                            "other by their certificates (zenoh's password check is one-way: the router that opens "
+                            "the link could not tell that the other is a router of the fleet, and would refuse it)")
+    if settings.connect_routers and settings.secrets_dir:  # log in to the other routers of the fleet
+        settings = settings.model_copy(update={
+            "zenoh_user": ROUTER_USER, "zenoh_password": None,
+            "zenoh_password_file": str(Path(settings.secrets_dir) / f"{ROUTER_USER}.password")})
     shutdown = Shutdown()
     try:
-        session = open_session(settings, mode="router", listen=settings.listen, base_file=base_file)
+        session = open_session(settings, mode="router", listen=settings.listen, base_file=base_file,
+                               routers=settings.connect_routers)
     except ConnectError as exc:
         log.error("%s", exc)
         return 2
     try:
-        log.info("router %s listening on %s", session.zid(), settings.listen)
+        log.info("router %s listening on %s%s", session.zid(), settings.listen,
+                 f", connecting to {settings.connect_routers}" if settings.connect_routers else "")
         shutdown.wait()
         log.info("router stopping (%s)", shutdown.signal_name or "stop")
     finally:

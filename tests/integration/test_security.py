@@ -30,7 +30,8 @@ import zenoh
 
 from schemas.config import FleetSettings, RouterSettings
 from schemas.transport import ConnectError, open_session
-from services.credentials import DEFAULT_ROBOTS, DEFAULT_SERVICES, WORLD_USER, parse_robots, parse_services, secure_folder
+from services.credentials import (DEFAULT_ROBOTS, DEFAULT_SERVICES, ROUTER_USER, WORLD_USER, parse_robots, parse_services,
+                                  secure_folder)
 from tests.helpers import REPO, Collector, Processes, free_port, put_until_seen, wait_for_port, wait_until
 from tests.integration.compose import compose_config
 
@@ -237,7 +238,7 @@ def test_a_router_without_a_config_is_open_and_says_so_and_a_secured_one_keeps_i
 
     first = _secured_router(processes, tmp_path)
     passwords = {p.name: p.read_text() for p in first.secrets.glob("*.password")}
-    assert set(passwords) == {f"{u}.password" for u in ("r1", "r2", "central", "monitor", WORLD_USER)}
+    assert set(passwords) == {f"{u}.password" for u in ("r1", "r2", "central", "monitor", WORLD_USER, ROUTER_USER)}
     assert all(oct(p.stat().st_mode & 0o777) == "0o600" for p in first.secrets.iterdir())
     assert oct(first.secrets.stat().st_mode & 0o777) == "0o700"
     second = _secured_router(processes, tmp_path)  # a second start with the same folder: the same passwords
@@ -260,7 +261,8 @@ def test_mutual_tls_admits_only_certificates_of_the_ca_and_applies_the_acl_to_th
     subprocess.run([sys.executable, str(MAKE_CONFIG), "--prefix", f"s{port}", "--robots", "r1,r2", "--services",
                     "central,monitor", "--auth", "certificate", "--tls-dir", str(tls), "--out", str(config)], check=True)
     endpoint, prefix, _ = _start_router(processes, "tls", "--router-config", str(config), port=port)
-    assert read_json5(config)["access_control"]["subjects"][1] == {"id": "robot-r1", "cert_common_names": ["r1"]}
+    subjects = {subject["id"]: subject for subject in read_json5(config)["access_control"]["subjects"]}
+    assert subjects["robot-r1"] == {"id": "robot-r1", "cert_common_names": ["r1"]}
 
     foreign = _certs(tmp_path / "foreign", "r1")  # another CA's certificate for the same name
 

@@ -143,8 +143,8 @@ def test_credentials_are_made_once_and_kept(tmp_path):
 
     config_path = secure_folder(tmp_path / "s", "fleet", ["r1"], {"central": ("central",)})
     first = {p.name: p.read_text() for p in (tmp_path / "s").glob("*.password")}
-    assert set(first) == {"r1.password", "central.password", "world.password"}
-    assert len(set(first.values())) == 3 and all(len(v.strip()) >= 32 for v in first.values())
+    assert set(first) == {"r1.password", "central.password", "world.password", "router.password"}
+    assert len(set(first.values())) == 4 and all(len(v.strip()) >= 32 for v in first.values())
     secure_folder(tmp_path / "s", "fleet", ["r1", "r2"], {"central": ("central",)})
     again = {p.name: p.read_text() for p in (tmp_path / "s").glob("*.password")}
     assert {k: again[k] for k in first} == first and "r2.password" in again
