@@ -167,6 +167,40 @@ class RobotSettings(FleetSettings):
                             "heartbeats) after its last message, so a receiver cut off just before can recover the tail")
 
 
+class SwarmSettings(FleetSettings):
+    """``fleetslam swarm``: many simulated robots in one process, each on its own keys with its own token (load tests)."""
+
+    robots: int = Field(10, ge=1, le=5000, description="simulated robots")
+    id_prefix: str = Field("s", pattern=r"^[A-Za-z]$", description="one letter: the robots are PREFIX1..PREFIXN, and "
+                           "robot PREFIXK draws from the simulator's streams of robot K, as fleetslam robot --id "
+                           "PREFIXK does (--no-detect-robots: the same data)")
+    first: int = Field(1, ge=1, description="number of the first robot (PREFIXFIRST..): swarms with different "
+                       "numbers side by side on one router are different robots")
+    world: WORLDS = Field("arena", description="simulated world")
+    seed: int = Field(0, description="seed of the world and of every robot's streams")
+    rate: float = Field(10.0, gt=0, description="scan rate of every robot (Hz); odometry at the same rate")
+    duration: float = Field(60.0, gt=0, description="seconds of robot time to run")
+    speedup: float = Field(1.0, gt=0, description="run this many times faster than real time")
+    start_delay: float = Field(0.5, ge=0, description="wall seconds to wait after declaring, so subscribers can match")
+    unknown_start: float = Field(0.0, ge=0, le=1, description="share of the robots (the last ones) that announce no "
+                                 "start pose (to be found by MCL)")
+    publish_ids: bool = Field(False, description="publish true landmark ids with each scan (off: the services must "
+                              "associate, the load a fleet without ids puts on them)")
+    publish_truth: bool = Field(False, description="publish ground truth (and the world map): a third stream per robot")
+    detect_robots: bool = Field(False, description="robots detect each other (Scan's robot detections, for MCL): the "
+                                "whole swarm is then simulated in one piece, at a cost quadratic in its size")
+    simulate_chunk: int = Field(25, ge=1, description="robots simulated at a time (without detect_robots): bounds "
+                                "the simulator's working memory")
+    info_period_s: float = Field(1.0, gt=0, description="period of each robot's RobotInfo re-publication (s)")
+    linger_s: float = Field(2.0, ge=0, description="wall seconds the robots keep their publishers (caches, "
+                            "heartbeats) after their last message, for a receiver that missed the tail")
+    progress_period_s: float = Field(5.0, gt=0, description="wall seconds between progress lines (messages sent, "
+                                     "how far behind schedule the swarm runs)")
+    behind_warning_s: float = Field(0.5, gt=0, description="a progress line is a warning when the swarm ran this "
+                                    "far behind its schedule in the period (s): it cannot keep up")
+    json_out: str | None = Field(None, description="write the counts sent (per robot and stream) to this JSON file")
+
+
 class WorldSettings(FleetSettings):
     """``fleetslam world``: the world's true landmark map, published under its own identity (user ``world``)."""
 

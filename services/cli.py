@@ -32,6 +32,11 @@ def _robot() -> ModuleType:
     return process
 
 
+def _swarm() -> ModuleType:
+    from services import swarm
+    return swarm
+
+
 def _world() -> ModuleType:
     from robots import truth
     return truth
@@ -105,6 +110,7 @@ def _viz() -> ModuleType:
 COMMANDS: dict[str, tuple[Callable[[], ModuleType], str]] = {
     "router": (_router, "run the Zenoh router (router mode; access control and TLS optional)"),
     "robot": (_robot, "run one robot: simulated in a named world, or replaying a data set"),
+    "swarm": (_swarm, "simulate many robots in one process (each on its own keys, with its own token): load tests"),
     "world": (_world, "publish the world's true landmark map (a simulated world's or a data set's) as the user 'world'"),
     "monitor": (_monitor, "live console of robots, message rates, gaps, rejections and service stats"),
     "demo": (_demo, "start a router, robots, the monitor and every service; print what was measured"),

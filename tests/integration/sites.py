@@ -104,7 +104,7 @@ def run_sites(lab: NetnsLab, workdir: Path, cut_s: float = 12.0, delay_ms: float
     def heard(rid: str, since: float) -> bool:
         return _first_sample_after(read_rows(observed), rid, since) is not None
 
-    wait_until(lambda: all(heard(rid, 0.0) for rid in robots.values()), 90, 0.1, "both sites' robots at the depot")
+    wait_until(lambda: all(heard(rid, 0.0) for rid in robots.values()), 180, 0.1, "both sites' robots at the depot")
     t0, bytes0 = time.time(), {site: _cable_bytes(lab, site) for site in robots}
     time.sleep(5.0)
     run.figures["cable_bytes_per_s"] = {site: round((_cable_bytes(lab, site) - bytes0[site]) / (time.time() - t0))

@@ -69,7 +69,7 @@ def _settings_classes() -> dict[str, type]:
             "assoc": config.AssocSettings, "central": config.CentralSettings, "dslam": config.DslamSettings,
             "mcl": config.MclSettings, "viz": config.VizSettings, "record": config.RecordSettings,
             "replay": config.ReplaySettings, "world": config.WorldSettings, "export": config.ExportSettings,
-            "ros2": config.Ros2Settings}
+            "ros2": config.Ros2Settings, "swarm": config.SwarmSettings}
 
 
 @pytest.mark.parametrize("command", list(COMMANDS))

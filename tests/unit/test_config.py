@@ -37,7 +37,7 @@ def test_help_lists_every_installed_command():
     for name in COMMANDS:
         assert name in text
     assert set(COMMANDS) == {"router", "robot", "monitor", "demo", "run", "evaluate", "assoc", "central", "dslam", "mcl", "viz",
-                             "record", "replay", "world", "export", "ros2"}
+                             "record", "replay", "world", "export", "ros2", "swarm"}
 
 
 def test_core_configurations_never_read_the_environment(monkeypatch):

@@ -28,6 +28,21 @@ def test_a_robot_simulated_alone_matches_the_same_robot_in_the_fleet():
     np.testing.assert_array_equal(fleet.robots["r2"].truth_pose, alone.robots["r2"].truth_pose)
 
 
+def test_without_robot_detections_only_those_go_and_a_fleet_simulates_in_chunks():
+    ids = ["s1", "s2", "s3", "s4"]
+    seeing = simulate("arena", seed=1, duration=4.0, robot_ids=ids)
+    blind = simulate("arena", seed=1, duration=4.0, robot_ids=ids, robot_detections=False)
+    chunks = [simulate("arena", seed=1, duration=4.0, robot_ids=part, robot_detections=False)
+              for part in (ids[:3], ids[3:])]
+    assert sum(len(log.robot_det_ids) for log in seeing.robots.values()) > 0
+    for rid in ids:
+        assert len(blind.robots[rid].robot_det_ids) == 0
+        chunk = next(c for c in chunks if rid in c.robots)
+        for x, y, z in zip(_arrays(seeing.robots[rid]), _arrays(blind.robots[rid]), _arrays(chunk.robots[rid])):
+            np.testing.assert_array_equal(x, y)
+            np.testing.assert_array_equal(y, z)
+
+
 @pytest.mark.parametrize("name", sorted(WORLDS))
 def test_every_world_simulates_with_consistent_arrays(name):
     data = simulate(name, seed=1, duration=3.0, rate=5.0, odom_factor=2)
