@@ -62,7 +62,7 @@ def zenoh_config(
         entries["listen/endpoints"] = _endpoints(listen or "tcp/0.0.0.0:7447")
         if routers:
             entries["connect/endpoints"] = _endpoints(routers)
-            entries["connect/timeout_ms"] = 0
+            entries["connect/timeout_ms"] = -1  # keep trying (in the background: the router serves meanwhile)
             entries["connect/exit_on_failure"] = False
             entries["connect/retry"] = {"period_init_ms": 100, "period_max_ms": 1000, "period_increase_factor": 1.5}
     else:
