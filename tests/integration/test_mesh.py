@@ -90,3 +90,17 @@ def test_a_password_only_secured_router_refuses_to_connect_to_others_and_says_wh
                              "--secrets-dir", str(tmp_path / "secrets"), "--connect", "tcp/127.0.0.1:9"],
                             cwd=REPO, capture_output=True, text=True, timeout=60)
     assert result.returncode == 2 and "--tls-dir" in result.stderr, result.stderr
+
+
+def test_a_router_started_before_the_one_it_connects_to_joins_it_when_it_comes(processes):
+    a, b = f"tcp/127.0.0.1:{free_port()}", f"tcp/127.0.0.1:{free_port()}"
+    _router(processes, "router-b", b, "--connect", a)  # A is not there yet
+    wait_until(lambda: "connecting to" in processes.log("router-b"), 10, what="router B up")
+    _router(processes, "router-a", a)
+    on_a, on_b = client_session(a), client_session(b)
+    try:
+        seen = Collector(on_a, "late/**")
+        put_until_seen(on_b, "late/x", b"joined", seen, timeout=20)
+    finally:
+        on_b.close()
+        on_a.close()
