@@ -27,7 +27,7 @@ round's, and ``ratio_cpu`` the median of the rounds' ratios (``ratio_cpu_rounds`
 machine swings within minutes.
 
     .venv/bin/python benchmarks/isam2_anchor.py [--particles 100,1000] [--seed 0] [--duration S] [--repeats N]
-        [--skip-fleetslam] [--skip-isam2] [--graph FILE] [--out FILE]
+        [--workers 1] [--skip-fleetslam] [--skip-isam2] [--graph FILE] [--out FILE]
 """
 
 from __future__ import annotations
@@ -130,12 +130,13 @@ def load_victoria_park() -> tuple:
     return dataset, {"load_s": round(time.perf_counter() - wall0, 2), "load_cpu_s": round(time.process_time() - cpu0, 2)}
 
 
-def run_fleetslam(dataset, load: dict, particles: list[int], seed: int, duration: float | None) -> dict:
+def run_fleetslam(dataset, load: dict, particles: list[int], seed: int, duration: float | None,
+                  workers: int = 1) -> dict:
     """FastSLAM, unknown association, on raw Victoria Park (``load``: its loading's figures), one run per particle
-    count."""
+    count, its per-particle kernels on ``workers`` threads (1: one core, as iSAM2)."""
     out: dict = {}
     for count in particles:
-        run = run_and_score(dataset, RunOptions("fastslam", "unknown", count, seed), duration=duration)
+        run = run_and_score(dataset, RunOptions("fastslam", "unknown", count, seed, {"workers": workers}), duration=duration)
         gps = [v for v in run.get("gps_rmse_m", {}).values() if v is not None]
         out[str(count)] = {"cpu_s": run["cpu_s"], "wall_s": run["wall_s"], **load, "data_s": run["data_s"],
                            "gps_rmse_m": gps[0] if len(gps) == 1 else None,
@@ -158,6 +159,8 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=1,
                         help="rounds of iSAM2 then fleetslam, one after the other, so that a change in the machine's "
                              "load falls on both; the ratio reported is the median of the rounds' ratios")
+    parser.add_argument("--workers", type=int, default=1,
+                        help="threads of FastSLAM's per-particle kernels (1: one core, as iSAM2)")
     parser.add_argument("--graph", default=None, help=f"iSAM graph file (default: <data>/{GRAPH})")
     parser.add_argument("--skip-fleetslam", action="store_true")
     parser.add_argument("--skip-isam2", action="store_true")
@@ -184,7 +187,7 @@ def main() -> None:
         if steps is not None:
             isam2_rounds.append(run_isam2(steps))
         if dataset is not None:
-            fleetslam_rounds.append(run_fleetslam(dataset, load, particles, args.seed, args.duration))
+            fleetslam_rounds.append(run_fleetslam(dataset, load, particles, args.seed, args.duration, args.workers))
     if isam2_rounds:
         result["isam2"] = {"graph": str(path), "gtsam": importlib.metadata.version("gtsam"),
                            "parse_s": round(parse_s, 2)} | median_round(isam2_rounds)

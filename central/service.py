@@ -49,7 +49,7 @@ from collections import defaultdict, deque
 import numpy as np
 import zenoh
 
-from central.fastslam.config import FastSlamConfig
+from central.fastslam.config import FastSlamConfig, available_cores
 from central.fastslam.core import FastSlam
 from schemas.codec import encode
 from schemas.config import CentralSettings, add_settings_arguments, settings_from_args
@@ -74,6 +74,9 @@ class CentralService(ServiceShell):
         self.settings: CentralSettings = settings
         self.tick_period_s = 1.0 / settings.estimate_rate_hz
         self.slam = FastSlam(settings.core(FastSlamConfig))
+        log.info("central: %d particles, per-particle kernels on %d worker%s (--workers; cores here: %d)",
+                 self.slam.config.particles, self.slam.workers, "" if self.slam.workers == 1 else "s",
+                 available_cores())
         self.processed: dict[str, int] = defaultdict(int)
         self.compute_ms: deque[float] = deque(maxlen=5000)
         self.estimate_seq = 0
@@ -193,7 +196,9 @@ class CentralService(ServiceShell):
 
     def restore_state(self, state: dict) -> None:
         """The filter (particles, maps, random generator); robots waiting for a pose wait afresh."""
+        workers = self.slam.workers  # the count this process chose: the checkpoint's was another process's
         self.slam = state["slam"]
+        self.slam.workers = workers
         self.processed.update(state["processed"])
         self.estimate_seq = state["estimate_seq"]
         self.last_stamp = state["last_stamp"]

@@ -471,6 +471,9 @@ class RunSettings(ProcessSettings):
         "(fastslam: shared, nn, mht; dslam and ekf: nn, greedy, ihgr, exact, jcbb, auto)")
     particles: int | None = Field(
         None, ge=1, le=100_000, description="particles of particle-filter estimators (default: the estimator's own)")
+    workers: int | None = Field(
+        None, ge=1, le=1024, description="fastslam: threads of its per-particle kernels, the same results for any "
+        "count (default: the estimator's own, 1; 1: the serial kernels); other estimators use one core")
     seed: int = Field(0, description="seed of every random draw (estimator, and the simulator for sim:)")
     robot_ids: str | None = Field(
         None, description="comma-separated robot ids to use (default: all)", json_schema_extra={"cli": "--robots"}

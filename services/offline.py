@@ -209,8 +209,11 @@ def parse_estimator_settings(text: str | None) -> dict:
 def run_options(settings: RunSettings, dataset: Dataset) -> RunOptions:
     """The estimator's options: the shared settings, its own ``--set`` ones, and what a localizer needs beyond
     the events (the data set's true map to localize against, and the truth to measure convergence)."""
+    own = parse_estimator_settings(settings.estimator_settings)
+    if settings.workers is not None and settings.estimator == "fastslam":  # --set workers=N, if given, wins
+        own = {"workers": settings.workers, **own}
     options = RunOptions(estimator=settings.estimator, association=settings.association, particles=settings.particles,
-                         seed=settings.seed, settings=parse_estimator_settings(settings.estimator_settings))
+                         seed=settings.seed, settings=own)
     if settings.estimator == "mcl":
         options.landmarks = dataset.landmarks
         options.landmark_ids = dataset.landmark_ids

@@ -109,7 +109,7 @@ def update_known(slam: FastSlam, robot: RobotState, z, r, ids, weigh: bool, upda
             counted = np.ones(slots.size, bool) if slam.config.association == "known" else shared.confirmed(slam, idk[known])
             if slam.config.compiled:
                 ll = kernels.known_update(slam.map, robot.sensor, slam.pose[:, robot.index], slots, zk[known], r,
-                                          slam.config.exist_hit, slam.config.exist_max)
+                                          slam.config.exist_hit, slam.config.exist_max, slam.workers)
             else:
                 ll = known_update_reference(slam, robot, slots, zk[known], r)
             if weigh and counted.any():

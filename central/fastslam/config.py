@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import math
+import os
 from typing import TYPE_CHECKING, Literal
 
 from pydantic import Field, model_validator
@@ -25,6 +26,13 @@ ROBOTS_FIT_SPREAD_M = Field(
 ROBOTS_FIT_RESIDUAL_M = Field(
     0.25, gt=0.0, description="... and each ends this near its robot (m), while the pose as it is leaves most "
     "farther (a robot held because the robots contradicted it)")
+
+
+def available_cores() -> int:
+    """The cores this process may run on: its CPU affinity where the system tells it, else the machine's count."""
+    if hasattr(os, "sched_getaffinity"):
+        return max(1, len(os.sched_getaffinity(0)))
+    return max(1, os.cpu_count() or 1)
 
 
 class FastSlamConfig(CoreConfig):
@@ -192,6 +200,15 @@ class FastSlamConfig(CoreConfig):
         "their innovations against the true poses are heavy-tailed (bearing std 3.6x the scan's, median d² 0.4), and "
         "the scan's covariance let a few of them collapse the fleet's particles (1: MR.CLAM worst robot 1.66/2.50 m "
         "over 10 seeds; 2, 4, 8, 16 all 1.3-1.6 m median, 4 the best worst case)")
+    workers: int | None = Field(
+        1, ge=1, le=1024, description="threads of the per-particle kernels (the FastSLAM 2.0 step and the EKF "
+        "updates with ids: numba's parallel loops over particles); any count gives the same results, bit for bit. "
+        "None: the cores this process may run on; capped at numba's pool (NUMBA_NUM_THREADS); 1: the serial "
+        "kernels. 1 by default: 2 workers were slower on a shared 2-core machine (MR.CLAM without barcodes, time per "
+        "scan x1.07 at 100 particles, x1.31 at 1000; a simulated fleet with ids x0.91 and x1.13): the rest of a scan "
+        "(association, resampling, the event loop) stays on one core, the kernels are a few per cent of a scan at "
+        "100 particles and about a fifth at 1000, and waking the second thread for each kernel cost about what it "
+        "saved (docs/results.md, issue 54)")
     compiled: bool = Field(True, description="EKF updates with known ids, control integration, pose and map mixtures and the "
                            "re-acquisition vote by the numba kernels (False: the numpy references)")
     robot_detection_max_dt: float = Field(0.1, ge=0.0, description="... only when the other robot's pose is this recent (s)")
@@ -228,6 +245,13 @@ class FastSlamConfig(CoreConfig):
         if self.robot_detection_position_sd is not None:
             return self.robot_detection_position_sd
         return 0.1 if self.association == "shared" else 0.0
+
+    @property
+    def worker_count(self) -> int:
+        """``workers`` with None resolved: the cores this process may run on (its CPU affinity), at least 1."""
+        if self.workers is not None:
+            return self.workers
+        return available_cores()
 
     @property
     def motion_scale(self) -> float:

@@ -22,6 +22,7 @@ functions that take it explicitly, one module per concern:
 
 from __future__ import annotations
 
+import logging
 import math
 from collections import Counter
 
@@ -37,6 +38,8 @@ from robots.gaussian import chi2_quantile, sandwich, valid_cov2
 from robots.models import compose_jacobian, se2_compose, wrap_angle
 from schemas.contract import MapView, OdomEvent, RunOptions, ScanEvent, build_config
 from schemas.messages import RobotInfo
+
+log = logging.getLogger("fleetslam.fastslam")
 
 
 class FastSlam:
@@ -69,6 +72,7 @@ class FastSlam:
         self.gate = chi2_quantile(config.gate_probability, 2)
         self.new_gate = chi2_quantile(config.new_landmark_probability, 2)
         self.best_hint = 0  # the particle that inherited the heaviest one at the last resampling
+        self.workers = effective_workers(config)  # a run's choice, not the filter's state: no result depends on it
         for info in infos:
             self.add_robot(info)
 
@@ -190,11 +194,12 @@ class FastSlam:
     def __setstate__(self, state: dict) -> None:
         """Restore a pickled filter (a checkpoint), also one written before the weights were cached, the
         known-landmark table kept its arrays (such a checkpoint holds ``logw`` and a plain dict), the map
-        numbered its landmarks or the robots kept their detections of robots (``robot_checks``) and their odometry noise
-        gains (``odometry_noise``)."""
+        numbered its landmarks, the robots kept their detections of robots (``robot_checks``) and their odometry noise
+        gains (``odometry_noise``) or the filter its worker count (``workers``: 1)."""
         if "logw" in state:
             state["_logw"] = state.pop("logw")
         state["_weights"] = None
+        state.setdefault("workers", 1)  # a checkpoint from before the parallel kernels (the service sets its own)
         if "turn_gain" not in state:  # a checkpoint from before the turn gains: every particle's gain 1
             state["turn_gain"] = np.ones(state["pose"].shape[:2])
         if not isinstance(state.get("known_slots"), SlotTable):
@@ -313,6 +318,14 @@ def _scan_problem(ranges, bearings, ids, noise, stamp) -> str | None:
     return None
 
 
+def effective_workers(config: FastSlamConfig) -> int:
+    """The threads the per-particle kernels run on: ``config.worker_count``, capped at numba's pool (1 with the numpy
+    references, ``compiled=False``)."""
+    if not config.compiled:
+        return 1
+    return max(1, min(config.worker_count, kernels.max_threads()))
+
+
 def make_estimator(options: RunOptions, infos: list[RobotInfo]) -> FastSlam:
     """FastSLAM with ``options.association`` (known | nn | mht), ``options.particles`` (None: the default) and
     ``options.seed``; ``options.settings`` (``--set``) overrides any :class:`FastSlamConfig` field, e.g.
@@ -320,5 +333,8 @@ def make_estimator(options: RunOptions, infos: list[RobotInfo]) -> FastSlam:
     base = {"association": options.association, "seed": options.seed}
     if options.particles is not None:
         base["particles"] = options.particles
-    config = build_config(FastSlamConfig, base, owner="fastslam")
-    return FastSlam(config.with_overrides(options.settings, owner="fastslam"), infos)
+    config = build_config(FastSlamConfig, base, owner="fastslam").with_overrides(options.settings, owner="fastslam")
+    slam = FastSlam(config, infos)
+    log.info("fastslam: %d particles, per-particle kernels on %d worker%s", config.particles, slam.workers,
+             "" if slam.workers == 1 else "s")
+    return slam

@@ -44,6 +44,13 @@ arrays of a few hundred 2 × 2 blocks, more than the arithmetic. Each kernel doe
 Inside the loops nothing is allocated and no sub-array is copied by slice: numba pays for each (a block's slice
 copy took a fifth of the FastSLAM 2.0 step at 1000 particles, the gating's per-landmark 2 × 2 arrays half its time).
 
+The per-particle kernels (:func:`known_update`, :func:`propose`) also come as parallel ones
+(:func:`known_update_parallel_kernel`, :func:`propose_parallel_kernel`): numba's ``prange`` over particles, on
+``FastSlamConfig.workers`` threads; the serial kernels run with one worker and stay the references. Each particle's
+arithmetic is the same in both and no sum runs across particles inside a parallel loop; the random normals are
+drawn before the call and the free blocks of copy on write are handed out in particle order before the loop, so
+the numbers, the blocks and the tables do not depend on the thread count.
+
 Each has a thin wrapper that takes the Python objects; ``FastSlamConfig.compiled`` chooses kernels or references.
 A robot's poses are a strided view of the (P, R, 3) particle poses when the filter holds several robots: the
 wrappers hand the kernels a contiguous copy (P × 3 numbers), so each kernel is compiled for one array layout,
@@ -53,13 +60,54 @@ the one the warm-up compiles, and a fleet's first scan does not wait for the com
 from __future__ import annotations
 
 import math
+import os
 
 import numpy as np
 
 from robots import kernels as robot_kernels
 from robots.kernels import integrate_controls
 from robots.gaussian import LOG_2PI
-from services.compiled import AVAILABLE, ndtr, njit, wrap_angle
+from services.compiled import AVAILABLE, HELPERS_DIGEST, ndtr, njit, renew_cache_if_stale, wrap_angle
+
+if AVAILABLE:
+    import numba
+
+# GNU OpenMP, numba's threading layer here, has its idle threads spin between parallel loops by default. A scan calls
+# one kernel between milliseconds of Python, and on a machine whose cores are busy with other processes the spinning
+# thread took their time and made 2 workers 5-14 times slower per scan than 1 (MR.CLAM, 300 and 1000 particles);
+# passive threads sleep until the next loop. Read by libgomp when numba starts its threads, at the first parallel call.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+
+def njit_parallel(function):
+    """:func:`services.compiled.njit` with ``parallel=True``: the kernel's ``prange`` loops run on numba's threads (as
+    many as :func:`use_threads` last set in the calling thread), cached on disk too. Without numba it runs as it is
+    (``prange`` is then ``range``). Declared here, not in :mod:`services.compiled`: an edit there renews every
+    kernel's cache."""
+    if not AVAILABLE:
+        return function
+    dispatcher = numba.njit(cache=True, nogil=True, parallel=True)(function)
+    renew_cache_if_stale(dispatcher, HELPERS_DIGEST)
+    return dispatcher
+
+
+prange = numba.prange if AVAILABLE else range
+
+
+def max_threads() -> int:
+    """The threads the parallel kernels can use at most: numba's pool, ``NUMBA_NUM_THREADS`` (the machine's cores
+    unless set); 1 without numba."""
+    return int(numba.config.NUMBA_NUM_THREADS) if AVAILABLE else 1
+
+
+def use_threads(workers: int) -> int:
+    """Let the parallel kernels called from this thread use ``workers`` threads, capped at :func:`max_threads`
+    (numba keeps the count per calling thread, so the wrappers set it before each parallel call); the count set."""
+    count = max(1, min(int(workers), max_threads()))
+    if AVAILABLE:
+        numba.set_num_threads(count)
+    return count
+
 
 @njit
 def _places(slots, block):
@@ -142,14 +190,31 @@ def known_update_kernel(pool_mean, pool_cov, table, block, exist, hits, pose, a,
     _count_hits(exist, hits, slots, exist_hit, exist_max)
 
 
+@njit_parallel
+def known_update_parallel_kernel(pool_mean, pool_cov, table, block, exist, hits, pose, a, b, slots, z, r, exist_hit,
+                                 exist_max, log_likelihood):
+    """:func:`known_update_kernel` with the particles spread over numba's threads: each particle writes only its
+    own (private) blocks and its row of ``log_likelihood``, so any thread count gives the same numbers."""
+    places = _places(slots, block)
+    for p in prange(pose.shape[0]):
+        _particle_update(pool_mean, pool_cov, table, p, pose[p], a, b, places, z, r, log_likelihood[p], True)
+    _count_hits(exist, hits, slots, exist_hit, exist_max)
+
+
 def known_update(landmarks, sensor, pose: np.ndarray, slots: np.ndarray, z: np.ndarray, r: np.ndarray,
-                 exist_hit: float, exist_max: float) -> np.ndarray:
+                 exist_hit: float, exist_max: float, workers: int = 1) -> np.ndarray:
     """Update landmarks ``slots`` ``(m,)`` (distinct) of every particle of an :class:`AlignedMap` by detections ``z``
-    ``(m, 2)`` seen from ``pose`` ``(P, 3)``; returns log N(ν; 0, S) ``(P, m)``."""
+    ``(m, 2)`` seen from ``pose`` ``(P, 3)``; returns log N(ν; 0, S) ``(P, m)``. ``workers`` > 1: the parallel kernel
+    on that many threads (the same numbers)."""
     landmarks.private(slots)
     out = np.empty((pose.shape[0], slots.shape[0]))
-    known_update_kernel(landmarks.pool_mean, landmarks.pool_cov, landmarks.table, landmarks.block, landmarks.exist,
-                        landmarks.hits, np.ascontiguousarray(pose), sensor.offset[0], sensor.offset[1], slots, z, r, exist_hit, exist_max, out)
+    kernel = known_update_kernel
+    if workers > 1:
+        use_threads(workers)
+        kernel = known_update_parallel_kernel
+    kernel(landmarks.pool_mean, landmarks.pool_cov, landmarks.table, landmarks.block, landmarks.exist,
+           landmarks.hits, np.ascontiguousarray(pose), sensor.offset[0], sensor.offset[1], slots, z, r, exist_hit,
+           exist_max, out)
     return out
 
 
@@ -177,6 +242,35 @@ def _private_particle(table, p, blocks, refs, flat_mean, flat_cov, free_blocks, 
             refs[phys] -= 1
         refs[fresh] = 1
         table[p, b] = fresh
+
+
+@njit
+def _claim_blocks(table, p, blocks, refs, free_blocks, free_count, source, target):
+    """The bookkeeping of :func:`_private_particle` without the copy: particle ``p``'s table, the reference counts and
+    the free list change as there, and ``target[i]`` gets the fresh block taken for ``blocks[i]`` (−1: none taken,
+    the particle's own block already) and ``source[i]`` the block to copy into it (−1: zeros). Run in particle order
+    before a parallel loop copies (:func:`_copy_claimed`), so the blocks handed out do not depend on the threads."""
+    for i in range(blocks.shape[0]):
+        b = blocks[i]
+        phys = table[p, b]
+        target[i] = -1
+        if phys >= 0 and refs[phys] == 1:
+            continue
+        free_count[0] -= 1
+        fresh = free_blocks[free_count[0]]
+        source[i], target[i] = phys, fresh
+        if phys >= 0:
+            refs[phys] -= 1
+        refs[fresh] = 1
+        table[p, b] = fresh
+
+
+@njit
+def _copy_claimed(flat_mean, flat_cov, source, target):
+    """The copies :func:`_claim_blocks` listed for one particle (rows of the flat pools, :func:`_flat_pools`)."""
+    for i in range(target.shape[0]):
+        if target[i] >= 0:
+            _copy_block(flat_mean, flat_cov, source[i], target[i])
 
 
 @njit
@@ -741,6 +835,64 @@ def proposal_moments_kernel(pool_mean, pool_cov, table, block, pose, prior, a, b
 
 
 @njit
+def _propose_particle(pool_mean, pool_cov, table, p, pose, delta, motion_cov, a, b, places, z, r, weighed, normals,
+                      jitter, cov, shift, lower, unused):
+    """Particle ``p``'s FastSLAM 2.0 step of :func:`propose_kernel`, in place on its ``pose`` ``(3,)`` and its (private)
+    blocks: the motion composed on, the proposal, the draw with its ``normals`` ``(3,)``, the landmark updates;
+    returns its log weight. The same arithmetic as the serial kernel's loop body, which keeps its own copy: called
+    as a function there it made the serial step 20 % slower (arrays passed per particle); the tests hold the two
+    equal bit for bit. ``cov``, ``shift``, ``lower`` are its scratch ((3, 3), (3,), (3, 3), ``lower`` zero above
+    the diagonal); ``unused``, an empty array: the updates' own likelihoods are not computed (the proposal weighs)."""
+    m00, m11, m22 = motion_cov[0, 0], motion_cov[1, 1], motion_cov[2, 2]
+    m01 = 0.5 * (motion_cov[0, 1] + motion_cov[1, 0])
+    m02 = 0.5 * (motion_cov[0, 2] + motion_cov[2, 0])
+    m12 = 0.5 * (motion_cov[1, 2] + motion_cov[2, 1])
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    pose[0] += c * delta[0] - s * delta[1]
+    pose[1] += s * delta[0] + c * delta[1]
+    pose[2] = wrap_angle(pose[2] + delta[2])
+    # the prior J Σ Jᵀ, J the rotation R of the position block: R Σ_xy Rᵀ, R Σ_xθ, Σ_θθ
+    a00 = c * m00 - s * m01
+    a01 = c * m01 - s * m11
+    a10 = s * m00 + c * m01
+    a11 = s * m01 + c * m11
+    cov[0, 0] = a00 * c - a01 * s
+    cov[0, 1] = cov[1, 0] = a00 * s + a01 * c
+    cov[1, 1] = a10 * s + a11 * c
+    cov[0, 2] = cov[2, 0] = c * m02 - s * m12
+    cov[1, 2] = cov[2, 1] = s * m02 + c * m12
+    cov[2, 2] = m22
+    log_weight = _particle_proposal(pool_mean, pool_cov, table, p, pose, cov, a, b, places, z, r, weighed, shift)
+    for i in range(3):
+        cov[i, i] += jitter
+    for j in range(3):  # Cholesky, lower
+        total = cov[j, j]
+        for k in range(j):
+            total -= lower[j, k] * lower[j, k]
+        lower[j, j] = math.sqrt(max(total, 0.0))
+        for i in range(j + 1, 3):
+            total = cov[i, j]
+            for k in range(j):
+                total -= lower[i, k] * lower[j, k]
+            lower[i, j] = total / lower[j, j] if lower[j, j] > 0.0 else 0.0
+    for i in range(3):
+        pose[i] += shift[i] + lower[i, 0] * normals[0] + lower[i, 1] * normals[1] + lower[i, 2] * normals[2]
+    pose[2] = wrap_angle(pose[2])
+    _particle_update(pool_mean, pool_cov, table, p, pose, a, b, places, z, r, unused, False)
+    return log_weight
+
+
+@njit
+def _grow_box(pool_mean, table, p, places, box):
+    """Widen ``box`` ``(m, 4)`` (low x, low y, high x, high y) to particle ``p``'s means of the landmarks at ``places``
+    (min and max: the same box whatever order the particles come in)."""
+    for j in range(places.shape[0]):
+        mean = pool_mean[table[p, places[j, 0]], places[j, 1]]
+        box[j, 0], box[j, 1] = min(box[j, 0], mean[0]), min(box[j, 1], mean[1])
+        box[j, 2], box[j, 3] = max(box[j, 2], mean[0]), max(box[j, 3], mean[1])
+
+
+@njit
 def propose_kernel(pool_mean, pool_cov, table, block, refs, free_blocks, free_count, blocks, exist, hits, pose, delta,
                    motion_cov, a, b, slots, z, r, weighed, normals, jitter, exist_hit, exist_max, log_weight, box):
     """Every particle's FastSLAM 2.0 step, in place on ``pose`` ``(P, 3)`` and on its landmarks: the buffered motion
@@ -805,6 +957,36 @@ def propose_kernel(pool_mean, pool_cov, table, block, refs, free_blocks, free_co
     _count_hits(exist, hits, slots, exist_hit, exist_max)
 
 
+@njit_parallel
+def propose_parallel_kernel(pool_mean, pool_cov, table, block, refs, free_blocks, free_count, blocks, exist, hits,
+                            pose, delta, motion_cov, a, b, slots, z, r, weighed, normals, jitter, exist_hit, exist_max,
+                            log_weight, box):
+    """:func:`propose_kernel` with the particles spread over numba's threads, in three passes: the blocks of copy on
+    write handed out in particle order (:func:`_claim_blocks`: the same tables, free list and reference counts as
+    the serial kernel), the copies in parallel (every source is read before any particle writes: a block's last
+    holder keeps it and updates it in place), then each particle's step in parallel (:func:`_propose_particle`, its
+    own scratch), and the box of the updated means, in particle order. The same numbers for any thread count."""
+    count, held = pose.shape[0], blocks.shape[0]
+    places = _places(slots, block)
+    flat_mean, flat_cov = _flat_pools(pool_mean, pool_cov)
+    source = np.empty((count, held), np.int64)
+    target = np.empty((count, held), np.int64)
+    for p in range(count):
+        _claim_blocks(table, p, blocks, refs, free_blocks, free_count, source[p], target[p])
+    for p in prange(count):
+        _copy_claimed(flat_mean, flat_cov, source[p], target[p])
+    cov = np.empty((count, 3, 3))
+    shift = np.empty((count, 3))
+    lower = np.zeros((count, 3, 3))
+    unused = np.empty(0)
+    for p in prange(count):
+        log_weight[p] = _propose_particle(pool_mean, pool_cov, table, p, pose[p], delta, motion_cov, a, b, places, z,
+                                          r, weighed, normals[p], jitter, cov[p], shift[p], lower[p], unused)
+    for p in range(count):
+        _grow_box(pool_mean, table, p, places, box)
+    _count_hits(exist, hits, slots, exist_hit, exist_max)
+
+
 @njit
 def create_kernel(pool_mean, pool_cov, table, block, refs, free_blocks, free_count, blocks, pose, a, b, slots, z, r):
     """New landmarks ``slots`` where detections ``z`` ``(m, 2)`` put them from each particle's ``pose`` ``(P, 3)``, in
@@ -855,21 +1037,25 @@ def proposal_moments(landmarks, sensor, pose: np.ndarray, prior: np.ndarray, slo
 
 def propose(landmarks, sensor, pose: np.ndarray, delta: np.ndarray, motion_cov: np.ndarray, slots: np.ndarray,
             z: np.ndarray, r: np.ndarray, weighed: int, normals: np.ndarray, jitter: float, exist_hit: float,
-            exist_max: float) -> np.ndarray:
+            exist_max: float, workers: int = 1) -> np.ndarray:
     """Move every particle's ``pose`` ``(P, 3)`` (in place) by a draw from its FastSLAM 2.0 proposal given the motion
     (``delta``, ``motion_cov``) and detections ``z`` of landmarks ``slots`` (distinct) held by every particle, then
     update those landmarks from the drawn poses, as :func:`known_update` would; returns the log weights ``(P,)``
-    (:func:`propose_kernel`). The updated slots are filed again in the map's spatial index from the boxes the kernel
-    leaves: the other slots of their blocks changed in no particle."""
+    (:func:`propose_kernel`; ``workers`` > 1: :func:`propose_parallel_kernel` on that many threads, the same
+    numbers). The updated slots are filed again in the map's spatial index from the boxes the kernel leaves: the
+    other slots of their blocks changed in no particle."""
     blocks = landmarks.reserve_private(slots, refile=False)
     out = np.empty(pose.shape[0])
     box = np.empty((slots.shape[0], 4))
     box[:, :2], box[:, 2:] = np.inf, -np.inf
     moved = np.ascontiguousarray(pose)
-    propose_kernel(landmarks.pool_mean, landmarks.pool_cov, landmarks.table, landmarks.block, landmarks.refs,
-                   landmarks.free_blocks, landmarks.free_count, blocks, landmarks.exist, landmarks.hits, moved, delta,
-                   motion_cov, sensor.offset[0], sensor.offset[1], slots, z, r, weighed, normals, jitter, exist_hit,
-                   exist_max, out, box)
+    kernel = propose_kernel
+    if workers > 1:
+        use_threads(workers)
+        kernel = propose_parallel_kernel
+    kernel(landmarks.pool_mean, landmarks.pool_cov, landmarks.table, landmarks.block, landmarks.refs,
+           landmarks.free_blocks, landmarks.free_count, blocks, landmarks.exist, landmarks.hits, moved, delta, motion_cov,
+           sensor.offset[0], sensor.offset[1], slots, z, r, weighed, normals, jitter, exist_hit, exist_max, out, box)
     landmarks.refile_slots(slots, box)
     if moved is not pose:
         pose[...] = moved
@@ -1117,7 +1303,9 @@ def warm_up() -> None:
     slots = landmarks.add(np.array([[3.0, 0.0], [3.0, 1.0]]), np.broadcast_to(np.eye(2), (2, 2, 2)), 1.0, 1,
                           np.array([0, 1]))
     pose = np.zeros((2, 3))  # the wrappers make a robot's poses contiguous
-    known_update(landmarks, RangeBearingSensor(), pose, slots[:1], np.array([[3.0, 0.0]]), np.eye(2) * 0.01, 1.0, 6.0)
+    for workers in (1, 2):  # the serial kernels, then the parallel ones
+        known_update(landmarks, RangeBearingSensor(), pose, slots[:1], np.array([[3.0, 0.0]]), np.eye(2) * 0.01, 1.0,
+                     6.0, workers)
     robot_kernels.warm_up()  # integrate_controls, shared with MCL
     weights = np.full(2, 0.5)
     weighted_pose(pose, weights, None)
@@ -1132,8 +1320,9 @@ def warm_up() -> None:
     association_draw_kernel(weights, 1.0, 1, 0.5)
     shared_gating_kernel(np.zeros(3), 0.0, 0.0, mean, cov, np.zeros(keep.size, np.bool_), np.eye(3), np.eye(3),
                          np.eye(2), np.array([[3.0, 0.0]]), 9.2, 13.8, np.array([0.0, 10.0, 1.0]))
-    propose(landmarks, RangeBearingSensor(), pose, np.zeros(3), np.eye(3) * 0.01, slots,
-            np.array([[3.0, 0.0], [3.1, 0.3]]), np.eye(2) * 0.01, 1, np.zeros((2, 3)), 1e-12, 1.0, 6.0)
+    for workers in (1, 2):
+        propose(landmarks, RangeBearingSensor(), pose, np.zeros(3), np.eye(3) * 0.01, slots,
+                np.array([[3.0, 0.0], [3.1, 0.3]]), np.eye(2) * 0.01, 1, np.zeros((2, 3)), 1e-12, 1.0, 6.0, workers)
     vote(np.array([[0.0, 0.0], [1.0, 0.0]]), np.array([1, 2]), np.array([[0.1, 0.0], [1.1, 0.1]]), np.zeros(2),
          np.array([-0.1, 0.0, 0.1]), 0.5, 0.2, 4)
     drift = drift_accumulate(None, 0.0, np.zeros(3), np.eye(3), 0.0)
@@ -1146,6 +1335,6 @@ def warm_up() -> None:
 
 
 __all__ = ["association_draw_kernel", "AVAILABLE", "create", "drift_accumulate", "drift_condition", "integrate_controls", "joint_blocks_kernel",
-           "known_update", "marginal_map", "near_kernel", "negative_evidence_kernel", "pose_belief_kernel", "private_blocks", "propose",
-           "proposal_moments", "refile_slots_kernel", "select_kernel", "shared_gating_kernel", "vote", "warm_up",
+           "known_update", "known_update_parallel_kernel", "marginal_map", "max_threads", "near_kernel", "negative_evidence_kernel", "pose_belief_kernel", "private_blocks", "propose",
+           "proposal_moments", "propose_parallel_kernel", "refile_slots_kernel", "select_kernel", "shared_gating_kernel", "use_threads", "vote", "warm_up",
            "weighted_pose"]

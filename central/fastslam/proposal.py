@@ -49,7 +49,7 @@ def propose(slam: FastSlam, robot: RobotState, z, r, ids) -> tuple[bool, np.ndar
             normals = slam.rng.standard_normal((n, 3))
             slam.logw += kernels.propose(slam.map, robot.sensor, slam.pose[:, col], delta, cov, slots[order],
                                          z[det[order]], r, int(np.count_nonzero(weighs)), normals, POSTERIOR_JITTER,
-                                         slam.config.exist_hit, slam.config.exist_max)
+                                         slam.config.exist_hit, slam.config.exist_max, slam.workers)
             return True, det
     if pending is None:
         prior = np.zeros((n, 3, 3))
