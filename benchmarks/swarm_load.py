@@ -15,7 +15,8 @@ own token, no landmark ids) publishes on router A at real time; the central Fast
   (``compute_ms``) beside them;
 - CPU of each process (psutil: user + system seconds over the window, in cores) and of each processor, so that
   "both cores in use" is shown, and the swarm's own lag behind its schedule (a swarm that fell behind offered less);
-- the same with ``central --workers 1`` when central has a ``--workers`` flag.
+- the same with ``central --workers N`` (``--compare-workers``, 2 by default; central's default is 1) when central has
+  a ``--workers`` flag.
 
 Target (issue 54): 200 robots at 10 Hz, central 100 particles without ids: every message processed, p99 < 100 ms,
 both cores in use. With ``--search`` the robot counts of ``--robots`` (a comma list, largest first) are run in turn
@@ -223,7 +224,9 @@ def main() -> None:
     parser.add_argument("--behind-limit-s", type=float, default=0.5,
                         help="the swarm is on schedule while it runs less than this far behind (s)")
     parser.add_argument("--single-router", action="store_true", help="one router for both (no mesh)")
-    parser.add_argument("--no-workers-run", action="store_true", help="skip the central --workers 1 run")
+    parser.add_argument("--no-workers-run", action="store_true", help="skip the central --workers N run")
+    parser.add_argument("--compare-workers", type=int, default=2,
+                        help="the first robot count again with central --workers N (central's default is 1)")
     parser.add_argument("--logs", default="reports/swarm_load", help="folder of the processes' logs")
     parser.add_argument("--out", help="also write the JSON here")
     args = parser.parse_args()
@@ -232,7 +235,7 @@ def main() -> None:
     workers_flag = central_has_workers()
     runs = []
     for index, robots in enumerate(sizes):
-        variants = [None] + ([1] if workers_flag and index == 0 and not args.no_workers_run else [])
+        variants = [None] + ([args.compare_workers] if workers_flag and index == 0 and not args.no_workers_run else [])
         for workers in variants:
             if shutdown.is_set():
                 break
