@@ -177,11 +177,14 @@ class RobotLink:
         with self._estimates_lock:
             return dict(self._estimates)
 
-    def wait_for_estimate(self, source: str = "central", timeout_s: float = 30.0) -> PoseReport | None:
-        """The first estimate from ``source`` within ``timeout_s`` (None if none came)."""
+    def wait_for_estimate(self, source: str = "central", timeout_s: float = 30.0,
+                          at_least: float | None = None) -> PoseReport | None:
+        """The latest estimate from ``source`` once there is one (stamped at ``at_least`` or later, if given: the
+        service has fused the robot up to then), waiting at most ``timeout_s``; None if none came."""
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
-            if (report := self.estimates().get(source)) is not None:
+            report = self.estimates().get(source)
+            if report is not None and (at_least is None or report.stamp >= at_least - 1e-9):
                 return report
             time.sleep(0.05)
         return None

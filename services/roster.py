@@ -428,6 +428,10 @@ class ReorderBuffer:
     - a robot with messages received and not yet handled (``queued`` in :meth:`release`), up to
       ``recovery_window_s``: a service working off a backlog has not heard what waits in its intake.
 
+    Another robot's stream more than ``clock_skew_s`` (600 s) behind an event is not waited for: the two robots'
+    stamps are on different clocks (a simulated robot's start at 0, a real robot's Unix time), and waiting for the
+    one behind would hold the other's events for as long as it streams.
+
     Silence is counted only while the service listens: the service calls :meth:`listening` every few tens of
     milliseconds, and a longer gap between two calls (its process descheduled on a loaded machine, its loop held)
     is a stall of the service itself, during which no stream could be heard; every stream's silence, the join
@@ -441,8 +445,9 @@ class ReorderBuffer:
     _listened: float | None = None  # the clock at the last :meth:`listening` call (None: not listening yet)
 
     def __init__(self, window_s: float, clock: Callable[[], float] = time.perf_counter,
-                 recovery_window_s: float = 5.0, join_wait_s: float = 1.0):
+                 recovery_window_s: float = 5.0, join_wait_s: float = 1.0, clock_skew_s: float = 600.0):
         self.window_s = window_s
+        self.clock_skew_s = clock_skew_s
         self.recovery_window_s = recovery_window_s
         self.join_wait_s = join_wait_s
         self.expected: dict[tuple[str, str], float] = {}  # (robot, stream) announced, nothing pushed → when announced
@@ -554,20 +559,26 @@ class ReorderBuffer:
         out, kept, waiting_robots = [], [], set()
         if joining:
             return out
+        newest_held = max(self.newest.values(), default=float("-inf"))  # no held event is later than this
+        blocked_at = None  # the stamp of the first event that waits for another robot: the ones near it wait too
         while self._heap:
+            if blocked_at is not None and newest_held - blocked_at <= self.clock_skew_s:
+                break  # nothing held is on another clock: the rest waits, in stamp order
             held = heapq.heappop(self._heap)[-1]
             rid = held.event.robot_id
-            if rid in waiting_robots:
+            if rid in waiting_robots or (blocked_at is not None and held.stamp - blocked_at <= self.clock_skew_s):
                 kept.append(held)
                 continue
-            behind = [(stream, stream[0] == rid) for stamp, stream in streams if stamp < held.stamp]
+            behind = [(stream, stream[0] == rid) for stamp, stream in streams
+                      if stamp < held.stamp and (stream[0] == rid or held.stamp - stamp <= self.clock_skew_s)]
             if any(own and self._waited_for(stream, True, now, recovering, queued) for stream, own in behind):
                 waiting_robots.add(rid)  # its own other stream is being recovered: it waits, the others go on
                 kept.append(held)
                 continue
             if any(not own and self._waited_for(stream, False, now, recovering, queued) for stream, own in behind):
                 kept.append(held)
-                break
+                blocked_at = held.stamp if blocked_at is None else blocked_at
+                continue
             out.append((held.event, held.arrived))
         for held in kept:
             heapq.heappush(self._heap, held.entry())

@@ -171,6 +171,25 @@ def test_reorder_buffer_releases_by_watermark_window_and_flush():
     assert [e.robot_id for e, _ in buffer.release(live=["r1", "r2"], flush=True)] == ["r1"]
 
 
+def test_a_robot_on_another_clock_is_not_held_behind_a_robot_that_keeps_streaming():
+    """A simulated robot stamps from 0, a real one in Unix time: the real robot's events do not wait for the
+    simulated one to catch up (it never would), while stamps within the skew are still merged in order."""
+    clock = Clock()
+    buffer = ReorderBuffer(window_s=0.1, clock=clock, clock_skew_s=600.0)
+    buffer.push(event("sim", 10.0))
+    buffer.push(event("real", 1.8e9))
+    buffer.push(event("near", 11.0))
+    released = buffer.release(live=["sim", "real", "near"])
+    assert [(e.robot_id, e.stamp) for e, _ in released] == [("sim", 10.0), ("real", 1.8e9)]
+    buffer.push(event("sim", 10.5))  # the simulated robot streams on: the near one waits for it, as before
+    assert [(e.robot_id, e.stamp) for e, _ in buffer.release(live=["sim", "real", "near"])] == [("sim", 10.5)]
+    strict = ReorderBuffer(window_s=0.1, clock=Clock(), clock_skew_s=float("inf"))
+    strict.push(event("sim", 10.0))
+    strict.push(event("real", 1.8e9))
+    strict.push(event("sim", 10.5))
+    assert [e.robot_id for e, _ in strict.release(live=["sim", "real"])] == ["sim", "sim"]  # without it: held
+
+
 def test_reorder_buffer_waits_for_each_stream_of_a_robot():
     """After a link cut the scans of a robot may be recovered before its odometry: a scan waits for the odometry
     stream to pass its stamp (within the window), so a robot's events are handled in time order."""
