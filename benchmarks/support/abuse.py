@@ -489,10 +489,9 @@ def lying_main(argv: list[str]) -> int:
         if kind not in LIES:
             parser.error(f"unknown lie {kind!r}")
         lies.append((kind, float(at)))
-    from robots import process
-    from services import cli
+    from services import cli, client
 
-    process.StreamPublisher = lying_publisher(lies)
+    client.StreamPublisher = lying_publisher(lies)  # a robot's streams go out through RobotLink's publishers
     return cli.main(rest)
 
 
