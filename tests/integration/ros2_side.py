@@ -72,12 +72,15 @@ def main() -> int:
     parser.add_argument("--speedup", type=float, default=4.0)
     parser.add_argument("--out", required=True)
     parser.add_argument("--abuse", action="store_true")
-    parser.add_argument("--settle-s", type=float, default=8.0, help="how long to keep listening after the last message")
+    parser.add_argument("--settle-s", type=float, default=8.0,
+                        help="longest wait, after the last message, for the fused poses at the last stamp")
     args = parser.parse_args()
 
     from robots.loaders import load_dataset
     from services.ros2.core import robot_log_messages, typestore_for
+    from schemas.transport import Shutdown
     from services.ros2.fleet import load_fleet
+    from tests.helpers import wait_until
 
     fleet = load_fleet(args.fleet)
     ours = typestore_for(fleet.ros_distro)
@@ -117,24 +120,37 @@ def main() -> int:
                 streams.append((stamp_ns, topic, message))
     streams.sort(key=lambda item: item[0])
     sdk_types = next(iter(publishers.values())).session_mgr.store.types
-    time.sleep(1.0)  # the bridge's subscriptions learn of the publishers
+    wait_until(lambda: all(p.pub.matching_status.matching for p in publishers.values()), 30, 0.05,
+               "the bridge's subscriptions to match every publisher")
+    shutdown = Shutdown()
     sent: dict[str, int] = {}
     wall0, data0 = time.monotonic(), streams[0][0] * 1e-9
     for stamp_ns, topic, message in streams:
         due = wall0 + (stamp_ns * 1e-9 - data0) / args.speedup
-        if (delay := due - time.monotonic()) > 0:
-            time.sleep(delay)
+        if (delay := due - time.monotonic()) > 0 and shutdown.wait(delay):
+            break  # paced as the data's stamps say; Ctrl-C stops it
         publishers[topic].publish(**as_fields(message, sdk_types))
         sent[topic] = sent.get(topic, 0) + 1
     abused = abuse(publishers, streams, ours, sdk_types) if args.abuse else {}
-    time.sleep(args.settle_s)
+    last_stamp = {rid: max(ns for ns, topic, _ in streams if topic == f"/{rid}/odom") * 1e-9 for rid in ids}
+
+    def fused_to_the_end() -> bool:
+        with lock:
+            poses = {rid: seen.get(f"/{rid}/fleetslam/odom", []) for rid in ids}
+            return all(poses[rid] and stamp_of(poses[rid][-1]) >= last_stamp[rid] - 1e-6 for rid in ids) \
+                and all(seen.get(topic) for topic in ("/fleetslam/map", "/tf"))
+
+    try:
+        wait_until(fused_to_the_end, args.settle_s, 0.05, "every robot's fused pose at its last stamp, a map, /tf")
+    except AssertionError:
+        pass  # what came is reported; the caller judges it
     topics = get_topic_names_and_types(router_port=args.port, timeout=2.0)
     with lock:
         result = {
             "sent": sent, "abused": abused, "topics": [[name, types] for name, types in topics],
             "received": {topic: len(messages) for topic, messages in seen.items()},
             "last_pose": {topic.split("/")[1]: [messages[-1].pose.pose.position.x, messages[-1].pose.pose.position.y,
-                                                messages[-1].header.stamp.sec + messages[-1].header.stamp.nanosec * 1e-9]
+                                                stamp_of(messages[-1])]
                           for topic, messages in seen.items() if topic.endswith("/fleetslam/odom")},
             "last_map": {ns: [[m.pose.position.x, m.pose.position.y] for m in markers]
                          for ns, markers in last_maps(seen.get("/fleetslam/map", [])).items()},
@@ -144,6 +160,10 @@ def main() -> int:
     for entity in [*publishers.values(), *subscribers]:
         entity.close()
     os._exit(0)  # the SDK's session lives in a singleton with callbacks: leave without waiting on it
+
+
+def stamp_of(message) -> float:
+    return message.header.stamp.sec + message.header.stamp.nanosec * 1e-9
 
 
 def last_maps(messages) -> dict[str, list]:

@@ -67,6 +67,14 @@ def _cable_bytes(lab: NetnsLab, host: str) -> int:
     return sum(counts)
 
 
+def _samples_since(rows: list[dict], robot: str, since: float) -> int:
+    return sum(1 for r in rows if r["kind"] == "sample" and r["robot"] == robot and r["t"] > since)
+
+
+def _gone_since(rows: list[dict], robot: str, since: float) -> bool:
+    return any(r["kind"] == "gone" and r.get("robot") == robot and r["t"] > since for r in rows)
+
+
 def _first_sample_after(rows: list[dict], robot: str, since: float) -> float | None:
     return next((r["t"] for r in rows if r["kind"] == "sample" and r["robot"] == robot and r["t"] > since), None)
 
@@ -87,8 +95,7 @@ def run_sites(lab: NetnsLab, workdir: Path, cut_s: float = 12.0, delay_ms: float
         mesh = [] if host == "depot" else ["--connect", f"tcp/{hosts['depot']}:{PORT}"]
         return start(host, f"router-{host}", "router", "--listen", f"tcp/0.0.0.0:{PORT}", *mesh)
 
-    routers = {host: router(host) for host in hosts}
-    time.sleep(1.0)  # the routers listen (each client also waits for its router: connect timeout 30 s)
+    routers = {host: router(host) for host in hosts}  # each client waits for its router (connect timeout 30 s)
     observed = workdir / "observed.jsonl"
     lab.start("depot", [sys.executable, "-m", "tests.integration.observer", "--out", str(observed)],
               {**env, "FLEETSLAM_SUBSCRIBER_RECOVERY": "true"}, workdir / "observer.log", REPO)
@@ -106,12 +113,14 @@ def run_sites(lab: NetnsLab, workdir: Path, cut_s: float = 12.0, delay_ms: float
 
     wait_until(lambda: all(heard(rid, 0.0) for rid in robots.values()), 180, 0.1, "both sites' robots at the depot")
     t0, bytes0 = time.time(), {site: _cable_bytes(lab, site) for site in robots}
-    time.sleep(5.0)
+    wait_until(lambda: all(_samples_since(read_rows(observed), rid, t0) >= 5 * 2 * rate_hz for rid in robots.values()),
+               30, 0.1, "5 s of both robots' streams at the depot (the window the cables' bytes are counted over)")
     run.figures["cable_bytes_per_s"] = {site: round((_cable_bytes(lab, site) - bytes0[site]) / (time.time() - t0))
                                         for site in robots}
     t_cut = time.time()
     lab.cut("site1")
-    time.sleep(cut_s)
+    wait_until(lambda: time.time() - t_cut >= cut_s and _gone_since(read_rows(observed), "r1", t_cut), cut_s + 30,
+               0.1, f"the depot to drop site1's robot (lease) and the cut to last {cut_s:g} s")
     t_back = time.time()
     lab.restore("site1")
     wait_until(lambda: heard("r1", t_back), 30, 0.05, "site1's robot at the depot after its cable is back")
@@ -123,7 +132,10 @@ def run_sites(lab: NetnsLab, workdir: Path, cut_s: float = 12.0, delay_ms: float
     routers["site2"] = router("site2")
     wait_until(lambda: heard("r2", t_kill + 0.5), 40, 0.05, "site2's robot after its router restarted")
     run.figures["site2_heard_again_s"] = round(_first_sample_after(read_rows(observed), "r2", t_kill + 0.5) - t_kill, 2)
-    time.sleep(settle_s)
+    t_back2 = time.time()
+    wait_until(lambda: all(_samples_since(read_rows(observed), rid, t_back2) >= settle_s * 2 * rate_hz
+                           for rid in robots.values()), settle_s + 30, 0.1,
+               f"{settle_s:g} s more of both robots' streams after the faults")
     for site, process in robot_processes.items():
         process.send_signal(signal.SIGTERM)
         process.wait(timeout=30)
