@@ -29,8 +29,8 @@ from schemas.codec import encode
 from schemas.config import RobotSettings, add_settings_arguments, settings_from_args
 from schemas.keys import Keys
 from schemas.messages import WorldTruth
-from schemas.transport import (Shutdown, StreamPublisher, answer_with, cache_samples, linger_time, run_command,
-                               session_scope, undeclare_all)
+from schemas.transport import (Shutdown, StreamPublisher, answer_with, linger_time, paced, run_command, session_scope,
+                               stream_caches, undeclare_all)
 from services.client import RobotLink
 
 log = logging.getLogger("fleetslam.robot")
@@ -92,7 +92,7 @@ def run(settings: RobotSettings, shutdown: Shutdown) -> dict[str, int]:
                                           landmark_ids=dataset.landmark_ids))
     with session_scope(settings) as session:
         rates = {**robot.stream_rates(), "info": 1.0 / settings.info_period_s}
-        caches = {name: cache_samples(settings, rates[name] * settings.speedup) for name in rates}
+        caches = stream_caches(settings, rates, settings.speedup)
         answer_world = world_pub = None
         if world_payload is not None:  # before the link's tokens: alive means every queryable answers
             answer_world = answer_with(session, keys.world_truth, world_payload)
@@ -105,15 +105,9 @@ def run(settings: RobotSettings, shutdown: Shutdown) -> dict[str, int]:
                 world_pub.put(world_payload)
             log.info("robot %s publishing %s (%s) at speed-up %g", rid, robot.info.source, robot.info.motion_model,
                      settings.speedup)
-            wall0 = time.monotonic()
             data0 = min(robot.start_stamp, dataset.meta.get("fleet_start", robot.start_stamp))  # one clock for a fleet
-            for event in robot.events(until=until, with_truth=settings.publish_truth):
-                due = wall0 + (event.stamp - data0) / settings.speedup
-                now = time.monotonic()
-                if due > now and shutdown.wait(due - now):
-                    break
-                if shutdown.is_set():
-                    break
+            for event, _ in paced(robot.events(until=until, with_truth=settings.publish_truth), data0,
+                                  settings.speedup, shutdown):
                 link.put_event(event, with_ids=settings.publish_ids)
             counts = {name: link.counts[name] for name in ("odom", "scan", "truth")}
             log.info("robot %s done: %s", rid, ", ".join(f"{k} {v}" for k, v in counts.items()))

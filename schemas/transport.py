@@ -19,10 +19,11 @@ import math
 import re
 import signal
 import threading
+import time
 from collections import deque
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Callable, Iterator
+from typing import Callable, Iterable, Iterator
 
 import zenoh
 import zenoh.ext
@@ -138,6 +139,24 @@ def cache_samples(settings: FleetSettings, rate_hz: float) -> int:
     if settings.publisher_cache is not None:
         return settings.publisher_cache
     return max(16, math.ceil(rate_hz * settings.outage_budget_s))
+
+
+def stream_caches(settings: FleetSettings, rates: dict[str, float], speedup: float = 1.0) -> dict[str, int]:
+    """:func:`cache_samples` of each stream in ``rates`` (messages per second of data time), published ``speedup``
+    times faster than real time."""
+    return {name: cache_samples(settings, rate * speedup) for name, rate in rates.items()}
+
+
+def paced(events: Iterable, data0: float, speedup: float, shutdown: "Shutdown") -> Iterator[tuple[object, float]]:
+    """Each event when it is due, with how late it is (s): data time from ``data0`` divided by ``speedup``, wall time
+    from the first event asked for. Stops when ``shutdown`` is set (also while waiting)."""
+    wall0 = time.monotonic()
+    for event in events:
+        due = wall0 + (event.stamp - data0) / speedup
+        now = time.monotonic()
+        if (due > now and shutdown.wait(due - now)) or shutdown.is_set():
+            return
+        yield event, time.monotonic() - due
 
 
 def linger_time(configured_s: float, stopped_by_signal: bool) -> float:

@@ -32,7 +32,7 @@ from schemas.config import FleetSettings
 from schemas.contract import OdomEvent, ScanEvent, TruthEvent
 from schemas.keys import Keys, check_robot_id
 from schemas.messages import Estimate, GroundTruth, MclPose, Odometry, PoseEstimate, RobotInfo, Scan
-from schemas.transport import (StreamPublisher, answer_history, cache_samples, declare_robot_tokens, open_session,
+from schemas.transport import (StreamPublisher, answer_history, declare_robot_tokens, open_session, stream_caches,
                                undeclare_all)
 
 log = logging.getLogger("fleetslam.client")
@@ -97,7 +97,7 @@ class RobotLink:
         environment, else ``tcp/127.0.0.1:7447``); the link closes that session."""
         settings = settings or FleetSettings()
         rates = {"info": 1.0, "odom": info.odom_rate_hz, "scan": info.scan_rate_hz, "truth": info.odom_rate_hz}
-        caches = {name: cache_samples(settings, rate) for name, rate in rates.items()}
+        caches = stream_caches(settings, rates)
         session = open_session(settings)
         try:
             link = cls(session, info, settings.prefix, caches=caches, follow_estimates=follow_estimates, **options)

@@ -32,7 +32,7 @@ from schemas.codec import encode
 from schemas.config import SwarmSettings, add_settings_arguments, settings_from_args
 from schemas.keys import Keys
 from schemas.messages import RobotInfo, WorldTruth
-from schemas.transport import (Shutdown, StreamPublisher, answer_with, cache_samples, linger_time, run_command,
+from schemas.transport import (Shutdown, StreamPublisher, answer_with, linger_time, paced, run_command, stream_caches,
                                session_scope, undeclare_all)
 from services.client import RobotLink
 
@@ -118,19 +118,12 @@ def total(counts: dict[str, dict[str, int]]) -> dict[str, int]:
 def publish(settings: SwarmSettings, dataset: Dataset, links: dict[str, RobotLink], shutdown: Shutdown) -> Schedule:
     """Publish every robot's events in time order, paced at real time / speedup; log progress every period."""
     schedule = Schedule()
-    data0 = dataset.start_stamp
-    wall0 = time.monotonic()
-    next_progress = wall0 + settings.progress_period_s
+    next_progress = time.monotonic() + settings.progress_period_s
     sent = sent_at_progress = 0
-    for event in dataset.events(with_truth=settings.publish_truth):
-        due = wall0 + (event.stamp - data0) / settings.speedup
+    for event, late in paced(dataset.events(with_truth=settings.publish_truth), dataset.start_stamp, settings.speedup,
+                             shutdown):
         now = time.monotonic()
-        if due > now and shutdown.wait(due - now):
-            break
-        if shutdown.is_set():
-            break
-        now = time.monotonic()
-        schedule.note(now - due)
+        schedule.note(late)
         links[event.robot_id].put_event(event, with_ids=settings.publish_ids)
         sent += 1
         if now >= next_progress:
@@ -165,7 +158,7 @@ def run(settings: SwarmSettings, shutdown: Shutdown) -> dict:
                                   StreamPublisher(session, keys.world_truth)]
             for rid, robot in dataset.robots.items():
                 rates = {**robot.stream_rates(), "info": 1.0 / settings.info_period_s}
-                caches = {name: cache_samples(settings, rate * settings.speedup) for name, rate in rates.items()}
+                caches = stream_caches(settings, rates, settings.speedup)
                 if not settings.publish_truth:
                     caches["truth"] = 0
                 links[rid] = RobotLink(session, robot.info, settings.prefix, caches=caches,

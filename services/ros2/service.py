@@ -35,7 +35,7 @@ from schemas.codec import decode
 from schemas.config import Ros2Settings, add_settings_arguments, settings_from_args
 from schemas.contract import SettingsError, TruthEvent
 from schemas.messages import Estimate, MapEstimate
-from schemas.transport import cache_samples
+from schemas.transport import stream_caches
 from services.client import RobotLink
 from services.ros2.core import (TYPE_HASH_NOT_SUPPORTED, RobotInput, quaternion_yaw, reject_reason, truth_pose,
                                 type_hash, typestore_for)
@@ -197,7 +197,7 @@ class Ros2Bridge(ServiceShell):
         if side.link is None:
             info = side.input.info(stamp)
             rates = {"info": 1.0, "odom": info.odom_rate_hz, "scan": info.scan_rate_hz, "truth": 1.0}
-            caches = {name: cache_samples(self.settings, rate) for name, rate in rates.items()}
+            caches = stream_caches(self.settings, rates)
             side.link = RobotLink(self.session, info, self.settings.prefix, caches=caches)
             log.info("ROS 2 robot %s joined fleetslam (%s)", info.robot_id, info.source)
         return side.link
