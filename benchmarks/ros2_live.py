@@ -32,6 +32,7 @@ from schemas.messages import Estimate, MapEstimate, PoseEstimate  # noqa: E402
 from services.evaluation.metrics import ate, interpolate_poses, map_error  # noqa: E402
 from services.ros2.core import fleet_entry_for  # noqa: E402
 from services.ros2.fleet import FleetFile, save_fleet  # noqa: E402
+from services.mapfeed import assemble  # noqa: E402
 from tests.helpers import Collector, Processes, client_session, free_port, wait_for_port, wait_until  # noqa: E402
 
 log = logging.getLogger("ros2_live")
@@ -126,8 +127,8 @@ def run_once(path: str, seed: int, args, dataset, robots: list[str], fleet_file:
         time.sleep(args.drain_s)  # the services finish what they hold, then publish their estimates
         central_paths = trajectories(central, Estimate, robots)
         dslam_paths = trajectories(dslam_poses, PoseEstimate, robots)
-        last_central = central.decoded(Estimate)[-1] if central.count() else None
-        last_dslam = dslam_map.decoded(MapEstimate)[-1] if dslam_map.count() else None
+        last_central = assemble(central.decoded(Estimate))
+        last_dslam = assemble(dslam_map.decoded(MapEstimate))
         got = arrived()
         run = {
             "path": path, "seed": seed, "wall_s": wall_s,

@@ -27,8 +27,10 @@ filter (:class:`central.fastslam.FastSlam`):
   position without landmark ids); they never update the map.
 
 The estimate (every placed robot's weighted mean pose and covariance, the
-map) is published on ``{prefix}/central/estimate`` at ``estimate_rate_hz``;
-the queryable ``{prefix}/central/state`` answers with a fresh one: the queries that arrive meanwhile wait
+map) is published on ``{prefix}/central/estimate`` at ``estimate_rate_hz``, its map by the tiles that changed
+(:mod:`schemas.maptiles`: ``map_tile_m``, ``map_tolerance_m``; the first estimate is full), so that its steady
+cost follows what the robots see, not the map's size; the queryable ``{prefix}/central/state`` answers with a
+fresh, full one (how a late joiner, or a receiver that missed an estimate, gets the whole map): the queries that arrive meanwhile wait
 together (at most ``max_state_queries``; more are answered ``busy`` at once) and all get the one estimate built
 at the loop's next turn, so a flood of them costs the filter one estimate.
 
@@ -42,7 +44,6 @@ from __future__ import annotations
 
 import argparse
 import logging
-import threading
 import time
 from collections import defaultdict, deque
 
@@ -54,7 +55,9 @@ from central.fastslam.core import FastSlam
 from schemas.codec import encode
 from schemas.config import CentralSettings, add_settings_arguments, settings_from_args
 from schemas.contract import OdomEvent
+from schemas.maptiles import TileBlock, TileSender
 from schemas.messages import Estimate, MclPose, RobotEstimate, RobotInfo
+from services.mapfeed import StateQueries
 from services.maps import MapSaver, seed_from_file, serve_mapping_service
 from services.placement import PlacementCheck, anchor_due
 from services.roster import StreamEvent
@@ -81,13 +84,12 @@ class CentralService(ServiceShell):
         self.compute_ms: deque[float] = deque(maxlen=5000)
         self.estimate_seq = 0
         self.last_stamp = 0.0
+        self.map_tiles = TileSender(settings.map_tile_m, settings.map_tolerance_m, settings.map_cov_tolerance)
         self.announced_waiting: dict[str, float] = {}  # robots announced without a pose: when (wall clock)
         self.placed_by_mcl: set[str] = set()
         self.placement_check = PlacementCheck(settings.replace_distance_m, settings.replace_after)
         self.joining: dict[str, RobotInfo] = {}  # robots announced with a start pose, before their first event
-        self._state_lock = threading.Lock()
-        self._state_queries: list[zenoh.Query] = []  # waiting for the next estimate (Zenoh's threads append)
-        self.state_answered = 0
+        self.state_queries = StateQueries(self, self.keys.central_state, settings.max_state_queries)
         self.prior_landmarks = seed_from_file(self.slam, settings.map, self.slam.config.association)
         self.map_saver = MapSaver(settings.map_out, {
             "estimator": "fastslam", "association": self.slam.config.association,
@@ -99,24 +101,7 @@ class CentralService(ServiceShell):
         self.follow_robots()
         self.subscribe(f"{self.settings.prefix}/mcl/*/pose", "mcl", recover=False)
         self._estimate_pub = self.publisher(self.keys.central_estimate)
-        self._declared.append(session.declare_queryable(self.keys.central_state, self._on_state_query))
-
-    def _on_state_query(self, query: zenoh.Query) -> None:
-        """Zenoh's callback: the query waits with the others for the next estimate; ``busy`` when too many wait."""
-        with self._state_lock:
-            admitted = len(self._state_queries) < self.settings.max_state_queries
-            if admitted:
-                self._state_queries.append(query)
-                first = len(self._state_queries) == 1
-        if not admitted:
-            try:
-                query.reply_err(f"busy: {self.settings.max_state_queries} state queries wait already; ask again "
-                                "later".encode())
-            finally:
-                query.drop()
-            self.call_in_loop(self.reject, "busy", "a state query")
-        elif first:  # the loop answers every query waiting by then
-            self.enqueue("state", self.keys.central_state, b"")
+        self.state_queries.declare(session)
 
     # ------------------------------------------------------------ robots
     async def robot_announced(self, info: RobotInfo) -> None:
@@ -251,7 +236,9 @@ class CentralService(ServiceShell):
     def estimate(self, publish: bool = True) -> Estimate | None:
         """The current estimate as a message (None when a number is not finite: never published).
 
-        Published estimates are numbered 0, 1, 2...; a state query's reply repeats the next number.
+        Published estimates are numbered 0, 1, 2... and carry the map tiles that changed since the one before
+        (:mod:`schemas.maptiles`; the first is full); a state query's reply (``publish`` false) is a full estimate
+        that repeats the next number.
         """
         robots = []
         for rid, (pose, cov) in self.slam.poses().items():
@@ -265,35 +252,24 @@ class CentralService(ServiceShell):
         if not all(np.all(np.isfinite(v)) for v in values):
             self.reject("estimate_not_finite")
             return None
-        message = Estimate(seq=self.estimate_seq, stamp=self.last_stamp, robots=robots, landmarks=view.means,
-                           landmark_covs=view.covs, landmark_ids=view.ids, particles=self.slam.particle_count,
-                           effective_particles=self.slam.effective_particles(),
+        tiles: TileBlock = (self.map_tiles.delta if publish else self.map_tiles.snapshot)(view.means, view.covs, view.ids)
+        message = Estimate(seq=self.estimate_seq, stamp=self.last_stamp, robots=robots, landmarks=tiles.means,
+                           landmark_covs=tiles.covs, landmark_ids=tiles.ids, full=tiles.full,
+                           tile_size=tiles.tile_size, tiles=tiles.tiles, tile_counts=tiles.counts,
+                           particles=self.slam.particle_count, effective_particles=self.slam.effective_particles(),
                            method=f"fastslam-{self.slam.config.association}")
         self.estimate_seq += int(publish)
         return message
 
     def _answer_state_queries(self) -> None:
-        """Answer every waiting state query with one estimate, built and encoded once."""
-        with self._state_lock:
-            queries, self._state_queries = self._state_queries, []
+        """Answer every waiting state query with one full estimate, built and encoded once."""
         message = self.estimate(publish=False)
-        payload = None if message is None else encode(message)
-        for query in queries:
-            try:
-                if payload is None:
-                    query.reply_err(b"estimate_not_finite")
-                else:
-                    query.reply(self.keys.central_state, payload)
-            except Exception as exc:  # noqa: BLE001 - the caller may be gone; the others still get theirs
-                log.debug("central: cannot answer a state query: %s", exc)
-            finally:
-                query.drop()
-        self.state_answered += len(queries)
+        self.state_queries.answer(None if message is None else encode(message), b"estimate_not_finite")
 
     def _update_stats(self) -> None:
         self.extra.update({k: v for k, v in self.slam.stats().items()})
         self.extra["processed"] = float(sum(self.processed.values()))
-        self.extra["state_answered"] = float(self.state_answered)
+        self.extra["state_answered"] = float(self.state_queries.answered)
         self.put_timing("compute_ms", self.compute_ms)
 
     def _publish_estimate(self) -> None:

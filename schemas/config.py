@@ -438,12 +438,30 @@ class SavedMapSettings(BaseModel):
     map_out_period_s: float = Field(30.0, ge=0, description="with map_out: rewrite the map file this often (s; 0: on exit only)")
 
 
-class DslamSettings(FleetSettings, DslamConfig, SavedMapSettings, AnchorSettings, CheckpointSettings):
+class MapOutputSettings(BaseModel):
+    """How a mapping service sends its map (:mod:`schemas.maptiles`): the tiles that changed, a full map on request."""
+
+    map_tile_m: float = Field(5.0, gt=0, description="side of the square tiles the map is sent by (m): a published "
+                              "map lists only the tiles whose landmarks changed; the first one, and the answer to a "
+                              "state query, list every tile")
+    map_tolerance_m: float = Field(0.01, ge=0, description="a landmark whose mean moved less than this (m), and whose "
+                                   "covariance changed less than map_cov_tolerance, is not sent again: receivers' maps "
+                                   "stay within this of the service's")
+    map_cov_tolerance: float = Field(0.1, ge=0, description="... relative change of a landmark covariance (Frobenius "
+                                     "norm of the change over the norm of the covariance sent) that sends it again")
+    max_state_queries: int = Field(64, ge=1, description="queries of the state queryable ({prefix}/central/state, "
+                                   "{prefix}/dslam/state) that may wait for the next turn of the loop (all get the one "
+                                   "full map built then); more are answered busy at once")
+
+
+class DslamSettings(FleetSettings, DslamConfig, SavedMapSettings, MapOutputSettings, AnchorSettings,
+                    CheckpointSettings):
     """``fleetslam dslam``: one D-SLAM map fed by every robot; association through the queryable."""
 
     assoc_timeout_s: float = Field(0.5, gt=0, description="how long to wait for the association queryable (s)")
     assoc_retry_s: float = Field(5.0, ge=0, description="after a failed query, associate in-process this long before asking again (s)")
-    map_period_s: float = Field(1.0, gt=0, description="period of the map publication (s)")
+    map_period_s: float = Field(1.0, gt=0, description="period of the map publication on {prefix}/dslam/map (s): "
+                                "its bound on the map output's rate")
 
     @field_validator("association", mode="before")
     @classmethod
@@ -588,12 +606,12 @@ class AssocSettings(FleetSettings):
     duration: float | None = Field(None, gt=0, description="stop after this many seconds (default: until SIGINT/SIGTERM)")
 
 
-class CentralSettings(FleetSettings, FastSlamConfig, SavedMapSettings, AnchorSettings, CheckpointSettings):
+class CentralSettings(FleetSettings, FastSlamConfig, SavedMapSettings, MapOutputSettings, AnchorSettings,
+                      CheckpointSettings):
     """``fleetslam central``: the central multi-robot FastSLAM service (every robot in one filter)."""
 
-    estimate_rate_hz: float = Field(2.0, gt=0, le=100, description="rate of the estimate publication on {prefix}/central/estimate")
-    max_state_queries: int = Field(64, ge=1, description="queries of {prefix}/central/state that may wait for the next "
-                                   "estimate (all get the one built then); more are answered busy at once")
+    estimate_rate_hz: float = Field(2.0, gt=0, le=100, description="rate of the estimate publication on "
+                                    "{prefix}/central/estimate: its bound on the estimate output's rate")
     late_join: Literal["start_pose", "wait"] = Field(
         "start_pose", description="a robot whose first odometry was missed: keep its announced start pose, "
         "or wait for MCL to place it")

@@ -82,6 +82,10 @@ class Keys:
     def dslam_map(self) -> str:
         return f"{self.prefix}/dslam/map"
 
+    @property
+    def dslam_state(self) -> str:
+        return f"{self.prefix}/dslam/state"
+
     def dslam_pose(self, robot_id: str) -> str:
         return f"{self.prefix}/dslam/pose/{check_robot_id(robot_id)}"
 

@@ -202,13 +202,40 @@ class RobotEstimate(BaseModel):
     cov: Covariance3
 
 
-class Estimate(Message):
-    """The central FastSLAM estimate: every robot's pose and the shared landmark map."""
+class TiledMapMessage(Message):
+    """A map output sent by tiles (:mod:`schemas.maptiles`): ``full`` lists every tile of the map, otherwise only
+    the tiles that changed since the message numbered ``seq`` − 1; ``tiles`` (k, 2) are tile indices (⌊x / tile_size⌋,
+    ⌊y / tile_size⌋), ``tile_counts`` how many of ``landmarks``, in order, each listed tile holds now (0 empties it).
+    A full message may leave ``tiles`` empty: its landmarks are then the whole map. Receivers assemble the map with
+    :class:`schemas.maptiles.TiledMap` (services: :class:`services.mapfeed.MapFeed`)."""
 
+    SCHEMA_VERSION: ClassVar[int] = 2
     seq: int = Field(ge=0)
     stamp: FiniteFloat
-    robots: list[RobotEstimate]
     landmarks: Array(None, 2)
+    full: bool = True
+    tile_size: float = Field(0.0, ge=0.0, allow_inf_nan=False, description="tile side (m); 0: untiled")
+    tiles: Array(None, 2, kind="int") = Field(default_factory=lambda: np.zeros((0, 2), np.int64))
+    tile_counts: Array(None, kind="int", nonnegative=True) = Field(default_factory=lambda: np.zeros(0, np.int64))
+
+    @model_validator(mode="after")
+    def _tiles_agree(self) -> "TiledMapMessage":
+        if self.tiles.shape[0] != self.tile_counts.shape[0]:
+            raise ValueError("tiles and tile_counts differ in length")
+        untiled = self.full and self.tiles.shape[0] == 0
+        if not untiled and int(self.tile_counts.sum()) != self.landmarks.shape[0]:
+            raise ValueError("tile_counts do not add up to the landmarks")
+        if not self.full and not self.tile_size > 0:
+            raise ValueError("a delta (full = false) needs tile_size > 0")
+        if np.unique(self.tiles, axis=0).shape[0] != self.tiles.shape[0]:
+            raise ValueError("a tile is listed twice")
+        return self
+
+
+class Estimate(TiledMapMessage):
+    """The central FastSLAM estimate: every robot's pose and the shared landmark map (by tiles)."""
+
+    robots: list[RobotEstimate]
     landmark_covs: Array(None, 2, 2)
     landmark_ids: Array(None, kind="int") | None = None
     particles: int = Field(ge=0)
@@ -224,12 +251,10 @@ class Estimate(Message):
         return self
 
 
-class MapEstimate(Message):
-    """The D-SLAM map: landmark means, marginal covariances of a requested set, sparsity figures."""
+class MapEstimate(TiledMapMessage):
+    """The D-SLAM map (by tiles): landmark means and ids, marginal covariances of a requested set (the landmarks near
+    the robots, sent whole in every message), sparsity figures."""
 
-    seq: int = Field(ge=0)
-    stamp: FiniteFloat
-    landmarks: Array(None, 2)
     landmark_ids: Array(None, kind="int")
     covariance_ids: Array(None, kind="int") = Field(default_factory=lambda: np.zeros(0, np.int64))
     covariances: Array(None, 2, 2) = Field(default_factory=lambda: np.zeros((0, 2, 2)))
@@ -243,6 +268,15 @@ class MapEstimate(Message):
         if self.covariance_ids.shape[0] != self.covariances.shape[0]:
             raise ValueError("covariance_ids and covariances differ in length")
         return self
+
+    def landmark_covariances(self) -> np.ndarray:
+        """One covariance per landmark, in ``landmarks``' order: the marginal sent, zero where none was sent."""
+        covs = np.zeros((self.landmarks.shape[0], 2, 2))
+        row = {int(i): k for k, i in enumerate(self.landmark_ids.tolist())}
+        for landmark_id, cov in zip(self.covariance_ids.tolist(), self.covariances):
+            if int(landmark_id) in row:
+                covs[row[int(landmark_id)]] = cov
+        return covs
 
 
 class PoseEstimate(StreamMessage):

@@ -11,8 +11,8 @@ thread solves the covariance columns of the landmarks the robots are about to se
 (:meth:`DSlam.column_prefetch`), so that a large map's first sighting of them does
 not stall a scan (10^5 landmarks: about 160 ms a column). Publishes
 ``MapEstimate`` on ``{prefix}/dslam/map`` every ``map_period_s`` (landmark
-means, marginal covariances of the landmarks near the robots, information
-matrix nnz, recovery iterations) and ``PoseEstimate`` on
+means by the tiles that changed, :mod:`schemas.maptiles`; marginal covariances of the landmarks near the robots,
+information matrix nnz, recovery iterations; the queryable ``{prefix}/dslam/state`` answers with a full map) and ``PoseEstimate`` on
 ``{prefix}/dslam/pose/{rid}`` after each scan. Stats on ``{prefix}/dslam/stats``
 carry the core's figures in ``extra``.
 
@@ -42,14 +42,16 @@ import numpy as np
 import zenoh
 
 from schemas.association import AssociationReply, AssociationRequest
-from schemas.codec import DecodeError
+from schemas.codec import DecodeError, encode
 from schemas.config import DslamSettings, add_settings_arguments, settings_from_args
 from schemas.contract import OdomEvent
+from schemas.maptiles import TileSender
 from schemas.messages import MapEstimate, MclPose, PoseEstimate, RobotInfo
 from schemas.transport import StreamPublisher
 from services.association.client import AssociationClient, AssociationRefused
 from services.dslam.config import DslamConfig
 from services.dslam.core import DSlam, in_process_associate
+from services.mapfeed import StateQueries
 from services.maps import MapSaver, seed_from_file, serve_mapping_service
 from services.placement import anchor_due
 from services.runtime import ServiceShell
@@ -75,6 +77,8 @@ class DslamService(ServiceShell):
         self._pose_pubs: dict[str, StreamPublisher] = {}
         self._pose_seq: Counter = Counter()
         self._map_seq = 0
+        self.map_tiles = TileSender(settings.map_tile_m, settings.map_tolerance_m, settings.map_cov_tolerance)
+        self.state_queries = StateQueries(self, self.keys.dslam_state, settings.max_state_queries)
         self._lock = asyncio.Lock()
         self._prefetch: asyncio.Task | None = None  # the covariance columns being solved between scans
         self.waiting: dict[str, float] = {}  # robots announced without a pose: when (wall clock)
@@ -87,6 +91,7 @@ class DslamService(ServiceShell):
         self.follow_robots()
         self.subscribe(f"{self.settings.prefix}/mcl/*/pose", "mcl", recover=False)
         self._map_pub = self.publisher(self.keys.dslam_map)
+        self.state_queries.declare(session)
         self._client = AssociationClient(session, self.keys, self.settings.assoc_timeout_s)
 
     # ------------------------------------------------------------ association
@@ -137,7 +142,9 @@ class DslamService(ServiceShell):
             await self._placed(rid)
 
     async def handle(self, tag: str, key: str, payload) -> None:
-        if tag == "mcl" and (message := self.localized_mcl_pose(payload, key)) is not None:
+        if tag == "state":
+            await self._answer_state_queries()
+        elif tag == "mcl" and (message := self.localized_mcl_pose(payload, key)) is not None:
             await self._on_mcl(message)
         await self.release_events()
 
@@ -238,11 +245,15 @@ class DslamService(ServiceShell):
         self._pose_seq[rid] += 1
         self.published += 1
 
-    def map_message(self) -> MapEstimate:
-        """The map: every landmark mean, the marginal covariances of the landmarks near the robots."""
+    def map_message(self, publish: bool = True) -> MapEstimate:
+        """The map: every landmark mean by the tiles that changed since the last published map (:mod:`schemas.maptiles`;
+        ``publish`` false: a full map for a state query, repeating the next number), and the marginal covariances
+        of the landmarks near the robots."""
         snap = self.core.map_snapshot()
+        tiles = (self.map_tiles.delta if publish else self.map_tiles.snapshot)(snap.means, None, snap.ids)
         return MapEstimate(
-            seq=self._map_seq, stamp=snap.stamp, landmarks=snap.means, landmark_ids=snap.ids,
+            seq=self._map_seq, stamp=snap.stamp, landmarks=tiles.means, landmark_ids=tiles.ids, full=tiles.full,
+            tile_size=tiles.tile_size, tiles=tiles.tiles, tile_counts=tiles.counts,
             covariance_ids=snap.covariance_ids, covariances=snap.covariances, info_nnz=snap.info_nnz,
             recovery_iterations=snap.recovery_iterations,
         )
@@ -258,6 +269,12 @@ class DslamService(ServiceShell):
         self._map_pub.put(message)
         self._map_seq += 1
         self.published += 1
+
+    async def _answer_state_queries(self) -> None:
+        """Answer every waiting state query with one full map, built and encoded once."""
+        async with self._lock:
+            message = self.map_message(publish=False)
+        self.state_queries.answer(encode(message))
 
     def _extra(self) -> dict[str, float]:
         return {**self.core.stats(), **{k: float(v) for k, v in self.assoc_counts.items()}}

@@ -45,6 +45,7 @@ from schemas.codec import decode
 from schemas.config import EvaluateSettings, add_settings_arguments, settings_from_args
 from schemas.messages import Estimate, GroundTruth, MapEstimate, MclPose, PoseEstimate, WorldTruth
 from schemas.streams import StreamTracker, Verdict
+from services.mapfeed import MapFeed
 from services.runtime import ServiceShell
 
 log = logging.getLogger("fleetslam.evaluate")
@@ -121,6 +122,8 @@ class Evaluator(ServiceShell):
         self.world: WorldTruth | None = None
         self.report_paths: list[str] = []
         self.mcl_unlocalized: set[str] = set()  # robots MCL reported on but has not localized (yet)
+        self.central_feed = MapFeed(self, Estimate, self.keys.central_state, "central_state")
+        self.dslam_feed = MapFeed(self, MapEstimate, self.keys.dslam_state, "dslam_state")
 
     def setup(self, session: zenoh.Session) -> None:
         prefix = self.settings.prefix
@@ -160,6 +163,14 @@ class Evaluator(ServiceShell):
             self.mcl_unlocalized.add(label)
         log.info("robot %s started a new run; its run that ended is scored as %s", robot_id, label)
 
+    def _central_map(self, message: Estimate | None) -> None:
+        if message is not None:
+            self.maps["central"] = (message.landmarks, message.landmark_covs)
+
+    def _dslam_map(self, message: MapEstimate | None) -> None:
+        if message is not None:
+            self.maps["dslam"] = (message.landmarks, message.landmark_covariances())
+
     def _accept(self, robot_id: str, stream: str, seq: int, stamp: float, key: str) -> bool:
         verdict = self.tracker.check(robot_id, stream, seq, stamp)
         if verdict is not Verdict.ACCEPT:
@@ -190,16 +201,13 @@ class Evaluator(ServiceShell):
             if self._accept("central", "estimate", message.seq, message.stamp, key):
                 for robot in message.robots:
                     self._series("central", robot.robot_id).add(robot.stamp, robot.pose, robot.cov)
-                self.maps["central"] = (message.landmarks, message.landmark_covs)
-        elif tag == "dslam_map":
+                self._central_map(self.central_feed.take(message))
+        elif tag == self.central_feed.reply_tag:
+            self._central_map(self.central_feed.take(decode(payload, Estimate), reply=True))
+        elif tag in ("dslam_map", self.dslam_feed.reply_tag):
             message = decode(payload, MapEstimate)
-            if self._accept("dslam", "map", message.seq, message.stamp, key):
-                covs = np.zeros((message.landmarks.shape[0], 2, 2))
-                index = {int(i): k for k, i in enumerate(message.landmark_ids.tolist())}
-                for lid, cov in zip(message.covariance_ids.tolist(), message.covariances):
-                    if int(lid) in index:
-                        covs[index[int(lid)]] = cov
-                self.maps["dslam"] = (message.landmarks, covs)
+            if tag == self.dslam_feed.reply_tag or self._accept("dslam", "map", message.seq, message.stamp, key):
+                self._dslam_map(self.dslam_feed.take(message, reply=tag == self.dslam_feed.reply_tag))
         elif tag == "dslam_pose":
             message = decode(payload, PoseEstimate)
             if self.key_names_robot(key, message.robot_id, 2) and self._accept(message.robot_id, "dslam_pose",

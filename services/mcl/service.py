@@ -65,6 +65,7 @@ from services.mcl.core import MonteCarloLocalizer
 from services.mcl.fleet import MclFleet, RobotState
 from services.mcl.meeting import MeetingDesk, PlacedPoses
 from services.query_pool import QueryPool, QueryRefused, Solve, decode_query
+from services.mapfeed import MapFeed
 from services.runtime import ServiceShell
 
 log = logging.getLogger(__name__)
@@ -155,6 +156,8 @@ class MclService(ServiceShell):
         super().__init__(settings, instance)
         self.settings: MclSettings = settings
         self.source = settings.source.partition(":")[0]
+        state_key = {"central": self.keys.central_state, "dslam": self.keys.dslam_state}.get(self.source)
+        self.map_feed = None if state_key is None else MapFeed(self, MAP_MESSAGES[self.source], state_key, "map_state")
         self.map_applied = float("-inf")
         landmarks, ids = load_source_file(settings.source.partition(":")[2]) if self.source == "file" else (None, None)
         self.fleet = MclFleet(settings.core(MclConfig), landmarks, landmark_ids=ids)
@@ -173,6 +176,9 @@ class MclService(ServiceShell):
         map_key = {"central": keys.central_estimate, "dslam": keys.dslam_map, "truth": keys.world_truth}.get(self.source)
         if map_key is not None:
             self.subscribe(map_key, "map")
+        if self.map_feed is not None:
+            self.map_feed.ask()  # the whole map now, not at the next message
+        elif map_key is not None:
             session.get(map_key, self._on_map_reply)
         if self.settings.robot_meetings and self.source != "central":
             self.subscribe(keys.central_estimate, "poses", recover=False)
@@ -190,12 +196,15 @@ class MclService(ServiceShell):
     async def handle(self, tag: str, key: str, payload) -> None:
         if tag == "poses":
             self._take_poses(decode(payload, Estimate))
-        elif tag == "map":
+        elif tag in ("map", "map_state"):
             had_map = self.fleet.landmarks is not None
             message = decode(payload, MAP_MESSAGES[self.source])
             if self.source == "central":
                 self._take_poses(message)
-            self._on_map(message)
+            if self.map_feed is not None:  # a map sent by tiles: the whole map once it has every tile
+                message = self.map_feed.take(message, reply=tag == "map_state")
+            if message is not None:
+                self._on_map(message)
             if not had_map and self.fleet.landmarks is not None:
                 waited = sorted(rid for rid in self.fleet.robots if not self.roster.is_admitted(rid))
                 await self.admit_all(waited)  # the robots that waited for the map, with what they sent meanwhile

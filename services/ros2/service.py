@@ -42,6 +42,7 @@ from services.ros2.core import (TYPE_HASH_NOT_SUPPORTED, RobotInput, quaternion_
 from services.ros2.fleet import TRUTH_TYPE, FleetFile, FleetFileError, RobotEntry, load_fleet
 from services.ros2.outputs import landmark_markers, map_to_odom, odometry_message, transform_message
 from services.ros2.rmw_zenoh import RosNode, RosPublisher, RosSample
+from services.mapfeed import MapFeed
 from services.runtime import ServiceShell
 
 log = logging.getLogger("fleetslam.ros2")
@@ -108,6 +109,8 @@ class Ros2Bridge(ServiceShell):
         self.robots: dict[str, RobotSide] = {}
         self.last_sequence: dict[bytes, int] = {}  # per ROS publisher (its GID)
         self._map_due = {"central": 0.0, "dslam": 0.0}
+        self.central_feed = MapFeed(self, Estimate, self.keys.central_state, "central_state")
+        self.dslam_feed = MapFeed(self, MapEstimate, self.keys.dslam_state, "dslam_state")
         self.node: RosNode | None = None
 
     def _hash(self, msgtype: str) -> str:
@@ -141,10 +144,18 @@ class Ros2Bridge(ServiceShell):
         return on_sample
 
     async def handle(self, tag: str, key: str, payload) -> None:
-        if tag == "central":
-            self._central(decode(payload, Estimate))
-        elif tag == "dslam_map":
-            self._dslam(decode(payload, MapEstimate))
+        if tag in ("central", self.central_feed.reply_tag):
+            reply = tag == self.central_feed.reply_tag
+            estimate = decode(payload, Estimate)
+            if not reply:  # a reply brings the map: its poses are not the stream's
+                self._central_poses(estimate)
+            whole = self.central_feed.take(estimate, reply=reply)
+            if whole is not None:
+                self._map("central", whole.stamp, whole.landmarks, whole.landmark_covs)
+        elif tag in ("dslam_map", self.dslam_feed.reply_tag):
+            estimate = self.dslam_feed.take(decode(payload, MapEstimate), reply=tag == self.dslam_feed.reply_tag)
+            if estimate is not None:
+                self._dslam(estimate)
         elif tag in self.topics:
             self._ros_sample(self.topics[tag], payload)
 
@@ -203,7 +214,7 @@ class Ros2Bridge(ServiceShell):
         return side.link
 
     # ------------------------------------------------------------------ ROS 2 out
-    def _central(self, estimate: Estimate) -> None:
+    def _central_poses(self, estimate: Estimate) -> None:
         ts, map_frame = self.typestore, self.fleet.map_frame
         for robot in estimate.robots:
             side = self.robots.get(robot.robot_id)
@@ -218,15 +229,9 @@ class Ros2Bridge(ServiceShell):
                 self.tf_pub.put(ts.serialize_cdr(transform_message(ts, transform, robot.stamp, map_frame,
                                                                    entry.odom_frame), TF_TYPE))
             self.published += 1
-        self._map("central", estimate.stamp, estimate.landmarks, estimate.landmark_covs)
 
     def _dslam(self, estimate: MapEstimate) -> None:
-        covs = np.zeros((len(estimate.landmarks), 2, 2))
-        where = {int(i): k for k, i in enumerate(estimate.landmark_ids)}
-        for landmark_id, cov in zip(estimate.covariance_ids, estimate.covariances):
-            if int(landmark_id) in where:
-                covs[where[int(landmark_id)]] = cov
-        self._map("dslam", estimate.stamp, estimate.landmarks, covs)
+        self._map("dslam", estimate.stamp, estimate.landmarks, estimate.landmark_covariances())
 
     def _map(self, source: str, stamp: float, means: np.ndarray, covs: np.ndarray) -> None:
         now = time.monotonic()

@@ -21,6 +21,7 @@ from schemas.codec import decode
 from schemas.config import VizSettings, add_settings_arguments, settings_from_args
 from schemas.messages import Estimate, GroundTruth, MapEstimate, MclPose, PoseEstimate, RobotInfo, ServiceStats, WorldTruth
 from schemas.streams import StreamTracker, Verdict
+from services.mapfeed import MapFeed
 from services.runtime import ServiceShell
 
 log = logging.getLogger("fleetslam.viz")
@@ -43,6 +44,8 @@ class Viz(ServiceShell):
         self.settings: VizSettings = settings
         self.scene = Scene(settings.core(VizConfig))
         self.tracker = StreamTracker()
+        self.central_feed = MapFeed(self, Estimate, self.keys.central_state, "central_state")
+        self.dslam_feed = MapFeed(self, MapEstimate, self.keys.dslam_state, "dslam_state")
         self.logged = 0
         self.recording, self.notes = open_recording(self.outputs(), blueprint(), f"fleet {settings.prefix}")
 
@@ -109,14 +112,22 @@ class Viz(ServiceShell):
                 self.log(scene.ground_truth(message, wall, now))
         elif tag == "world":
             self.log(scene.world_truth(decode(payload, WorldTruth)))
-        elif tag == "central":
-            message = decode(payload, Estimate)
-            if self._accept(key, "central", None, "estimate", message.seq, message.stamp):
-                self.log(scene.estimate(message, wall, now))
-        elif tag == "dslam_map":
-            message = decode(payload, MapEstimate)
-            if self._accept(key, "dslam", None, "map", message.seq, message.stamp):
-                self.log(scene.map_estimate(message, wall, now))
+        elif tag in ("central", self.central_feed.reply_tag):
+            message, reply = decode(payload, Estimate), tag == self.central_feed.reply_tag
+            if reply or self._accept(key, "central", None, "estimate", message.seq, message.stamp):
+                whole = self.central_feed.take(message, reply=reply)
+                if not reply and whole is not None:  # a reply brings the map only: its poses are not the stream's
+                    self.log(scene.estimate(whole, wall, now))
+                elif not reply:  # no whole map yet (one was asked for): the poses alone
+                    self.log([record for robot in message.robots
+                              for record in scene.robot_pose(robot.robot_id, "central", robot.pose, robot.stamp, wall,
+                                                             now)])
+        elif tag in ("dslam_map", self.dslam_feed.reply_tag):
+            message, reply = decode(payload, MapEstimate), tag == self.dslam_feed.reply_tag
+            if reply or self._accept(key, "dslam", None, "map", message.seq, message.stamp):
+                whole = self.dslam_feed.take(message, reply=reply)
+                if whole is not None:
+                    self.log(scene.map_estimate(whole, wall, now))
         elif tag == "dslam_pose":
             message = decode(payload, PoseEstimate)
             if self._accept(key, message.robot_id, 2, "dslam_pose", message.seq, message.stamp):

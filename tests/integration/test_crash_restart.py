@@ -169,7 +169,8 @@ def test_killed_services_and_router_resume_and_lose_nothing(router, processes, z
         wait_until(lambda: at_the_end(PoseEstimate, dslam_poses[copy]) and at_the_end(MclPose, mcl_poses[copy])
                    and dslam_maps[copy].count(), 90,
                    what=f"D-SLAM's and MCL's poses of every robot's last scan in copy {copy} (every scan handled)")
-        dslam_map = dslam_maps[copy].decoded(MapEstimate)[-1]
+        dslam_map = decode(next(iter(zsession.get(keys[copy].dslam_state, timeout=10.0))).ok.payload.to_bytes(),
+                           MapEstimate)
         dslam_pose = last_by_robot(dslam_poses[copy], PoseEstimate)
         mcl_pose = last_by_robot(mcl_poses[copy], MclPose)
         final = {rid: truth[rid].truth_pose[-1, :2] for rid in ROBOTS}

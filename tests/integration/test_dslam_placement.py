@@ -20,6 +20,7 @@ from robots.simulator import simulate
 from schemas.keys import Keys
 from schemas.codec import encode
 from schemas.messages import MapEstimate, MclPose, PoseEstimate, ServiceStats
+from services.mapfeed import assemble
 from tests.helpers import Collector, wait_until
 
 pytestmark = pytest.mark.integration
@@ -84,7 +85,7 @@ def test_sim_robots_without_start_poses_or_ids_wait_for_the_anchor_and_for_mcl(p
     for rid, estimate in latest_poses(poses).items():
         truth = data.robots[rid].truth_at(np.array([estimate.stamp]))[0]
         assert np.hypot(*(transform_points(frame, estimate.pose[:2]) - truth[:2])) < 0.5, rid
-    final = maps.decoded(MapEstimate)[-1]
+    final = assemble(maps.decoded(MapEstimate))
     mapped = transform_points(frame, np.asarray(final.landmarks, float).reshape(-1, 2))
     assert len(mapped) >= 5
     assert np.median(np.linalg.norm(mapped[:, None] - data.landmarks[None], axis=-1).min(1)) < 0.3

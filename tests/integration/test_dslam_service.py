@@ -9,6 +9,7 @@ from scipy.optimize import linear_sum_assignment
 from robots.simulator import simulate
 from schemas.keys import Keys
 from schemas.messages import MapEstimate, PoseEstimate, ServiceStats
+from services.mapfeed import assemble
 from tests.helpers import Collector, wait_until
 
 pytestmark = pytest.mark.integration
@@ -61,8 +62,9 @@ def test_three_robots_association_service_one_map(router, processes, zsession, p
     assert last.extra.get("assoc_in_process", 0) == 0, last.extra
     assert not {k: v for k, v in last.rejected.items() if k != "unknown_robot"}, last.rejected
 
-    wait_until(lambda: maps.count() > 0 and latest(maps, MapEstimate).landmarks.shape[0] >= 10, 10, what="a map")
-    final = latest(maps, MapEstimate)
+    wait_until(lambda: maps.count() > 0 and (m := assemble(maps.decoded(MapEstimate))) is not None
+               and m.landmarks.shape[0] >= 10, 10, what="a map")
+    final = assemble(maps.decoded(MapEstimate))
     dist = np.linalg.norm(final.landmarks[:, None] - data.landmarks[None], axis=-1)
     rows, cols = linear_sum_assignment(dist)
     assert np.sqrt(np.mean(dist[rows, cols] ** 2)) < 0.3
