@@ -131,7 +131,7 @@ def publish(settings: SwarmSettings, dataset: Dataset, links: dict[str, RobotLin
             rate = (sent - sent_at_progress) / (settings.progress_period_s + now - next_progress)
             level = logging.WARNING if behind_max > settings.behind_warning_s else logging.INFO
             log.log(level, "swarm at %.1f of %g s robot time: %d messages sent (%.0f/s); behind schedule %.3f s now, "
-                    "at most %.3f s in the last %g s%s", event.stamp - data0, settings.duration, sent, rate,
+                    "at most %.3f s in the last %g s%s", event.stamp - dataset.start_stamp, settings.duration, sent, rate,
                     schedule.behind_s, behind_max, settings.progress_period_s,
                     ": it cannot keep up" if level == logging.WARNING else "")
             sent_at_progress = sent

@@ -48,9 +48,10 @@ def test_every_robot_of_a_swarm_has_its_token_and_every_message_arrives(router, 
     keys = Keys(prefix)
     tokens = Tokens(zsession, f"{prefix}/robots/*/alive")
     streams = Collector(zsession, f"{prefix}/robots/*/*")
-    swarm = processes.start("swarm", *swarm_args(20, 5.0, 5.0, tmp_path / "sent.json"))
+    swarm = processes.start("swarm", *swarm_args(20, 5.0, 5.0, tmp_path / "sent.json", "--progress-period-s", "0.1"))
     wait_until(lambda: tokens.alive() == {keys.alive(rid) for rid in robots}, 30, what="every robot's token")
     assert swarm.wait(timeout=60) == 0, processes.log("swarm")
+    assert "swarm at " in processes.log("swarm"), "no progress line: " + processes.log("swarm")[-2000:]
     sent = json.loads((tmp_path / "sent.json").read_text())
     assert sent["robots"] == 20 and sent["stopped_by"] is None
     assert set(sent["per_robot"]) == set(robots)
