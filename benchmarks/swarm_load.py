@@ -15,6 +15,9 @@ own token, no landmark ids) publishes on router A at real time; the central Fast
   (``compute_ms``) beside them;
 - CPU of each process (psutil: user + system seconds over the window, in cores) and of each processor, so that
   "both cores in use" is shown, and the swarm's own lag behind its schedule (a swarm that fell behind offered less);
+- central's CPU per message: its cores over the window divided by the messages it processed per second meanwhile
+  (``central_cpu_ms_per_message``: all its work, the filter's included, over odometry and scans alike), and how
+  many it processed per second; compare runs by ratios, on a shared machine absolute times swing;
 - the same with ``central --workers N`` (``--compare-workers``, 2 by default; central's default is 1) when central has
   a ``--workers`` flag.
 
@@ -162,6 +165,7 @@ def run_once(robots: int, workers: int | None, args: argparse.Namespace, logs: P
             swarm_behind_max_s=sent_file.get("behind_max_s"), swarm_wall_s=sent_file.get("wall_s"),
             drain_after_swarm_s=round(drained - swarm_done, 1),
             latency_ms=latency_figures(in_window), cpu=cpu.window(window_start, window_end),
+            **central_cost(records, cpu, window_start, window_end),
             rss_max_mb={name: round(mb, 1) for name, mb in cpu.rss_mb.items()},
             load_average_after=[round(x, 2) for x in os.getloadavg()], logs=str(out))
         result["met"] = met(result, args)
@@ -175,6 +179,18 @@ def run_once(robots: int, workers: int | None, args: argparse.Namespace, logs: P
         for site in (site_b, site_a) if site_b is not site_a else (site_a,):
             site.stop([c for c in site.children if c.name.startswith("router")])
     return result
+
+
+def central_cost(records: list, cpu: CpuLog, start: float, end: float) -> dict:
+    """Central's processed messages per second over [start, end] (its stats) and its CPU per message (ms): its cores
+    then over that rate."""
+    inside = [(r.t, r.stats.extra.get("processed", 0.0)) for r in records if start <= r.t <= end]
+    if len(inside) < 2 or inside[-1][1] <= inside[0][1]:
+        return {}
+    rate = (inside[-1][1] - inside[0][1]) / (inside[-1][0] - inside[0][0])
+    cores = cpu.window(inside[0][0], inside[-1][0]).get("cores_by_process", {}).get("central")
+    return {"central_processed_per_s": round(rate, 1),
+            "central_cpu_ms_per_message": None if cores is None else round(1e3 * cores / rate, 3)}
 
 
 def latency_figures(window: list[ServiceStats]) -> dict:
@@ -240,7 +256,8 @@ def main() -> None:
             if shutdown.is_set():
                 break
             run = run_once(robots, workers, args, Path(args.logs), shutdown)
-            print(json.dumps({k: run.get(k) for k in ("robots", "workers", "unprocessed", "latency_ms", "met")}),
+            print(json.dumps({k: run.get(k) for k in ("robots", "workers", "unprocessed", "latency_ms",
+                                                      "central_processed_per_s", "central_cpu_ms_per_message", "met")}),
                   file=sys.stderr, flush=True)
             runs.append(run)
         kept_up = [r for r in runs if r["robots"] == robots and r.get("met", {}).get("every_message_processed")

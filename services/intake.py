@@ -99,6 +99,25 @@ class Intake:
                 del self._lane_bytes[lane]
             return item
 
+    def get_many(self, limit: int) -> list[tuple[Hashable, Any]]:
+        """Up to ``limit`` items as (lane, item), in the order :meth:`get` would give them, under one lock."""
+        out = []
+        with self._lock:
+            lanes, lane_bytes = self._lanes, self._lane_bytes
+            while lanes and len(out) < limit:
+                lane, queue = next(iter(lanes.items()))
+                item, nbytes = queue.popleft()
+                self._count -= 1
+                self.held_bytes -= nbytes
+                lane_bytes[lane] -= nbytes
+                if queue:
+                    lanes.move_to_end(lane)
+                else:
+                    del lanes[lane]
+                    del lane_bytes[lane]
+                out.append((lane, item))
+        return out
+
     def lanes(self) -> list[Hashable]:
         """The lanes holding items now."""
         with self._lock:

@@ -40,6 +40,7 @@ holding each at most a wall-time window.
 
 from __future__ import annotations
 
+import bisect
 import heapq
 import time
 from collections import Counter, deque
@@ -133,6 +134,16 @@ class Roster:
 
     def alive_ids(self) -> list[str]:
         return [rid for rid, member in self.members.items() if member.alive]
+
+    def alive_and_live(self) -> tuple[set[str], set[str]]:
+        """(the robots alive, those of them admitted): whose streams the reorder buffer waits for."""
+        alive, live = set(), set()
+        for rid, member in self.members.items():
+            if member.alive:
+                alive.add(rid)
+                if member.admitted:
+                    live.add(rid)
+        return alive, live
 
     def waiting_count(self) -> int:
         return sum(len(member.waiting) for member in self.members.values())
@@ -320,9 +331,10 @@ class Roster:
                                              message.seq == last + 1, self.dt_tolerance_s)
             if arrival.refused:
                 return arrival
-        missing_before = self.tracker.missing(key_robot_id)
+        state = self.tracker.streams.get((key_robot_id, stream))  # a commit changes this stream's state only:
+        missing_before = 0 if state is None else state.missing  # its count of missing is the robot's change
         self.tracker.commit(key_robot_id, stream, message.seq, message.stamp, source)
-        arrival.gap = self.tracker.missing(key_robot_id) - missing_before
+        arrival.gap = self.tracker.streams[(key_robot_id, stream)].missing - missing_before
         if stream == "odom" and message.seq > 0 and self.tracker.received(key_robot_id, "odom") == 1:
             arrival.late = True
             self.counts["robots_joined_late"] += 1
@@ -387,6 +399,9 @@ class Roster:
             return False
         member.asked_at = now
         return True
+
+
+_STREAM_NAMES = ("odom", "scan")  # a robot's streams (ReorderBuffer.push)
 
 
 @dataclass
@@ -455,6 +470,7 @@ class ReorderBuffer:
         self._heap: list[tuple] = []  # _Held.entry() of every held event
         self._order = 0  # ties in stamp, kind and robot go out in arrival order
         self.newest: dict[tuple[str, str], float] = {}  # (robot, stream) → newest stamp pushed
+        self._by_stamp: list[tuple[float, tuple[str, str]]] = []  # (newest stamp, stream) of each stream, sorted
         self.heard: dict[tuple[str, str], float] = {}  # (robot, stream) → wall time of its last push
         self.resuming: set[tuple[str, str]] = set()  # streams being recovered after a restart or a link change
         self.resuming_until = float("-inf")  # ... until then (wall clock)
@@ -465,6 +481,15 @@ class ReorderBuffer:
         self.__dict__.update(state)
         self._heap = [held.entry() if isinstance(held, _Held) else held for held in self._heap]
         heapq.heapify(self._heap)
+        self._sort_streams()
+
+    def __getstate__(self) -> dict:
+        state = dict(self.__dict__)
+        state.pop("_by_stamp", None)  # derived from newest: not in checkpoints
+        return state
+
+    def _sort_streams(self) -> None:
+        self._by_stamp = sorted((stamp, stream) for stream, stamp in self.newest.items())
 
     def __len__(self) -> int:
         return len(self._heap)
@@ -473,7 +498,17 @@ class ReorderBuffer:
         is_odom = isinstance(event, OdomEvent)
         stream = (event.robot_id, "odom" if is_odom else "scan")
         arrived = self.clock() if arrived is None else arrived
-        self.newest[stream] = max(self.newest.get(stream, float("-inf")), event.stamp)
+        old = self.newest.get(stream)
+        newest = self.newest[stream] = max(float("-inf") if old is None else old, event.stamp)
+        if newest != old:  # the stream moves in the streams sorted by stamp
+            by_stamp = self._by_stamp
+            index = 0 if old is None else bisect.bisect_left(by_stamp, (old, stream))
+            if old is None or (index < len(by_stamp) and by_stamp[index] == (old, stream)):
+                if old is not None:
+                    del by_stamp[index]
+                bisect.insort(by_stamp, (newest, stream))
+            else:  # not where it should have been: sorted afresh
+                self._sort_streams()
         self.heard[stream] = arrived
         self.expected.pop(stream, None)
         self._order += 1
@@ -526,6 +561,7 @@ class ReorderBuffer:
         for table in (self.newest, self.heard):
             for stream in [stream for stream in table if stream[0] == robot_id]:
                 del table[stream]
+        self._sort_streams()
         self.resuming = {stream for stream in self.resuming if stream[0] != robot_id}
         self.expected = {stream: at for stream, at in self.expected.items() if stream[0] != robot_id}
 
@@ -537,12 +573,93 @@ class ReorderBuffer:
         patience = self.recovery_window_s if own or stream in recovering or stream[0] in queued else self.window_s
         return now - self.heard.get(stream, float("-inf")) < patience
 
-    def release(self, live: list[str], flush: bool = False, announced: Iterable[str] = (),
+    def release(self, live: Iterable[str], flush: bool = False, announced: Iterable[str] = (),
                 queued: Iterable[str] = ()) -> list[tuple[StreamEvent, float]]:
         """(event, arrival time) of every event due now, oldest stamp first within each robot. ``live``: the
         robots whose streams are waited for (alive and taken in); ``announced``: the robots alive, whose streams
         are waited for from their announcement on even before they are taken in; ``queued``: the robots with
-        messages received and not yet handled (a service busy with a backlog must not count them as silent)."""
+        messages received and not yet handled (a service busy with a backlog must not count them as silent).
+
+        The same as :meth:`release_reference`, which asks every stream about every event it looks at (a cost of
+        streams × events per call: quadratic in the fleet's size, once per message). Here the events, taken in stamp
+        order, look at the streams in stamp order too: each stream behind the latest event looked at is asked once
+        per call whether it holds other robots' events back, and an event's own robot's streams are looked up."""
+        if flush or self.window_s == 0:
+            out = [(entry[-1].event, entry[-1].arrived) for entry in sorted(self._heap)]
+            self._heap = []
+            return out
+        if not self._heap:
+            return []
+        live = live if isinstance(live, (set, frozenset)) else set(live)
+        now = self.clock()
+        recovering = self.resuming if now < self.resuming_until else set()
+        announced = announced if isinstance(announced, (set, frozenset)) else set(announced)
+        queued = queued if isinstance(queued, (set, frozenset)) else set(queued)
+        if self.expected and any(stream[0] in announced and now - at < (self.recovery_window_s if stream[0] in queued
+                                                                         else self.join_wait_s)
+                                 for stream, at in self.expected.items()):
+            return []  # a robot that announced itself is still awaited
+        window, recovery, skew = self.window_s, self.recovery_window_s, self.clock_skew_s
+        newest, heard, streams = self.newest, self.heard, self._by_stamp  # streams: (newest stamp, stream), sorted
+        ahead = 0  # streams[:ahead] were looked at: they are behind an event looked at
+        waited: list[tuple[float, str]] = []  # (stamp, robot) of those that hold back other robots' events, in order
+        newest_held = streams[-1][0] if streams else float("-inf")  # no held event is later than this
+        out, kept, waiting_robots = [], [], set()
+        blocked_at = None  # the stamp of the first event that waits for another robot: the ones near it wait too
+        while self._heap:
+            if blocked_at is not None and newest_held - blocked_at <= skew:
+                break  # nothing held is on another clock: the rest waits, in stamp order
+            held = heapq.heappop(self._heap)[-1]
+            rid, stamp = held.robot, held.stamp
+            if rid in waiting_robots or (blocked_at is not None and stamp - blocked_at <= skew):
+                kept.append(held)
+                continue
+            own_behind = False  # its own other stream behind it and heard from within the recovery window
+            for name in _STREAM_NAMES:
+                own = (rid, name)
+                behind = newest.get(own)
+                if behind is not None and behind < stamp and (rid in live or own in recovering) and \
+                        now - heard.get(own, float("-inf")) < recovery:
+                    own_behind = True
+                    break
+            if own_behind:
+                waiting_robots.add(rid)  # its own other stream is being recovered: it waits, the others go on
+                kept.append(held)
+                continue
+            # another robot's stream behind this event (and on the same clock) still waited for? The streams not
+            # looked at yet, up to its stamp (events come in stamp order: so do streams), then those found before,
+            # the latest first (the rounding of a difference moves with its operands: the first one too far back
+            # ends the search)
+            blocked = False
+            while ahead < len(streams) and streams[ahead][0] < stamp:
+                behind, stream = streams[ahead]
+                ahead += 1
+                other = stream[0]
+                if (other in live or stream in recovering) and now - heard.get(stream, float("-inf")) < (
+                        recovery if stream in recovering or other in queued else window):
+                    waited.append((behind, other))
+                    if other != rid and stamp - behind <= skew:
+                        blocked = True
+                        break
+            index = -1 if blocked else len(waited) - 1
+            while index >= 0 and stamp - waited[index][0] <= skew:
+                if waited[index][1] != rid:
+                    blocked = True
+                    break
+                index -= 1
+            if not blocked:
+                out.append((held.event, held.arrived))
+                continue
+            kept.append(held)
+            blocked_at = stamp if blocked_at is None else blocked_at
+        for held in kept:
+            heapq.heappush(self._heap, held.entry())
+        return out
+
+    def release_reference(self, live: Iterable[str], flush: bool = False, announced: Iterable[str] = (),
+                          queued: Iterable[str] = ()) -> list[tuple[StreamEvent, float]]:
+        """:meth:`release` as first written, asking every stream about every event (the reference its tests hold it
+        to)."""
         if flush or self.window_s == 0:
             out = [(entry[-1].event, entry[-1].arrived) for entry in sorted(self._heap)]
             self._heap = []

@@ -22,6 +22,11 @@ service in stamp order across every stream (a :class:`~services.roster.ReorderBu
 :meth:`robot_event`, :meth:`robot_new_run`, :meth:`robot_joined_late`,
 :meth:`robot_lost_odometry` and :meth:`robot_left`.
 
+The loop takes the intake's items in batches (at most ``BATCH_ITEMS``) and releases the reorder buffer once per batch
+rather than once per message, and before anything that is not a plain stream message: the service sees the same
+events and hooks in the same order (``tests/unit/test_shell_batches.py``), for a release's cost that grows with the
+fleet paid once per batch.
+
 With ``state_dir`` (central, D-SLAM, MCL) the shell writes a checkpoint every
 ``checkpoint_period_s`` and on exit (:mod:`services.checkpoint`: the roster,
 the events not yet handled, the counters and what the service's
@@ -62,6 +67,9 @@ FIRST_RUN_S = 0.1  # the first stats and tick this soon after setup (s), then ev
 ROUTER_LINK_GRACE_S = 2.0  # tokens that go this soon after the router link changed went with the link (s)
 LISTENING_TICK_S = 0.05  # the loop tells the reorder buffer it runs this often: a longer gap is a stall (s)
 TRIM_AFTER_BYTES = 8 << 20  # a backlog that held this much: once worked off, its freed heap goes back to the system
+BATCH_ITEMS = 64  # items the loop takes from the intake per turn (one release of the reorder buffer after them)
+STREAM_TAGS = frozenset({"odom", "scan"})
+ROBOT_KEYS_CACHED = 4096  # parsed robot keys kept (a flood of made-up robot ids only empties the cache)
 
 log = logging.getLogger(__name__)
 
@@ -117,6 +125,12 @@ class ServiceShell:
                               "info": settings.max_message_kb * kb}, on_first=self._wake_up)
         self._router_link_changed_at = float("-inf")
         self._backlog_bytes = 0  # the most the intake held since memory was last given back
+        self._robot_head = f"{settings.prefix}/robots/"
+        self._robot_keys: dict[str, tuple[str, str] | None] = {}  # key → Keys.parse_robot_key(key)
+        self._in_batch = False  # a batch of the intake's items is being handled (:meth:`_consume_batch`)
+        self._release_due = False  # events were pushed into the reorder buffer since its last release
+        self._in_hand: list = []  # the batch's (lane, item) pairs ...
+        self._in_hand_from = 0  # ... of which these are not handled yet
         self.session: zenoh.Session | None = None
         self._declared: list[Any] = []
         self.roster: Roster | None = None
@@ -269,9 +283,10 @@ class ServiceShell:
         the robots alive and admitted, each once the streams behind it have passed it or stopped being waited for
         (:class:`~services.roster.ReorderBuffer` says how long each is; every one when ``flush``)."""
         async with self._release_lock:  # one release at a time: a robot's events are handled one after the other
-            alive = self.roster.alive_ids()
-            live = [rid for rid in alive if self.roster.is_admitted(rid)]
+            self._release_due = False
+            alive, live = self.roster.alive_and_live()
             queued = {lane[0] for lane in self.intake.lanes() if isinstance(lane, tuple)}
+            queued.update(lane[0] for lane, _ in self._in_hand[self._in_hand_from:] if isinstance(lane, tuple))
             for event, arrived in self.reorder.release(live, flush, announced=alive, queued=queued):
                 self.hold_ms.append((time.perf_counter() - arrived) * 1e3)
                 await self.robot_event(event)
@@ -341,7 +356,11 @@ class ServiceShell:
                     await self.release_events()
                 await self._take_over(token[0], takeover)
             return
-        parsed = self.keys.parse_robot_key(key)
+        parsed = self._robot_keys.get(key, False)
+        if parsed is False:
+            if len(self._robot_keys) >= ROBOT_KEYS_CACHED:
+                self._robot_keys.clear()
+            parsed = self._robot_keys[key] = self.keys.parse_robot_key(key)
         if parsed is None:
             self.reject("bad_key", key)
             return
@@ -394,6 +413,8 @@ class ServiceShell:
                          "known" if message.start_pose is not None else "unknown")
                 await self.robot_announced(message)
             return
+        if message.seq == 0:  # it may start a new run, which takes the robot out before _take acts on it
+            await self._release_deferred()
         arrival = roster.on_stream(rid, tag, message, source)
         await self._take(rid, tag, arrival)
         for follower in roster.unparked(rid, tag):
@@ -402,6 +423,8 @@ class ServiceShell:
     async def _take(self, rid: str, stream: str, arrival) -> None:
         """Act on what the roster made of one stream message (:class:`~services.roster.Arrival`)."""
         roster = self.roster
+        if arrival.new_run or arrival.late or arrival.gap:  # the service acts: on the events due before, as always
+            await self._release_deferred()
         if arrival.new_run:
             log.info("%s: robot %s started a new run; it rejoins from its RobotInfo", self.name, rid)
             self.reorder.drop_robot(rid)
@@ -418,7 +441,9 @@ class ServiceShell:
         if arrival.event is not None:
             if roster.is_admitted(rid):
                 self.reorder.push(arrival.event)
-                await self.release_events()
+                self._release_due = True
+                if not self._in_batch:  # in a batch: released after it, or before the service acts otherwise
+                    await self.release_events()
             else:
                 refused = roster.keep(arrival.event)
                 if refused:
@@ -499,7 +524,7 @@ class ServiceShell:
         """Queue an item from any thread (subscriptions, liveliness, replies, queries...): a robot's messages in the
         lane of (robot, publishing session), anything else in the lane of its tag; counted when refused. ``nbytes``
         sizes a payload that is not bytes (default: its length if bytes, else 0)."""
-        head = f"{self.settings.prefix}/robots/"
+        head = self._robot_head
         lane = (key[len(head):].split("/", 1)[0], source) if tag in ROBOT_TAGS and key.startswith(head) else tag
         if nbytes is None:
             nbytes = len(payload) if isinstance(payload, (bytes, bytearray)) else 0
@@ -607,23 +632,52 @@ class ServiceShell:
         while True:
             await asyncio.sleep(0)  # a non-empty intake never suspends: yield so stop, ticks and stats still run
             self._wake.clear()
-            item = self.intake.get()
-            if item is None:
+            batch = self.intake.get_many(BATCH_ITEMS)
+            if not batch:
                 await self._wake.wait()
                 continue
-            tag, key, payload, arrived, source = item
-            self.messages_in[tag] += 1
+            await self._consume_batch(batch)
+
+    async def _consume_batch(self, batch: list) -> None:
+        """Handle a batch of the intake's items, in order, with one release of the reorder buffer after the odometry
+        and scans, not one per message (a release asks every robot's streams, a cost that grows with the fleet):
+        every other item (tokens, RobotInfo, the service's own) and every stream message that makes the service act
+        (a new run, a late join, a gap) first releases what is due, as a release after each message would have. The
+        batch's items not handled yet count as queued for their robots, as they did in the intake. The latency of
+        each item runs to the end of the batch: its event handed on."""
+        self._in_hand, self._in_batch = batch, True
+        try:
+            for index, (_lane, (tag, key, payload, _arrived, source)) in enumerate(batch):
+                self._in_hand_from = index + 1
+                self.messages_in[tag] += 1
+                try:
+                    if tag not in STREAM_TAGS:
+                        await self._release_deferred()
+                    if self.roster is not None and tag in ROBOT_TAGS:
+                        await self._robot_item(tag, key, payload, source)
+                    else:
+                        await self.handle(tag, key, payload)
+                except DecodeError as error:
+                    self.reject_decode(error)
+                except Exception:  # noqa: BLE001 - one bad message must never kill the service
+                    self.reject("handler_error")
+                    log.exception("%s: handler failed on %s", self.name, key)
+            self._in_batch = False
+            await self._release_deferred()
+        finally:
+            self._in_hand, self._in_hand_from, self._in_batch = [], 0, False
+        now = time.perf_counter()
+        self._latencies_ms.extend((now - item[3]) * 1e3 for _lane, item in batch)
+
+    async def _release_deferred(self) -> None:
+        """Release the reorder buffer if events were pushed since its last release (:meth:`_consume_batch`); a
+        failure is counted as the message that pushed them would have been (``handler_error``)."""
+        if self._release_due:
             try:
-                if self.roster is not None and tag in ROBOT_TAGS:
-                    await self._robot_item(tag, key, payload, source)
-                else:
-                    await self.handle(tag, key, payload)
-            except DecodeError as error:
-                self.reject_decode(error)
+                await self.release_events()
             except Exception:  # noqa: BLE001 - one bad message must never kill the service
                 self.reject("handler_error")
-                log.exception("%s: handler failed on %s", self.name, key)
-            self._latencies_ms.append((time.perf_counter() - arrived) * 1e3)
+                log.exception("%s: handler failed on a release of events", self.name)
 
     async def _every(self, period: float, work, first_after: float | None = None) -> None:
         """Run ``work`` every ``period`` seconds; the first time after ``first_after`` (default: one period)."""
