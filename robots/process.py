@@ -2,7 +2,8 @@
 
 It declares its queryables, then the liveliness token ``{prefix}/robots/{rid}/alive`` (so a process that sees
 the token can query it at once), publishes
-its RobotInfo (again every second, and to late joiners through a queryable),
+its RobotInfo (again after ``info_period_s``, then less and less often up to every ``info_max_period_s``, and to
+late joiners through a queryable),
 the world's true map once on ``{prefix}/world/truth`` (and to late joiners;
 not with ``--no-publish-world``, where ``fleetslam world`` publishes it under
 its own identity), then its odometry, scans and truth in time order, paced at real time divided
@@ -21,6 +22,8 @@ from __future__ import annotations
 import argparse
 import logging
 import time
+from dataclasses import dataclass
+from typing import Iterable, Iterator
 
 
 from robots.dataset import Dataset, RobotLog
@@ -80,6 +83,34 @@ def load_robot(settings: RobotSettings) -> tuple[RobotLog, Dataset]:
     return robot, dataset
 
 
+@dataclass
+class Instant:
+    """Events of one stamp (a scan and the odometry that ends with it), published together."""
+
+    stamp: float
+    events: list
+
+
+def instants(events: Iterable) -> Iterator[Instant]:
+    """Consecutive events of equal stamps grouped (the events come in time order)."""
+    current: Instant | None = None
+    for event in events:
+        if current is not None and event.stamp == current.stamp:
+            current.events.append(event)
+            continue
+        if current is not None:
+            yield current
+        current = Instant(event.stamp, [event])
+    if current is not None:
+        yield current
+
+
+def single(events: Iterable) -> Iterator[Instant]:
+    """Each event alone (published as it comes)."""
+    for event in events:
+        yield Instant(event.stamp, [event])
+
+
 def run(settings: RobotSettings, shutdown: Shutdown) -> dict[str, int]:
     """Publish the robot's log over Zenoh; return the count of messages per stream."""
     robot, dataset = load_robot(settings)
@@ -97,7 +128,8 @@ def run(settings: RobotSettings, shutdown: Shutdown) -> dict[str, int]:
         if world_payload is not None:  # before the link's tokens: alive means every queryable answers
             answer_world = answer_with(session, keys.world_truth, world_payload)
             world_pub = StreamPublisher(session, keys.world_truth)
-        link = RobotLink(session, robot.info, settings.prefix, caches=caches, info_period_s=settings.info_period_s)
+        link = RobotLink(session, robot.info, settings.prefix, caches=caches, info_period_s=settings.info_period_s,
+                         info_max_period_s=settings.info_max_period_s, heartbeat_s=settings.heartbeat_period_s)
         try:
             shutdown.wait(settings.start_delay)
             link.publish_info()
@@ -106,12 +138,13 @@ def run(settings: RobotSettings, shutdown: Shutdown) -> dict[str, int]:
             log.info("robot %s publishing %s (%s) at speed-up %g", rid, robot.info.source, robot.info.motion_model,
                      settings.speedup)
             data0 = min(robot.start_stamp, dataset.meta.get("fleet_start", robot.start_stamp))  # one clock for a fleet
-            for event, _ in paced(robot.events(until=until, with_truth=settings.publish_truth), data0,
-                                  settings.speedup, shutdown):
-                link.put_event(event, with_ids=settings.publish_ids)
+            events = robot.events(until=until, with_truth=settings.publish_truth)
+            for instant, _ in paced(instants(events) if settings.publish_together else single(events), data0,
+                                    settings.speedup, shutdown):
+                link.put_events(instant.events, with_ids=settings.publish_ids)
             counts = {name: link.counts[name] for name in ("odom", "scan", "truth")}
             log.info("robot %s done: %s", rid, ", ".join(f"{k} {v}" for k, v in counts.items()))
-            linger_s = linger_time(settings.linger_s, shutdown.is_set())
+            linger_s = linger_time(settings.linger_s, shutdown.is_set(), settings.heartbeat_period_s)
             if linger_s > 0:
                 log.info("robot %s keeps its caches %g s more for receivers that missed its last messages", rid,
                          linger_s)

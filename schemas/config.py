@@ -66,6 +66,21 @@ class FleetSettings(ProcessSettings):
     outage_budget_s: float = Field(
         60.0, gt=0, description="longest outage (link cut, router or service restart) that loses nothing: the "
         "publishers' caches hold this many wall seconds of their streams (s)")
+    heartbeat_period_s: float = Field(
+        1.0, gt=0, le=60, description="period of the advanced publishers' heartbeats (each sends its stream's last "
+        "sequence number, so that a receiver learns of samples it lost when no sample follows them: a lost tail). "
+        "Default 1 s: while a robot streams, its samples carry the sequence numbers anyway, and each heartbeat is a "
+        "message of its own on every link (mostly a TCP segment and an acknowledgement of its own): the heartbeats "
+        "of a robot's odometry and scans cost 370 B/s on its site's link at 0.5 s, 200 B/s at 1 s "
+        "(benchmarks/bandwidth.py); a lost tail is still known within 1 s, and a robot stopped by a signal, which "
+        "keeps its publishers 1 s, still sends one")
+    info_max_period_s: float = Field(
+        30.0, gt=0, description="a robot's RobotInfo is published again after info_period_s, then after twice as "
+        "long each time, up to this period (s); a new RobotInfo starts again from info_period_s. Default 30 s: "
+        "services ask a robot for its RobotInfo (a queryable that always answers) when its liveliness token "
+        "appears and while its messages come unannounced, so the re-publication is only a fallback, and every "
+        "second it cost 680 B/s per robot on its site's link (600-byte messages; benchmarks/bandwidth.py); a value "
+        "equal to info_period_s publishes it every period, as before")
     subscriber_recovery: bool = Field(
         True, description="subscribe robot streams through an advanced subscriber that fetches what it missed (late "
         "start, link cut, router restart, its own restart) from the publishers' caches; heartbeats tell it of a lost tail"
@@ -126,6 +141,17 @@ class RouterSettings(FleetSettings):
         "central,dslam,assoc,mcl,evaluate=eval,monitor,viz,record", pattern=r"^[A-Za-z0-9_=+-]+(,[A-Za-z0-9_=+-]+)*$",
         description="with secrets_dir: the services given a user, comma-separated; NAME=ROOT+ROOT when the keys it "
         "writes ({prefix}/ROOT/**) are not its name's")
+    router_timestamps: bool = Field(
+        False, description="stamp every sample that has no timestamp with the router's clock (Zenoh's "
+        "timestamping). Default off: nothing in fleetslam reads Zenoh timestamps (messages carry their own stamp; "
+        "fleetslam record then stores its reception time as publish time), and the first router a sample crosses "
+        "adds 27 bytes to it on every link after: 520-550 B/s per robot at 10 Hz on its site's link")
+    link_compression: bool = Field(
+        True, description="offer lz4 compression of the batches on this router's links (Zenoh's transport "
+        "compression): a link is compressed when both ends offer it, so router-to-router links (sites to depot) are "
+        "and links to clients are not (they do not offer it). Default on: on a site's link the robots' odometry "
+        "shrinks by 14 percent and their scans by 19 percent (more when messages share a batch), about 700 B/s per robot, for "
+        "about 4 µs of lz4 per batch; a batch that would not shrink is sent as it is")
     tls_dir: str | None = Field(
         None, description="with secrets_dir: mutual TLS too (listen on tls/...): the folder of ca.pem, router.pem and "
         "router-key.pem (deploy/make-certs.sh); a client then needs a certificate of that CA whose common name is "
@@ -162,7 +188,14 @@ class RobotSettings(FleetSettings):
     detection_probability: float | None = Field(None, ge=0, le=1, description="override the world's detection probability")
     clutter_rate: float | None = Field(None, ge=0, description="override the world's clutter (false detections per scan)")
     replay: str | None = Field(None, description="replay a data set instead: mrclam:PATH:N, victoria-park:PATH, car-park:PATH")
-    info_period_s: float = Field(1.0, gt=0, description="period of the RobotInfo re-publication (s)")
+    info_period_s: float = Field(1.0, gt=0, description="first period of the RobotInfo re-publication (s; then "
+                                 "doubled each time up to info_max_period_s)")
+    publish_together: bool = Field(
+        True, description="publish the messages of one instant (a scan and the odometry that ends with it) back to "
+        "back, both encoded before the first is sent. Default on: they then share a Zenoh batch, a packet and its "
+        "acknowledgement on the links more often (each packet costs 132 bytes of Ethernet, IP and TCP headers and "
+        "acknowledgement): on a site's link 64 percent of the scans share one with their odometry instead of 27 percent, about "
+        "800 B/s less per robot (benchmarks/bandwidth.py); the odometry waits for the scan's encoding (0.1 ms)")
     linger_s: float = Field(2.0, ge=0, description="wall seconds the robot keeps its publishers (their caches and "
                             "heartbeats) after its last message, so a receiver cut off just before can recover the tail")
 
@@ -191,7 +224,8 @@ class SwarmSettings(FleetSettings):
                                 "whole swarm is then simulated in one piece, at a cost quadratic in its size")
     simulate_chunk: int = Field(25, ge=1, description="robots simulated at a time (without detect_robots): bounds "
                                 "the simulator's working memory")
-    info_period_s: float = Field(1.0, gt=0, description="period of each robot's RobotInfo re-publication (s)")
+    info_period_s: float = Field(1.0, gt=0, description="first period of each robot's RobotInfo re-publication (s; "
+                                 "then doubled each time up to info_max_period_s)")
     linger_s: float = Field(2.0, ge=0, description="wall seconds the robots keep their publishers (caches, "
                             "heartbeats) after their last message, for a receiver that missed the tail")
     progress_period_s: float = Field(5.0, gt=0, description="wall seconds between progress lines (messages sent, "

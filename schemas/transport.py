@@ -30,7 +30,7 @@ import zenoh.ext
 from pydantic import BaseModel
 
 from schemas.codec import encode
-from schemas.config import FleetSettings
+from schemas.config import FleetSettings, RouterSettings
 
 log = logging.getLogger(__name__)
 
@@ -52,6 +52,8 @@ def zenoh_config(
     ``base_file`` is a JSON5 zenoh config (access control, users, TLS) that the
     settings are laid over. ``routers`` (router mode): the other routers this one connects to, comma-separated;
     it starts without them and keeps trying (every second at most), so sites come up in any order.
+    A router (``settings`` a :class:`RouterSettings`) also stamps samples or not (``router_timestamps``) and
+    offers compression on its links (``link_compression``).
     """
     conf = zenoh.Config.from_file(base_file) if base_file else zenoh.Config()
     entries: dict[str, object] = {
@@ -61,6 +63,9 @@ def zenoh_config(
     }
     if mode == "router":
         entries["listen/endpoints"] = _endpoints(listen or "tcp/0.0.0.0:7447")
+        if isinstance(settings, RouterSettings):
+            entries["timestamping/enabled"] = settings.router_timestamps
+            entries["transport/unicast/compression/enabled"] = settings.link_compression
         if routers:
             entries["connect/endpoints"] = _endpoints(routers)
             entries["connect/timeout_ms"] = -1  # keep trying (in the background: the router serves meanwhile)
@@ -159,33 +164,41 @@ def paced(events: Iterable, data0: float, speedup: float, shutdown: "Shutdown") 
         yield event, time.monotonic() - due
 
 
-def linger_time(configured_s: float, stopped_by_signal: bool) -> float:
+def linger_time(configured_s: float, stopped_by_signal: bool, heartbeat_s: float | None = None) -> float:
     """How long a robot keeps its publishers (caches, heartbeats) after its last message, for a receiver that missed
-    the tail: ``configured_s``, but at most 1 s (two heartbeats) when a signal stopped it, so it exits promptly."""
-    return min(configured_s, 1.0) if stopped_by_signal else configured_s
+    the tail: ``configured_s``, but when a signal stopped it at most 1 s, so it exits promptly, or one heartbeat
+    period (``heartbeat_s``) if that is longer, so that one heartbeat still tells of its last message."""
+    return min(configured_s, max(1.0, heartbeat_s or 0.0)) if stopped_by_signal else configured_s
 
 
 class StreamPublisher:
     """Reliable, congestion-control BLOCK publisher of fleetslam messages on one key.
 
     With ``cache`` > 0 it is an advanced publisher: it keeps the last ``cache`` samples for receivers that
-    missed them (late, cut off, restarted) and sends a heartbeat every 0.5 s with its last sequence number,
-    so a receiver learns of a lost tail even when nothing follows it.
+    missed them (late, cut off, restarted) and sends a heartbeat every ``heartbeat_s`` (default: the setting
+    ``heartbeat_period_s``'s) with its last sequence number, so a receiver learns of a lost tail even when nothing
+    follows it; ``sporadic``: only when that number changed since the last heartbeat (a stream that is rarely
+    published, as a robot's RobotInfo, then sends none while it is quiet).
     """
 
-    def __init__(self, session: zenoh.Session, key: str, cache: int = 0, keep: int = 0):
+    def __init__(self, session: zenoh.Session, key: str, cache: int = 0, keep: int = 0,
+                 heartbeat_s: float | None = None, sporadic: bool = False):
         self.key = key
         self.count = 0
         self.recent: deque[bytes] = deque(maxlen=keep)  # the last ``keep`` payloads, for :func:`answer_history`
         self._recent_lock = threading.Lock()
         if cache > 0:
+            if heartbeat_s is None:
+                heartbeat_s = FleetSettings.model_fields["heartbeat_period_s"].default
+            miss = (zenoh.ext.MissDetectionConfig(sporadic_heartbeat=heartbeat_s) if sporadic
+                    else zenoh.ext.MissDetectionConfig(heartbeat=heartbeat_s))
             self._publisher = zenoh.ext.declare_advanced_publisher(
                 session,
                 key,
                 congestion_control=zenoh.CongestionControl.BLOCK,
                 reliability=zenoh.Reliability.RELIABLE,
                 cache=zenoh.ext.CacheConfig(max_samples=cache),
-                sample_miss_detection=zenoh.ext.MissDetectionConfig(heartbeat=0.5, sporadic_heartbeat=None),
+                sample_miss_detection=miss,
                 publisher_detection=True,
             )
         else:

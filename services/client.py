@@ -9,7 +9,9 @@ robot, so that every robot reaches the services the same way:
 - a queryable answering its RobotInfo (a service that joins late asks it) and one answering the odometry and scans
   it kept (a restarted service asks it);
 - the liveliness tokens last, so a service that sees them can query at once;
-- RobotInfo again every ``info_period_s`` while the robot publishes;
+- RobotInfo again while the robot publishes: after ``info_period_s``, then after twice as long each time up to
+  ``info_max_period_s`` (a new RobotInfo starts again from ``info_period_s``): services ask for it when they need it,
+  so the re-publication is a fallback that should cost the robot's link little;
 - optionally, the robot's estimates: its pose from the central FastSLAM, D-SLAM and MCL services
   (:meth:`RobotLink.estimates`).
 
@@ -40,6 +42,28 @@ log = logging.getLogger("fleetslam.client")
 STREAMS = ("info", "odom", "scan", "truth")
 
 
+class InfoSchedule:
+    """When a robot publishes its RobotInfo again: at once the first time, then after ``first_s``, then after twice
+    as long each time, up to ``max_s``; :meth:`restart` (a new RobotInfo) starts again from ``first_s``."""
+
+    def __init__(self, first_s: float, max_s: float, clock=time.monotonic):
+        self.first_s = first_s
+        self.max_s = max(first_s, max_s)
+        self.clock = clock
+        self.interval_s = first_s
+        self.next_at: float | None = None
+
+    def due(self) -> bool:
+        return self.next_at is None or self.clock() >= self.next_at
+
+    def published(self) -> None:
+        self.next_at = self.clock() + self.interval_s
+        self.interval_s = min(2.0 * self.interval_s, self.max_s)
+
+    def restart(self) -> None:
+        self.interval_s = self.first_s
+
+
 @dataclass(frozen=True)
 class PoseReport:
     """A pose of this robot as one service estimates it: (x, y, θ), its 3×3 covariance, its stamp, its source."""
@@ -56,27 +80,34 @@ class RobotLink:
     ``caches`` gives the samples each stream's advanced publisher keeps (0: a plain publisher); ``keep`` how many
     odometry and scans the history queryable answers with. ``follow_estimates`` subscribes to the services' poses
     of this robot. ``session`` is used as given and left open; :meth:`connect` opens one the link closes.
+    ``info_max_period_s`` and ``heartbeat_s`` (the advanced publishers' heartbeat period; the RobotInfo's
+    heartbeats are sporadic: only after a publication) default to the settings ``info_max_period_s`` and
+    ``heartbeat_period_s``.
     """
 
     def __init__(self, session: zenoh.Session, info: RobotInfo, prefix: str = "fleet",
                  caches: dict[str, int] | None = None, keep: int | None = None, info_period_s: float = 1.0,
-                 follow_estimates: bool = False):
+                 follow_estimates: bool = False, info_max_period_s: float | None = None,
+                 heartbeat_s: float | None = None):
         self.session = session
         self.info = info
         self.robot_id = check_robot_id(info.robot_id)
         self.keys = Keys(prefix)
         self.info_period_s = info_period_s
+        if info_max_period_s is None:
+            info_max_period_s = FleetSettings.model_fields["info_max_period_s"].default
+        self.info_schedule = InfoSchedule(info_period_s, info_max_period_s)
         self.counts = {name: 0 for name in STREAMS}
         self._owns_session = False
         self._last_stamp: dict[str, float] = {}
-        self._next_info = 0.0
         self._estimates: dict[str, PoseReport] = {}
         self._estimates_lock = threading.Lock()
         caches = {name: 64 for name in STREAMS} | (caches or {})
         self._info_payload = encode(info)
         self.publishers = {name: StreamPublisher(session, self.keys.robot(self.robot_id, name), cache=caches[name],
                                                  keep=(caches[name] if keep is None else keep)
-                                                 if name in ("odom", "scan") else 0)
+                                                 if name in ("odom", "scan") else 0,
+                                                 heartbeat_s=heartbeat_s, sporadic=name == "info")
                            for name in STREAMS}
         self._entities: list = [
             session.declare_queryable(self.keys.info(self.robot_id), self._answer_info),
@@ -98,6 +129,8 @@ class RobotLink:
         settings = settings or FleetSettings()
         rates = {"info": 1.0, "odom": info.odom_rate_hz, "scan": info.scan_rate_hz, "truth": info.odom_rate_hz}
         caches = stream_caches(settings, rates)
+        options = {"info_max_period_s": settings.info_max_period_s, "heartbeat_s": settings.heartbeat_period_s,
+                   **options}
         session = open_session(settings)
         try:
             link = cls(session, info, settings.prefix, caches=caches, follow_estimates=follow_estimates, **options)
@@ -109,14 +142,17 @@ class RobotLink:
 
     # ------------------------------------------------------------------ publishing
     def publish_info(self, info: RobotInfo | None = None) -> None:
-        """Publish the RobotInfo now (a new one replaces the old for queries too); then again every period."""
+        """Publish the RobotInfo now (a new one replaces the old for queries too, and the re-publication starts
+        again from ``info_period_s``); then again after each period, doubled each time up to
+        ``info_max_period_s``."""
         if info is not None:
             if info.robot_id != self.robot_id:
                 raise ValueError(f"bad_robot_id: this link is robot {self.robot_id!r}, not {info.robot_id!r}")
             self.info, self._info_payload = info, encode(info)
+            self.info_schedule.restart()
         self.publishers["info"].put(self._info_payload)
         self.counts["info"] += 1
-        self._next_info = time.monotonic() + self.info_period_s
+        self.info_schedule.published()
 
     def odometry(self, dt: float, control, control_cov, stamp: float | None = None) -> Odometry:
         """Publish one control ``(v, ω)`` (unicycle) or ``(speed, steering)`` (Ackermann) applied over ``dt`` s and
@@ -146,12 +182,24 @@ class RobotLink:
 
     def put_event(self, event: OdomEvent | ScanEvent | TruthEvent, with_ids: bool = True) -> None:
         """Publish an event of a :class:`~robots.dataset.RobotLog` as it is (its own seq and stamp)."""
+        self._put(*self._event_message(event, with_ids))
+
+    def put_events(self, events, with_ids: bool = True) -> None:
+        """Publish events of one instant (odometry and the scan taken with it) back to back: every message is built
+        and encoded before the first is put, so that they leave within microseconds and share Zenoh batches, and
+        packets on the links, more often than when each is built between two puts."""
+        ready = [(stream, message, encode(message))
+                 for stream, message in (self._event_message(event, with_ids) for event in events)]
+        for stream, message, payload in ready:
+            self._put(stream, message, payload)
+
+    @staticmethod
+    def _event_message(event: OdomEvent | ScanEvent | TruthEvent, with_ids: bool) -> tuple[str, object]:
         if isinstance(event, OdomEvent):
-            self._put("odom", event.to_message())
-        elif isinstance(event, ScanEvent):
-            self._put("scan", event.to_message(with_ids=with_ids))
-        else:
-            self._put("truth", event.to_message())
+            return "odom", event.to_message()
+        if isinstance(event, ScanEvent):
+            return "scan", event.to_message(with_ids=with_ids)
+        return "truth", event.to_message()
 
     def _stamp(self, stream: str, stamp: float | None) -> float:
         stamp = time.time() if stamp is None else float(stamp)
@@ -160,10 +208,10 @@ class RobotLink:
             raise ValueError(f"time_backwards: {stream} stamp {stamp:.6f} is before the last one, {last:.6f}")
         return stamp
 
-    def _put(self, stream: str, message: Odometry | Scan | GroundTruth) -> None:
-        if self.counts["info"] == 0 or time.monotonic() >= self._next_info:
+    def _put(self, stream: str, message: Odometry | Scan | GroundTruth, payload: bytes | None = None) -> None:
+        if self.info_schedule.due():
             self.publish_info()
-        self.publishers[stream].put(message)
+        self.publishers[stream].put(message if payload is None else payload)
         self.counts[stream] += 1
         self._last_stamp[stream] = message.stamp
 

@@ -162,7 +162,9 @@ def run(settings: SwarmSettings, shutdown: Shutdown) -> dict:
                 if not settings.publish_truth:
                     caches["truth"] = 0
                 links[rid] = RobotLink(session, robot.info, settings.prefix, caches=caches,
-                                       info_period_s=settings.info_period_s)
+                                       info_period_s=settings.info_period_s,
+                                       info_max_period_s=settings.info_max_period_s,
+                                       heartbeat_s=settings.heartbeat_period_s)
             log.info("swarm of %d robots (%s..%s) declared on one session", len(links), next(iter(links)),
                      next(reversed(links)))
             shutdown.wait(settings.start_delay)

@@ -209,7 +209,9 @@ class Ros2Bridge(ServiceShell):
             info = side.input.info(stamp)
             rates = {"info": 1.0, "odom": info.odom_rate_hz, "scan": info.scan_rate_hz, "truth": 1.0}
             caches = stream_caches(self.settings, rates)
-            side.link = RobotLink(self.session, info, self.settings.prefix, caches=caches)
+            side.link = RobotLink(self.session, info, self.settings.prefix, caches=caches,
+                                  info_max_period_s=self.settings.info_max_period_s,
+                                  heartbeat_s=self.settings.heartbeat_period_s)
             log.info("ROS 2 robot %s joined fleetslam (%s)", info.robot_id, info.source)
         return side.link
 
