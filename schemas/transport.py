@@ -207,8 +207,10 @@ class StreamPublisher:
             )
         self._plain = cache <= 0  # a plain publisher names its session in each sample itself (an advanced one does)
 
-    def put(self, message: BaseModel | bytes) -> None:
-        payload = message if isinstance(message, bytes) else encode(message)
+    def put(self, message: BaseModel | bytes, payload: bytes | None = None) -> None:
+        """Publish ``message`` (a model, encoded here, or bytes); ``payload``: the model's encoding, made already."""
+        if payload is None:
+            payload = message if isinstance(message, bytes) else encode(message)
         if self._plain:
             self._publisher.put(payload, source_info=zenoh.SourceInfo(self._publisher.id, self.count))
         else:

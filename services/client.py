@@ -211,7 +211,7 @@ class RobotLink:
     def _put(self, stream: str, message: Odometry | Scan | GroundTruth, payload: bytes | None = None) -> None:
         if self.info_schedule.due():
             self.publish_info()
-        self.publishers[stream].put(message if payload is None else payload)
+        self.publishers[stream].put(message, payload)
         self.counts[stream] += 1
         self._last_stamp[stream] = message.stamp
 

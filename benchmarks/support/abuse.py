@@ -463,7 +463,7 @@ def lying_publisher(lies: list[tuple[str, float]]):
     done: set[tuple[int, str]] = set()
 
     class LyingPublisher(StreamPublisher):
-        def put(self, message) -> None:
+        def put(self, message, payload: bytes | None = None) -> None:
             stream = self.key.rsplit("/", 1)[-1]
             if isinstance(message, (Odometry, Scan)):
                 for index, (kind, at) in enumerate(lies):
@@ -473,7 +473,7 @@ def lying_publisher(lies: list[tuple[str, float]]):
                             super().put(forged)
                         print(f"LIE {kind} {stream} seq {message.seq} stamp {message.stamp:.3f}", file=sys.stderr,
                               flush=True)
-            super().put(message)
+            super().put(message, payload)
 
     return LyingPublisher
 
