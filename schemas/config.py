@@ -91,6 +91,12 @@ class FleetSettings(ProcessSettings):
     reorder_window_s: float = Field(0.1, ge=0, le=10, description="longest wall time a robot message waits for the "
                                     "other streams (the robot's own, other robots') so that events are handled in time "
                                     "order, also when a link cut or restart recovers one stream later (0: as they come)")
+    partition_wait_s: float = Field(0.0, ge=0, le=600, description="longest wall time the fleet's messages wait "
+                                    "for a robot that went silent or whose session token went away (its site's link "
+                                    "cut, its router restarting): its messages, recovered from its caches when it is "
+                                    "back, are then still handled in stamp order; a robot that ends its run before the "
+                                    "others holds them back this long. Default 0: a silent robot is waited for "
+                                    "reorder_window_s, one whose token went not at all (the others go on)")
     join_wait_s: float = Field(1.0, ge=0, le=30, description="longest wall time the fleet's messages wait for a robot "
                                "that has announced itself (session token) and sent nothing yet, so that robots starting "
                                "a moment apart are still handled in time order")

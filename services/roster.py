@@ -443,6 +443,13 @@ class ReorderBuffer:
     - a robot with messages received and not yet handled (``queued`` in :meth:`release`), up to
       ``recovery_window_s``: a service working off a backlog has not heard what waits in its intake.
 
+    With ``partition_wait_s`` (0: off), the other robots' streams are waited for that long of silence instead of
+    ``window_s``, also those of a robot whose session token went away: a robot behind a cut link (silent while its
+    token lasts, then gone) or behind a restarting router sends what it missed from its caches when it is back, and
+    its events still go in stamp order among the others'. A robot heard again after a silence of
+    ``recovery_window_s`` or more has its other stream waited for from then on: the publishers' caches send what
+    was missed stream by stream, and one stream's backlog must not run ahead of the other's.
+
     Another robot's stream more than ``clock_skew_s`` (600 s) behind an event is not waited for: the two robots'
     stamps are on different clocks (a simulated robot's start at 0, a real robot's Unix time), and waiting for the
     one behind would hold the other's events for as long as it streams.
@@ -460,8 +467,10 @@ class ReorderBuffer:
     _listened: float | None = None  # the clock at the last :meth:`listening` call (None: not listening yet)
 
     def __init__(self, window_s: float, clock: Callable[[], float] = time.perf_counter,
-                 recovery_window_s: float = 5.0, join_wait_s: float = 1.0, clock_skew_s: float = 600.0):
+                 recovery_window_s: float = 5.0, join_wait_s: float = 1.0, clock_skew_s: float = 600.0,
+                 partition_wait_s: float = 0.0):
         self.window_s = window_s
+        self.partition_wait_s = partition_wait_s
         self.clock_skew_s = clock_skew_s
         self.recovery_window_s = recovery_window_s
         self.join_wait_s = join_wait_s
@@ -478,7 +487,7 @@ class ReorderBuffer:
     def __setstate__(self, state: dict) -> None:
         """Unpickle (a service checkpoint); one written when the heap held the events themselves gets their
         entries."""
-        self.__dict__.update(state)
+        self.__dict__.update({"partition_wait_s": 0.0, **state})
         self._heap = [held.entry() if isinstance(held, _Held) else held for held in self._heap]
         heapq.heapify(self._heap)
         self._sort_streams()
@@ -498,6 +507,11 @@ class ReorderBuffer:
         is_odom = isinstance(event, OdomEvent)
         stream = (event.robot_id, "odom" if is_odom else "scan")
         arrived = self.clock() if arrived is None else arrived
+        if arrived - self.heard.get(stream, arrived) >= self.recovery_window_s:
+            # heard again after a silence (a cut link): its other stream is being recovered too, in parts of its
+            # own, and is waited for from now, as after a link change; else its events would run ahead of the other's
+            for other in (other for other in self.newest if other[0] == event.robot_id and other != stream):
+                self.heard[other] = max(self.heard.get(other, arrived), arrived)
         old = self.newest.get(stream)
         newest = self.newest[stream] = max(float("-inf") if old is None else old, event.stamp)
         if newest != old:  # the stream moves in the streams sorted by stamp
@@ -570,7 +584,11 @@ class ReorderBuffer:
         """Is ``stream`` still waited for: heard from within its patience, or within the recovery window while it is
         being recovered or with messages of its robot queued, not yet handled (a robot whose lane is full of messages
         that never advance the stream holds the others back no longer than that)?"""
-        patience = self.recovery_window_s if own or stream in recovering or stream[0] in queued else self.window_s
+        if own:
+            patience = self.recovery_window_s
+        else:  # a robot being recovered or with a backlog queued is waited for longer, never shorter
+            patience = max(self.window_s, self.partition_wait_s,
+                           self.recovery_window_s if stream in recovering or stream[0] in queued else 0.0)
         return now - self.heard.get(stream, float("-inf")) < patience
 
     def release(self, live: Iterable[str], flush: bool = False, announced: Iterable[str] = (),
@@ -600,6 +618,7 @@ class ReorderBuffer:
                                  for stream, at in self.expected.items()):
             return []  # a robot that announced itself is still awaited
         window, recovery, skew = self.window_s, self.recovery_window_s, self.clock_skew_s
+        partition = self.partition_wait_s
         newest, heard, streams = self.newest, self.heard, self._by_stamp  # streams: (newest stamp, stream), sorted
         ahead = 0  # streams[:ahead] were looked at: they are behind an event looked at
         waited: list[tuple[float, str]] = []  # (stamp, robot) of those that hold back other robots' events, in order
@@ -635,8 +654,9 @@ class ReorderBuffer:
                 behind, stream = streams[ahead]
                 ahead += 1
                 other = stream[0]
-                if (other in live or stream in recovering) and now - heard.get(stream, float("-inf")) < (
-                        recovery if stream in recovering or other in queued else window):
+                if (other in live or stream in recovering or partition > 0) and now - heard.get(
+                        stream, float("-inf")) < max(window, partition,
+                                                     recovery if stream in recovering or other in queued else 0.0):
                     waited.append((behind, other))
                     if other != rid and stamp - behind <= skew:
                         blocked = True
@@ -667,7 +687,8 @@ class ReorderBuffer:
         live = set(live)
         now = self.clock()
         recovering = self.resuming if now < self.resuming_until else set()
-        streams = [(stamp, stream) for stream, stamp in self.newest.items() if stream[0] in live or stream in recovering]
+        streams = [(stamp, stream) for stream, stamp in self.newest.items()
+                   if stream[0] in live or stream in recovering or self.partition_wait_s > 0]
         announced = set(announced)
         queued = set(queued)
         joining = any(stream[0] in announced and now - at < (self.recovery_window_s if stream[0] in queued

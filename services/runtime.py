@@ -134,7 +134,10 @@ class ServiceShell:
         self.session: zenoh.Session | None = None
         self._declared: list[Any] = []
         self.roster: Roster | None = None
-        self.reorder = ReorderBuffer(settings.reorder_window_s, join_wait_s=settings.join_wait_s)
+        self.reorder = ReorderBuffer(settings.reorder_window_s, join_wait_s=settings.join_wait_s,
+                                     partition_wait_s=settings.partition_wait_s)
+        self._refill_on_return: set[str] = set()  # robots out of reach when asked for their history: asked on return
+        self._refill_asked_again: set[str] = set()
         self._release_lock = asyncio.Lock()
         self.hold_ms: deque[float] = deque(maxlen=5000)
         state_dir = getattr(settings, "state_dir", None)
@@ -196,6 +199,7 @@ class ServiceShell:
         self.reorder = state["reorder"]
         self.reorder.window_s = self.settings.reorder_window_s
         self.reorder.join_wait_s = self.settings.join_wait_s
+        self.reorder.partition_wait_s = self.settings.partition_wait_s
         self.messages_in.update(state["messages_in"])
         self.rejected.update(state["rejected"])
         self.published = state["published"]
@@ -380,9 +384,23 @@ class ServiceShell:
                     self.reject("handler_error")
                     log.exception("%s: handler failed on %s (history of %s)", self.name, reply_key, rid)
                 await asyncio.sleep(0)  # a long answer (a minute of a robot's stream) must not hold stats and ticks
+            if not replies and rid not in self._refill_asked_again:
+                # nobody answered: the robot is out of reach (a link cut: a query routed into it is lost), not
+                # without history; its messages past the gap stay parked and it is asked once more as soon as one of
+                # its messages arrives (it is in reach again); the second answer is final
+                log.info("%s: robot %s did not answer for its history (out of reach?); asked again when it is heard",
+                         self.name, rid)
+                self._refill_on_return.add(rid)
+                return
+            self._refill_asked_again.discard(rid)
             for arrival, stream in roster.refilled(rid):
                 await self._take(rid, stream, arrival)
             return
+        if rid in self._refill_on_return and tag in ("odom", "scan"):  # heard again: asked once more for its history
+            self._refill_on_return.discard(rid)
+            self._refill_asked_again.add(rid)
+            log.info("%s: robot %s is heard again: asked once more for its history", self.name, rid)
+            self.refill_robot(rid)
         message = decode(payload, RobotInfo if tag == "info" else Odometry if tag == "odom" else Scan)
         whose, refused = roster.identify(rid, tag, message, source, len(payload))
         if refused:
@@ -458,31 +476,35 @@ class ServiceShell:
         left are counted: queued one by one, in the lane of the robot's session, they could still wait behind its
         live messages when the end of the query, in another lane, was taken, and a gap the robot had filled was
         counted as lost. What is gathered is bounded by a lane's bytes (past them counted ``history_overflow``)."""
-        timeout_s = self.reorder.recovery_window_s
         for rid in sorted(self.roster.members):
-            self.roster.refill(rid)
-            key = self.keys.history(rid)
-            replies: list[tuple[str, str, bytes, str | None]] = []
-            budget = {"bytes": self.intake.lane_bytes, "dropped": 0}
+            self.refill_robot(rid)
 
-            def on_payload(reply_key: str, payload: bytes, replier: str | None, replies=replies, budget=budget) -> None:
-                parsed = self.keys.parse_robot_key(reply_key)
-                if parsed is None or parsed[1] not in ("odom", "scan"):
-                    return
-                if len(payload) > budget["bytes"]:
-                    budget["dropped"] += 1
-                    return
-                budget["bytes"] -= len(payload)
-                replies.append((parsed[1], reply_key, payload, replier))
+    def refill_robot(self, rid: str) -> None:
+        """Ask one robot for what it kept (see :meth:`refill_from_robots`)."""
+        timeout_s = self.reorder.recovery_window_s
+        self.roster.refill(rid)
+        key = self.keys.history(rid)
+        replies: list[tuple[str, str, bytes, str | None]] = []
+        budget = {"bytes": self.intake.lane_bytes, "dropped": 0}
 
-            def on_done(key=key, replies=replies, budget=budget) -> None:
-                self.enqueue("refilled", key, (replies, budget["dropped"]))
+        def on_payload(reply_key: str, payload: bytes, replier: str | None) -> None:
+            parsed = self.keys.parse_robot_key(reply_key)
+            if parsed is None or parsed[1] not in ("odom", "scan"):
+                return
+            if len(payload) > budget["bytes"]:
+                budget["dropped"] += 1
+                return
+            budget["bytes"] -= len(payload)
+            replies.append((parsed[1], reply_key, payload, replier))
 
-            try:
-                history_query(self.session, key, on_payload, on_done, timeout_s)
-            except zenoh.ZError as exc:
-                log.warning("%s: cannot ask %s for its history: %s", self.name, rid, exc)
-                self.enqueue("refilled", key, ([], 0))
+        def on_done() -> None:
+            self.enqueue("refilled", key, (replies, budget["dropped"]))
+
+        try:
+            history_query(self.session, key, on_payload, on_done, timeout_s)
+        except zenoh.ZError as exc:
+            log.warning("%s: cannot ask %s for its history: %s", self.name, rid, exc)
+            self.enqueue("refilled", key, ([], 0))
 
     def subscribe(self, key: str, tag: str, recover: bool = True) -> None:
         """Subscribe ``key``; each sample is queued as ``(tag, key, payload)``.
