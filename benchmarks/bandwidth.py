@@ -399,16 +399,21 @@ def parse_network(cur: Cursor, spans: list, result: StreamParse, peer: StreamPar
         spans.append((start, cur.pos, "control", "queries_replies"))
         return "queries_replies"
     if mid == N_OAM:
-        cur.zint()
-        skip_exts(cur, bool(header & 0x80))
-        encoding = (header >> 5) & 0x03
-        if encoding == 1:
-            cur.zint()
-        elif encoding == 2:
-            cur.zbytes()
+        skip_oam(cur, header)
         spans.append((start, cur.pos, "control", "oam"))
         return "oam"
     raise ParseError(f"network message {mid:#x}")
+
+
+def skip_oam(cur: Cursor, header: int) -> None:
+    """An OAM message (network or transport) after its header byte: its id, extensions and body."""
+    cur.zint()
+    skip_exts(cur, bool(header & 0x80))
+    encoding = (header >> 5) & 0x03
+    if encoding == 1:
+        cur.zint()
+    elif encoding == 2:
+        cur.zbytes()
 
 
 def parse_batch_body(cur: Cursor, result: StreamParse, peer: StreamParse) -> tuple[list, list, list]:
@@ -438,13 +443,7 @@ def parse_batch_body(cur: Cursor, result: StreamParse, peer: StreamParse) -> tup
                 purposes.append("fragments")
                 cur.pos = cur.end
             elif mid == T_OAM:
-                cur.zint()
-                skip_exts(cur, bool(header & 0x80))
-                encoding = (header >> 5) & 0x03
-                if encoding == 1:
-                    cur.zint()
-                elif encoding == 2:
-                    cur.zbytes()
+                skip_oam(cur, header)
                 spans.append((start, cur.pos, "control", "oam"))
                 purposes.append("oam")
             else:  # INIT, OPEN, CLOSE: the session's handshake and end

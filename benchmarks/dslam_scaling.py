@@ -132,13 +132,20 @@ def drive(world: GridWorld, dslam: DSlam, rng: np.random.Generator, scans: int,
     return np.array(seconds), np.array(solves), np.array(prefetch_s)
 
 
-def one_size(n: int, seed: int, scans: int, cache: int, settings: dict, prefetch: bool) -> dict:
+def mapped_world(n: int, seed: int):
+    """The world of ``n`` landmarks, its map from the sweep (:func:`build`), each map index's landmark id, the build's
+    figures and the random generator the sweep left (the drive goes on with it)."""
     rng = np.random.default_rng([seed, n])
     world = GridWorld(n)
     m, index_of, built = build(world, rng)
     keys = [0] * m.n
     for key, index in index_of.items():
         keys[index] = key
+    return world, m, keys, built, rng
+
+
+def one_size(n: int, seed: int, scans: int, cache: int, settings: dict, prefetch: bool) -> dict:
+    world, m, keys, built, rng = mapped_world(n, seed)
     dslam = DSlam(DslamConfig(association="known", column_cache=cache, **settings))
     dslam.adopt(m, keys)
     dslam.prefetching = prefetch  # as the service: the scans of a robot without a pose wait for their columns

@@ -25,7 +25,7 @@ import argparse
 import numpy as np
 
 from central.service import CentralService
-from dslam_scaling import build
+from dslam_scaling import mapped_world
 from fastslam_scaling import prefilled
 from report import emit
 from schemas.codec import encode
@@ -81,12 +81,7 @@ def central_output(n: int, laps: int, seed: int, tile_m: float) -> dict:
 
 
 def dslam_output(n: int, laps: int, seed: int, tile_m: float) -> dict:
-    rng = np.random.default_rng([seed, n])
-    world = GridWorld(n)
-    m, index_of, _ = build(world, rng)
-    keys = [0] * m.n
-    for key, index in index_of.items():
-        keys[index] = key
+    world, m, keys, _, rng = mapped_world(n, seed)
     service = DslamService(DslamSettings(association="known", map_tile_m=tile_m))
     service.core = DSlam(DslamConfig(association="known"))
     service.core.adopt(m, keys)
