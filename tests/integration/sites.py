@@ -344,23 +344,23 @@ def _query_states(lab: NetnsLab, workdir: Path, prefixes: list[str], env: dict) 
     argv = [sys.executable, "-m", "tests.integration.sites"]
     for prefix, out in outs.items():
         argv += ["--query-state", f"{prefix}={out}"]
-    process = lab.start("depot", argv, env, workdir / "query-state.log", REPO)
+    _finish(lab.start("depot", argv, env, workdir / "query-state.log", REPO), 90.0)
+    return {prefix: out.read_bytes() if out.exists() else None for prefix, out in outs.items()}
+
+
+def _finish(process: subprocess.Popen, timeout_s: float) -> None:
+    """Wait for ``process`` to end; killed after ``timeout_s``."""
     try:
-        process.wait(timeout=90)
+        process.wait(timeout=timeout_s)
     except subprocess.TimeoutExpired:
         process.kill()
         process.wait()
-    return {prefix: out.read_bytes() if out.exists() else None for prefix, out in outs.items()}
 
 
 def _stop_relay(process: subprocess.Popen, log: Path) -> dict | None:
     """Stop a relay; what it relayed (its ``LINKRELAY`` line: chunks, stalls, delays per direction)."""
     process.send_signal(signal.SIGTERM)
-    try:
-        process.wait(timeout=10)
-    except subprocess.TimeoutExpired:
-        process.kill()
-        process.wait()
+    _finish(process, 10.0)
     lines = [line for line in log.read_text().splitlines() if line.startswith("LINKRELAY ")]
     if not lines:
         return None
