@@ -79,13 +79,12 @@ def tile_block(message: TiledMapMessage) -> TileBlock:
 
 def whole(message: M, tiles: TiledMap) -> M:
     """``message`` with the whole assembled map in place of its tiles: a full, untiled message."""
-    means, covs, ids = tiles.landmarks()
     block = tiles.block()
-    update = {"landmarks": means, "full": True, "tiles": block.tiles, "tile_counts": block.counts}
+    update = {"landmarks": block.means, "full": True, "tiles": block.tiles, "tile_counts": block.counts}
     if "landmark_covs" in type(message).model_fields:
-        update["landmark_covs"] = covs
+        update["landmark_covs"] = block.covs
     if "landmark_ids" in type(message).model_fields:
-        update["landmark_ids"] = ids
+        update["landmark_ids"] = block.ids
     return message.model_copy(update=update)
 
 
