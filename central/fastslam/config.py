@@ -69,6 +69,19 @@ class FastSlamConfig(CoreConfig):
         "pairings without it (the detection is ignored otherwise)")
     tentative_misses: int = Field(
         3, ge=1, description="shared: a tentative landmark in view and not seen this many times is dropped")
+    silence: bool = Field(
+        True, description="shared: delete a confirmed landmark once the robots whose scans other landmarks pin have "
+        "missed it for longer than any silence a true landmark of this map has shown (central/fastslam/silence.py): "
+        "the copies a robot maps while its pose is wrong, which no robot sees again")
+    silence_alpha: float = Field(
+        0.05, gt=0.0, lt=1.0, description="... the chance that a silence some landmark of the map ended would have "
+        "passed the threshold (its exponential tail fitted to the silences ended so far)")
+    silence_tail_quantile: float = Field(
+        0.95, gt=0.0, lt=1.0, description="... the tail is fitted above this quantile of the ended silences")
+    silence_min_ended: int = Field(
+        200, ge=1, description="... no landmark is deleted before this many silences have ended (the tail needs "
+        "ten values above its quantile)")
+    silence_memory: int = Field(20_000, ge=1, description="... the latest this many ended silences are the null")
     exclusive: bool = Field(True, description="one detection per landmark per scan (paper 001's NN does not assume it)")
     mht_prune: float = Field(0.3, gt=0.0, le=1.0,
                              description="mht: drop a child whose weight is below this fraction of its parent's best child")

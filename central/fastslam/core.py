@@ -34,6 +34,7 @@ from central.fastslam.config import FastSlamConfig
 from central.fastslam.aligned_map import AlignedMap, SlotTable
 from central.fastslam.landmarks import LandmarkMap
 from central.fastslam.lifecycle import RobotState
+from central.fastslam.silence import Silences
 from robots.gaussian import chi2_quantile, sandwich, valid_cov2
 from robots.models import compose_jacobian, se2_compose, wrap_angle
 from schemas.contract import MapView, OdomEvent, RunOptions, ScanEvent, build_config
@@ -67,6 +68,7 @@ class FastSlam:
         self.known_slots = SlotTable()
         self.next_landmark_id = 0  # shared association: the id of the next new landmark
         self.tentative_misses: dict[int, int] = {}  # shared association: misses of tentative landmarks
+        self.silences = Silences()  # shared association: how long each confirmed landmark went unseen
         self.rejected: Counter = Counter()
         self.counts: Counter = Counter()
         self.gate = chi2_quantile(config.gate_probability, 2)
@@ -195,10 +197,12 @@ class FastSlam:
         """Restore a pickled filter (a checkpoint), also one written before the weights were cached, the
         known-landmark table kept its arrays (such a checkpoint holds ``logw`` and a plain dict), the map
         numbered its landmarks, the robots kept their detections of robots (``robot_checks``) and their odometry noise
-        gains (``odometry_noise``) or the filter its worker count (``workers``: 1)."""
+        gains (``odometry_noise``), the filter its worker count (``workers``: 1) or its landmarks' silences (they start
+        again)."""
         if "logw" in state:
             state["_logw"] = state.pop("logw")
         state["_weights"] = None
+        state.setdefault("silences", Silences())  # a checkpoint from before silences: they start again
         state.setdefault("workers", 1)  # a checkpoint from before the parallel kernels (the service sets its own)
         if "turn_gain" not in state:  # a checkpoint from before the turn gains: every particle's gain 1
             state["turn_gain"] = np.ones(state["pose"].shape[:2])

@@ -37,7 +37,9 @@ arrays of a few hundred 2 × 2 blocks, more than the arithmetic. Each kernel doe
   :func:`central.fastslam.proposal.proposal_moments_reference`, for the tests: the warm-up leaves it out).
 - :func:`negative_evidence_kernel`: the per-particle association's (``nn``, ``mht``) negative evidence, the visibility
   of every candidate in view that the scan left unassociated, the particles' miss weights and the landmarks aged or
-  deleted (:func:`central.fastslam.evidence.negative_evidence_reference`).
+  deleted (:func:`central.fastslam.evidence.negative_evidence_reference`);
+- :func:`silence_kernel`: the shared association's views of confirmed landmarks, the silences they end and grow, and
+  the landmarks silent past the null (:func:`central.fastslam.silence.silence_reference`).
 - :func:`vote_kernel`: the Hough vote of a blind robot's re-acquisition, every turn's binned shifts and the scores
   of its best ones (:func:`central.fastslam.reacquire.vote_reference`, about 60 turns of a dozen numpy calls each).
 
@@ -1294,6 +1296,65 @@ def negative_evidence_kernel(cand, zhat, considered, limits, exist, hits, valid)
     return out
 
 
+@njit
+def silence_kernel(slots, confirmed, hit, zhat, h_x, own, pose_cov, r, r_inv, view, silence, views, counts, gate,
+                   threshold):
+    """One scan's views of the confirmed landmarks near a robot: silences ended by its associations, the robot's
+    detection counts and last views, the silences of the landmarks it missed, and which of them pass ``threshold``
+    (:func:`central.fastslam.silence.silence_reference`)."""
+    count = slots.size
+    bins_count = counts.shape[1]
+    ended = np.empty(count)
+    ended_count = 0
+    pinned = 0
+    for k in range(count):
+        if confirmed[k] and hit[k]:
+            pinned += 1
+            slot = slots[k]
+            if silence[slot] > 0.0:
+                ended[ended_count] = silence[slot]
+                ended_count += 1
+            silence[slot] = 0.0
+    deleted = np.zeros(count, np.bool_)
+    if pinned == 0:
+        return ended[:ended_count], deleted
+    before = counts.copy()  # the model's chances as they stood before this scan
+    min_range, max_range, half_fov = view[0], view[1], view[2]
+    for k in range(count):
+        if not confirmed[k] or (hit[k] and pinned < 2):
+            continue
+        s00 = own[k, 0, 0] + r[0, 0]
+        s11 = own[k, 1, 1] + r[1, 1]
+        for i in range(3):
+            for j in range(3):
+                s00 += h_x[k, 0, i] * pose_cov[i, j] * h_x[k, 0, j]
+                s11 += h_x[k, 1, i] * pose_cov[i, j] * h_x[k, 1, j]
+        sr, sb = math.sqrt(s00), math.sqrt(s11)
+        v = ndtr((max_range - zhat[k, 0]) / sr) * ndtr((zhat[k, 0] - min_range) / sr)
+        if half_fov < np.inf:
+            v *= ndtr((half_fov - abs(zhat[k, 1])) / sb)
+        if v <= 0.05:  # silence.MIN_VISIBILITY
+            continue
+        slot = slots[k]
+        if not hit[k] and not np.isnan(views[slot, 0]):
+            d0 = zhat[k, 0] - views[slot, 0]
+            d1 = wrap_angle(zhat[k, 1] - views[slot, 1])
+            if d0 * (r_inv[0, 0] * d0 + r_inv[0, 1] * d1) + d1 * (r_inv[1, 0] * d0 + r_inv[1, 1] * d1) < gate:
+                continue
+        views[slot, 0] = zhat[k, 0]
+        views[slot, 1] = zhat[k, 1]
+        b = min(max(int(zhat[k, 0] / max_range * bins_count), 0), bins_count - 1)
+        counts[1, b] += v
+        if hit[k]:
+            counts[0, b] += v
+            continue
+        silence[slot] += (before[0, b] + 1.0) / (before[1, b] + 2.0) * v
+        if silence[slot] > threshold:
+            deleted[k] = True
+            silence[slot] = 0.0
+    return ended[:ended_count], deleted
+
+
 def warm_up() -> None:
     """Compile (or load from the cache) every FastSLAM kernel on tiny inputs."""
     from central.fastslam.aligned_map import AlignedMap
@@ -1332,9 +1393,12 @@ def warm_up() -> None:
     negative_evidence_kernel(np.zeros((1, 1), np.int64), np.ones((1, 1, 2)), np.ones((1, 1), np.bool_),
                              np.array([0.0, 10.0, 1.0, 0.1, 0.01, 0.9, 1.0, 0.0, 5.0]), np.zeros((1, 1)),
                              np.zeros((1, 1), np.int32), np.ones((1, 1), np.bool_))
+    silence_kernel(np.zeros(2, np.int64), np.ones(2, np.bool_), np.array([True, False]), np.ones((2, 2)), h_x.repeat(2, 0),
+                   np.ones((2, 2, 2)), np.eye(3), np.eye(2), np.eye(2), np.array([0.0, 10.0, 1.0]), np.zeros(2),
+                   np.full((2, 2), np.nan), np.zeros((2, 8)), 9.2, 1.0)
 
 
 __all__ = ["association_draw_kernel", "AVAILABLE", "create", "drift_accumulate", "drift_condition", "integrate_controls", "joint_blocks_kernel",
            "known_update", "known_update_parallel_kernel", "marginal_map", "max_threads", "near_kernel", "negative_evidence_kernel", "pose_belief_kernel", "private_blocks", "propose",
-           "proposal_moments", "propose_parallel_kernel", "refile_slots_kernel", "select_kernel", "shared_gating_kernel", "use_threads", "vote", "warm_up",
+           "proposal_moments", "propose_parallel_kernel", "refile_slots_kernel", "select_kernel", "shared_gating_kernel", "silence_kernel", "use_threads", "vote", "warm_up",
            "weighted_pose"]

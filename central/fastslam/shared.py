@@ -29,7 +29,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from central.fastslam import kernels, motion, reacquire, resampling
+from central.fastslam import kernels, motion, reacquire, resampling, silence
 from central.fastslam.lifecycle import RobotState
 from robots.gaussian import diagonal_variances, inv2, quad2, sandwich, sandwich2, systematic_resample
 from robots.models import compose_jacobian, se2_compose, wrap_angle
@@ -133,6 +133,10 @@ def associate(slam: FastSlam, robot: RobotState, z: np.ndarray, r: np.ndarray) -
             slam.counts["detections_ambiguous"] += int(np.count_nonzero(ambiguous))
         rows, cols = _solve(slam, nu, gated, d2, h_x, own, spread + drift, r)
         ids[rows] = known[cols]
+        if slam.config.silence:
+            hit = np.zeros(known.size, bool)
+            hit[cols] = True
+            silence.observe(slam, robot, slots, ~tentative, hit, zhat, h_x, own, spread + drift, r)
         unmatched = ids < 0
         fresh &= unmatched
         unmatched_count = int(np.count_nonzero(unmatched))
