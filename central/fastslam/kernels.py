@@ -1297,8 +1297,8 @@ def negative_evidence_kernel(cand, zhat, considered, limits, exist, hits, valid)
 
 
 @njit
-def silence_kernel(slots, confirmed, hit, zhat, h_x, own, pose_cov, r, r_inv, view, silence, views, counts, gate,
-                   threshold):
+def silence_kernel(slots, confirmed, hit, zhat, h_x, own, pose_cov, r, min_range, max_range, half_fov, silence, views,
+                   counts, gate, threshold):
     """One scan's views of the confirmed landmarks near a robot: silences ended by its associations, the robot's
     detection counts and last views, the silences of the landmarks it missed, and which of them pass ``threshold``
     (:func:`central.fastslam.silence.silence_reference`)."""
@@ -1319,7 +1319,8 @@ def silence_kernel(slots, confirmed, hit, zhat, h_x, own, pose_cov, r, r_inv, vi
     if pinned == 0:
         return ended[:ended_count], deleted
     before = counts.copy()  # the model's chances as they stood before this scan
-    min_range, max_range, half_fov = view[0], view[1], view[2]
+    det = r[0, 0] * r[1, 1] - r[0, 1] * r[1, 0]
+    i00, i01, i10, i11 = r[1, 1] / det, -r[0, 1] / det, -r[1, 0] / det, r[0, 0] / det
     for k in range(count):
         if not confirmed[k] or (hit[k] and pinned < 2):
             continue
@@ -1339,7 +1340,7 @@ def silence_kernel(slots, confirmed, hit, zhat, h_x, own, pose_cov, r, r_inv, vi
         if not hit[k] and not np.isnan(views[slot, 0]):
             d0 = zhat[k, 0] - views[slot, 0]
             d1 = wrap_angle(zhat[k, 1] - views[slot, 1])
-            if d0 * (r_inv[0, 0] * d0 + r_inv[0, 1] * d1) + d1 * (r_inv[1, 0] * d0 + r_inv[1, 1] * d1) < gate:
+            if d0 * (i00 * d0 + i01 * d1) + d1 * (i10 * d0 + i11 * d1) < gate:
                 continue
         views[slot, 0] = zhat[k, 0]
         views[slot, 1] = zhat[k, 1]
@@ -1394,8 +1395,8 @@ def warm_up() -> None:
                              np.array([0.0, 10.0, 1.0, 0.1, 0.01, 0.9, 1.0, 0.0, 5.0]), np.zeros((1, 1)),
                              np.zeros((1, 1), np.int32), np.ones((1, 1), np.bool_))
     silence_kernel(np.zeros(2, np.int64), np.ones(2, np.bool_), np.array([True, False]), np.ones((2, 2)), h_x.repeat(2, 0),
-                   np.ones((2, 2, 2)), np.eye(3), np.eye(2), np.eye(2), np.array([0.0, 10.0, 1.0]), np.zeros(2),
-                   np.full((2, 2), np.nan), np.zeros((2, 8)), 9.2, 1.0)
+                   np.ones((2, 2, 2)), np.eye(3), np.eye(2), 0.0, 10.0, 1.0, np.zeros(2), np.full((2, 2), np.nan),
+                   np.zeros((2, 8)), 9.2, 1.0)
 
 
 __all__ = ["association_draw_kernel", "AVAILABLE", "create", "drift_accumulate", "drift_condition", "integrate_controls", "joint_blocks_kernel",

@@ -34,7 +34,6 @@ import numpy as np
 from scipy.special import ndtr
 
 from central.fastslam import kernels
-from robots.gaussian import inv2
 from robots.models import wrap_angle
 
 if TYPE_CHECKING:
@@ -122,13 +121,11 @@ def observe(slam: FastSlam, robot: RobotState, slots: np.ndarray, confirmed: np.
     config, state = slam.config, slam.silences
     spec = robot.info.sensor
     max_range = spec.max_range if config.max_obs_range is None else min(spec.max_range, config.max_obs_range)
-    view = np.array([spec.min_range, max_range, 0.5 * spec.fov if spec.fov < 2.0 * math.pi else np.inf])
+    half_fov = 0.5 * spec.fov if spec.fov < 2.0 * math.pi else math.inf
     views, counts = state.fit(slam.map.capacity, robot.robot_id)
-    threshold = current_threshold(slam)
     scan = kernels.silence_kernel if config.compiled else silence_reference
-    ended, deleted = scan(np.ascontiguousarray(slots), confirmed, hit, np.ascontiguousarray(zhat),
-                          np.ascontiguousarray(h_x), np.ascontiguousarray(own), np.ascontiguousarray(pose_cov), r,
-                          inv2(r)[0], view, state.silence, views, counts, slam.gate, threshold)
+    ended, deleted = scan(slots, confirmed, hit, zhat, h_x, own, pose_cov, r, float(spec.min_range), float(max_range),
+                          half_fov, state.silence, views, counts, slam.gate, current_threshold(slam))
     if ended.size:
         state.ended.extend(ended.tolist())
         state.ended_total += ended.size
@@ -145,8 +142,8 @@ def observe(slam: FastSlam, robot: RobotState, slots: np.ndarray, confirmed: np.
         slam.counts["landmarks_silenced"] += int(gone.size)
 
 
-def silence_reference(slots, confirmed, hit, zhat, h_x, own, pose_cov, r, r_inv, view, silence, views, counts, gate,
-                      threshold) -> tuple[np.ndarray, np.ndarray]:
+def silence_reference(slots, confirmed, hit, zhat, h_x, own, pose_cov, r, min_range, max_range, half_fov, silence,
+                      views, counts, gate, threshold) -> tuple[np.ndarray, np.ndarray]:
     """The numpy reference of :func:`central.fastslam.kernels.silence_kernel`: (silences ended by this scan's
     associations, which candidates to delete). Updates ``silence``, ``views`` (this robot's) and ``counts`` in place.
 
@@ -162,7 +159,6 @@ def silence_reference(slots, confirmed, hit, zhat, h_x, own, pose_cov, r, r_inv,
     if pinned == 0:
         return ended, deleted
     s = own + np.einsum("kij,jl,kml->kim", h_x, pose_cov, h_x) + r
-    min_range, max_range, half_fov = view
     sr, sb = np.sqrt(s[:, 0, 0]), np.sqrt(s[:, 1, 1])
     v = ndtr((max_range - zhat[:, 0]) / sr) * ndtr((zhat[:, 0] - min_range) / sr)
     if np.isfinite(half_fov):
@@ -171,7 +167,7 @@ def silence_reference(slots, confirmed, hit, zhat, h_x, own, pose_cov, r, r_inv,
     chance = (counts[0, bins] + 1.0) / (counts[1, bins] + 2.0)
     step = zhat - views[slots]
     step[:, 1] = wrap_angle(step[:, 1])
-    moved = np.einsum("ki,ij,kj->k", step, r_inv, step) >= gate  # NaN (no view yet) compares False
+    moved = np.einsum("ki,ij,kj->k", step, np.linalg.inv(r), step) >= gate  # NaN (no view yet) compares False
     fresh = np.isnan(views[slots, 0]) | moved | hit
     counted = confirmed & (v > MIN_VISIBILITY) & fresh & ~(hit & (pinned < 2))
     views[slots[counted]] = zhat[counted]
