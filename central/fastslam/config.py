@@ -71,8 +71,9 @@ class FastSlamConfig(CoreConfig):
         3, ge=1, description="shared: a tentative landmark in view and not seen this many times is dropped")
     silence: bool = Field(
         True, description="shared: delete a confirmed landmark once the robots whose scans other landmarks pin have "
-        "missed it for longer than any silence a true landmark of this map has shown (central/fastslam/silence.py): "
-        "the copies a robot maps while its pose is wrong, which no robot sees again")
+        "missed it longer than the silences this map's landmarks survived say a true one would (the tail fitted to "
+        "them; central/fastslam/silence.py): the copies a robot maps while its pose is wrong, which no robot sees "
+        "again. MR.CLAM 1 / 2 / 4 without barcodes, 5 seeds: spurious landmarks 14 / 12 / 2 -> 2 / 2 / 0 (median)")
     silence_alpha: float = Field(
         0.05, gt=0.0, lt=1.0, description="... the chance that a silence some landmark of the map ended would have "
         "passed the threshold (its exponential tail fitted to the silences ended so far)")

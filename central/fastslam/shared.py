@@ -16,7 +16,8 @@ Unmatched detections outside the new-landmark gate of every landmark start a lan
 ignored (outliers). New landmarks are tentative (Wang, Huang and Dissanayake, "Implementation issues and
 experimental evaluation of D-SLAM", §3.1: confirmed and tentative lists): they neither weigh particles nor
 appear in the map until associated ``confirm_hits`` times, and a tentative landmark in view but not seen
-``tentative_misses`` times is dropped.
+``tentative_misses`` times is dropped. A confirmed landmark that the robots' pinned scans stop seeing for longer than
+the silences its landmarks survived make likely is deleted (:mod:`central.fastslam.silence`).
 
 A robot whose dead reckoning has drifted too far (its drift, conditioned on its matches) is not associated scan by
 scan: its scans are held until one rigid correction puts them back on the map (:mod:`central.fastslam.reacquire`).
