@@ -85,38 +85,27 @@ class Intake:
     def get(self) -> Any | None:
         """The next item, lanes in turn (None when empty)."""
         with self._lock:
-            if not self._lanes:
-                return None
-            lane, queue = next(iter(self._lanes.items()))
-            item, nbytes = queue.popleft()
-            self._count -= 1
-            self.held_bytes -= nbytes
-            self._lane_bytes[lane] -= nbytes
-            if queue:
-                self._lanes.move_to_end(lane)
-            else:
-                del self._lanes[lane]
-                del self._lane_bytes[lane]
-            return item
+            return self._pop()[1] if self._lanes else None
 
     def get_many(self, limit: int) -> list[tuple[Hashable, Any]]:
         """Up to ``limit`` items as (lane, item), in the order :meth:`get` would give them, under one lock."""
-        out = []
         with self._lock:
-            lanes, lane_bytes = self._lanes, self._lane_bytes
-            while lanes and len(out) < limit:
-                lane, queue = next(iter(lanes.items()))
-                item, nbytes = queue.popleft()
-                self._count -= 1
-                self.held_bytes -= nbytes
-                lane_bytes[lane] -= nbytes
-                if queue:
-                    lanes.move_to_end(lane)
-                else:
-                    del lanes[lane]
-                    del lane_bytes[lane]
-                out.append((lane, item))
-        return out
+            return [self._pop() for _ in range(min(limit, self._count))]
+
+    def _pop(self) -> tuple[Hashable, Any]:
+        """(lane, item) of the first lane's oldest item, the lane moved to the back (or dropped when emptied); the lock
+        held and a lane there."""
+        lane, queue = next(iter(self._lanes.items()))
+        item, nbytes = queue.popleft()
+        self._count -= 1
+        self.held_bytes -= nbytes
+        self._lane_bytes[lane] -= nbytes
+        if queue:
+            self._lanes.move_to_end(lane)
+        else:
+            del self._lanes[lane]
+            del self._lane_bytes[lane]
+        return lane, item
 
     def lanes(self) -> list[Hashable]:
         """The lanes holding items now."""
