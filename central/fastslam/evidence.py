@@ -23,6 +23,23 @@ if TYPE_CHECKING:
     from central.fastslam.core import FastSlam
 
 
+def view_limits(slam: FastSlam, robot: RobotState) -> tuple[float, float, float]:
+    """(min range, max range, half field of view; inf when all round) of the robot's sensor as the filter uses it:
+    ``max_obs_range`` caps the range."""
+    spec, cap = robot.info.sensor, slam.config.max_obs_range
+    max_range = spec.max_range if cap is None else min(spec.max_range, cap)
+    return float(spec.min_range), float(max_range), 0.5 * spec.fov if spec.fov < 2.0 * np.pi else np.inf
+
+
+def visibility(zhat: np.ndarray, sigma_r, sigma_b, min_range: float, max_range: float, half_fov: float) -> np.ndarray:
+    """The chance that a detection predicted at ``zhat`` ``(..., 2)`` with σ ``sigma_r``, ``sigma_b`` (scalars or of
+    zhat's leading shape) falls inside the range limits and the field of view (inf: all round): soft edges."""
+    visible = ndtr((max_range - zhat[..., 0]) / sigma_r) * ndtr((zhat[..., 0] - min_range) / sigma_r)
+    if np.isfinite(half_fov):
+        visible *= ndtr((half_fov - np.abs(zhat[..., 1])) / sigma_b)
+    return visible
+
+
 def negative_evidence(slam: FastSlam, robot: RobotState, scan: ScanState, r: np.ndarray) -> None:
     """Weigh particles and age landmarks by the candidates near the robot that this scan did not associate.
 
@@ -39,10 +56,9 @@ def negative_evidence(slam: FastSlam, robot: RobotState, scan: ScanState, r: np.
     if k == 0:
         return
     spec = robot.info.sensor
-    max_range = spec.max_range if config.max_obs_range is None else min(spec.max_range, config.max_obs_range)
     sigma_r, sigma_b = np.sqrt(np.diag(r))
     p_detect = spec.detection_probability if config.detection_probability is None else config.detection_probability
-    limits = np.array([spec.min_range, max_range, 0.5 * spec.fov if spec.fov < 2.0 * np.pi else np.inf, sigma_r, sigma_b,
+    limits = np.array([*view_limits(slam, robot), sigma_r, sigma_b,
                        min(p_detect, config.max_detection_probability), config.exist_miss, config.exist_min,
                        np.inf if config.permanent_hits is None else config.permanent_hits])
     considered = scan.mask[:, :k] & ~scan.hit[:, :k]
@@ -64,10 +80,7 @@ def negative_evidence_reference(cand: np.ndarray, zhat: np.ndarray, considered: 
     ``valid`` in place; returns ``(P + 1,)``: each particle's Σ ln(1 − P_D·v), then the number of landmarks deleted.
     """
     min_range, max_range, half_fov, sigma_r, sigma_b, p_detect, exist_miss, exist_min, permanent = limits
-    visible = ndtr((max_range - zhat[..., 0]) / sigma_r) * ndtr((zhat[..., 0] - min_range) / sigma_r)
-    if np.isfinite(half_fov):
-        visible *= ndtr((half_fov - np.abs(zhat[..., 1])) / sigma_b)
-    visible = np.where(considered, visible, 0.0)
+    visible = np.where(considered, visibility(zhat, sigma_r, sigma_b, min_range, max_range, half_fov), 0.0)
     log_miss = np.log1p(-p_detect * visible)
     rows, cols = np.nonzero(visible > 0.01)
     slots = cand[rows, cols]

@@ -31,9 +31,9 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy.special import ndtr
 
 from central.fastslam import kernels
+from central.fastslam.evidence import view_limits, visibility
 from robots.models import wrap_angle
 
 if TYPE_CHECKING:
@@ -119,13 +119,10 @@ def observe(slam: FastSlam, robot: RobotState, slots: np.ndarray, confirmed: np.
     gated with, ``r`` the sensor's noise.
     """
     config, state = slam.config, slam.silences
-    spec = robot.info.sensor
-    max_range = spec.max_range if config.max_obs_range is None else min(spec.max_range, config.max_obs_range)
-    half_fov = 0.5 * spec.fov if spec.fov < 2.0 * math.pi else math.inf
     views, counts = state.fit(slam.map.capacity, robot.robot_id)
     scan = kernels.silence_kernel if config.compiled else silence_reference
-    ended, deleted = scan(slots, confirmed, hit, zhat, h_x, own, pose_cov, r, float(spec.min_range), float(max_range),
-                          half_fov, state.silence, views, counts, slam.gate, current_threshold(slam))
+    ended, deleted = scan(slots, confirmed, hit, zhat, h_x, own, pose_cov, r, *view_limits(slam, robot), state.silence,
+                          views, counts, slam.gate, current_threshold(slam))
     if ended.size:
         state.ended.extend(ended.tolist())
         state.ended_total += ended.size
@@ -159,10 +156,7 @@ def silence_reference(slots, confirmed, hit, zhat, h_x, own, pose_cov, r, min_ra
     if pinned == 0:
         return ended, deleted
     s = own + np.einsum("kij,jl,kml->kim", h_x, pose_cov, h_x) + r
-    sr, sb = np.sqrt(s[:, 0, 0]), np.sqrt(s[:, 1, 1])
-    v = ndtr((max_range - zhat[:, 0]) / sr) * ndtr((zhat[:, 0] - min_range) / sr)
-    if np.isfinite(half_fov):
-        v = v * ndtr((half_fov - np.abs(zhat[:, 1])) / sb)
+    v = visibility(zhat, np.sqrt(s[:, 0, 0]), np.sqrt(s[:, 1, 1]), min_range, max_range, half_fov)
     bins = np.clip((zhat[:, 0] / max_range * RANGE_BINS).astype(np.int64), 0, RANGE_BINS - 1)
     chance = (counts[0, bins] + 1.0) / (counts[1, bins] + 2.0)
     step = zhat - views[slots]
