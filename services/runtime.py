@@ -396,7 +396,7 @@ class ServiceShell:
             for arrival, stream in roster.refilled(rid):
                 await self._take(rid, stream, arrival)
             return
-        if rid in self._refill_on_return and tag in ("odom", "scan"):  # heard again: asked once more for its history
+        if rid in self._refill_on_return and tag in STREAM_TAGS:  # heard again: asked once more for its history
             self._refill_on_return.discard(rid)
             self._refill_asked_again.add(rid)
             log.info("%s: robot %s is heard again: asked once more for its history", self.name, rid)
@@ -489,7 +489,7 @@ class ServiceShell:
 
         def on_payload(reply_key: str, payload: bytes, replier: str | None) -> None:
             parsed = self.keys.parse_robot_key(reply_key)
-            if parsed is None or parsed[1] not in ("odom", "scan"):
+            if parsed is None or parsed[1] not in STREAM_TAGS:
                 return
             if len(payload) > budget["bytes"]:
                 budget["dropped"] += 1
