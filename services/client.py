@@ -93,7 +93,6 @@ class RobotLink:
         self.info = info
         self.robot_id = check_robot_id(info.robot_id)
         self.keys = Keys(prefix)
-        self.info_period_s = info_period_s
         if info_max_period_s is None:
             info_max_period_s = FleetSettings.model_fields["info_max_period_s"].default
         self.info_schedule = InfoSchedule(info_period_s, info_max_period_s)
