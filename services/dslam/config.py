@@ -95,8 +95,9 @@ class DslamConfig(CoreConfig):
         16, ge=1, description="the mean is checked against I X = i (PCG, O(nnz)) every this many scans; in between the "
         "rank-k corrections keep it exact (1: every scan, the reference)")
     relocalize_after: int = Field(
-        10, ge=1, description="scans in a row whose observation estimate contradicts the prediction before the robot is relocalized"
-    )
+        10, ge=1, description="scans whose full-rank observation estimate contradicts the prediction, with no "
+        "full-rank agreement between them (one landmark's sighting leaves a turn free: it neither agrees nor "
+        "disagrees), before the robot is relocalized")
     reacquire: bool = Field(
         True, description="without ids, a robot whose position std exceeds reacquire_position_sd is lost: its scans "
         "neither map nor localize it (the association that makes z_map and the observation estimate is made from the "

@@ -551,9 +551,12 @@ class DSlam:
         """CI of the process-model estimate with the estimate from the mapped landmarks seen (§2.3).
 
         When the two disagree beyond any doubt, the observations are set aside (a
-        misread feature, an ambiguous pair); after ``relocalize_after`` such scans in
-        a row the robot is taken to have been moved and the observation estimate
-        replaces the prediction.
+        misread feature, an ambiguous pair); after ``relocalize_after`` such scans
+        with no full-rank agreement between them the robot is taken to have been
+        moved and the observation estimate replaces the prediction. A scan of one
+        landmark leaves a turn free, so it may agree with a wrong pose: it does not
+        reset the count (MR.CLAM 1 without ids: a robot 34° off took single sightings
+        of the neighbouring landmarks as agreement and stayed off).
         """
         if index.size == 0 or (robot.pose is None and index.size < 2):
             return
@@ -586,8 +589,8 @@ class DSlam:
         robot.pose, robot.cov, robot.omega = localize(robot.pose, robot.cov, estimate, self.config.ci_criterion)
         if estimate.full_rank:  # the heading is observed again
             robot.turn_slip = 0.0
+            robot.disagreements = 0
         robot.localized = True
-        robot.disagreements = 0
 
     # ---------------------------------------------------------- feature lists
     def _bookkeep(self, robot: RobotState, obs: np.ndarray, noise: np.ndarray, kinds: np.ndarray, refs: np.ndarray,
