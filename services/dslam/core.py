@@ -555,8 +555,8 @@ class DSlam:
         with no full-rank agreement between them the robot is taken to have been
         moved and the observation estimate replaces the prediction. A scan of one
         landmark leaves a turn free, so it may agree with a wrong pose: it does not
-        reset the count (MR.CLAM 1 without ids: a robot 34° off took single sightings
-        of the neighbouring landmarks as agreement and stayed off).
+        reset the count (MR.CLAM 1 without ids: a robot 34° off paired single
+        detections with the neighbouring landmarks, and each reset the count).
         """
         if index.size == 0 or (robot.pose is None and index.size < 2):
             return

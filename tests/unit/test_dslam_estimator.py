@@ -359,7 +359,8 @@ def relocalized_after_interleaved_sightings(steps: int) -> tuple[DSlam, np.ndarr
 def test_a_sighting_of_one_landmark_does_not_cancel_the_full_rank_estimates_that_contradict_the_pose():
     """After ``relocalize_after`` scans whose full-rank estimate contradicts the prediction the robot is put where
     they say. One landmark leaves a turn free: such a scan could agree with a wrong pose and, counted as agreement,
-    reset the count every other scan (MR.CLAM Dataset 1 without ids: a robot 34° off stayed off to the end)."""
+    reset the count every other scan (MR.CLAM Dataset 1 without ids: a robot 34° off paired single detections with
+    the neighbouring landmarks between its full-rank estimates)."""
     steps = DslamConfig().relocalize_after
     estimator, truth = relocalized_after_interleaved_sightings(steps - 1)
     assert estimator.counts["relocalized"] == 0 and estimator.robots["r1"].disagreements == steps - 1
