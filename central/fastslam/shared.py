@@ -248,10 +248,18 @@ def _age_tentative(slam: FastSlam, ids: np.ndarray, slots: np.ndarray, in_view: 
         if misses < slam.config.tentative_misses:
             slam.tentative_misses[lid] = misses
             continue
+        drop_landmarks(slam, np.array([slot]))
+        slam.counts["landmarks_dropped_tentative"] += 1
+
+
+def drop_landmarks(slam: FastSlam, slots: np.ndarray) -> None:
+    """Remove the landmarks in map ``slots`` (a tentative one dropped, a confirmed one silenced): their ids leave the
+    known-landmark table and the tentative misses, their slots are released for reuse."""
+    for slot in slots.tolist():
+        lid = int(slam.map.label[slot])
         slam.tentative_misses.pop(lid, None)
         del slam.known_slots[lid]
-        slam.map.release(np.array([slot]))
-        slam.counts["landmarks_dropped_tentative"] += 1
+    slam.map.release(slots)
 
 
 def confirmed_near(slam: FastSlam, point: np.ndarray, radius: float) -> np.ndarray:

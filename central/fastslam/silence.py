@@ -129,13 +129,11 @@ def observe(slam: FastSlam, robot: RobotState, slots: np.ndarray, confirmed: np.
         if len(state.ended) > config.silence_memory:
             del state.ended[: len(state.ended) - config.silence_memory]
     if deleted.any():
+        from central.fastslam.shared import drop_landmarks  # here: shared imports this module
+
         gone = slots[deleted]
         state.forget(gone)
-        for slot in gone.tolist():
-            lid = int(slam.map.label[slot])
-            slam.tentative_misses.pop(lid, None)
-            del slam.known_slots[lid]
-        slam.map.release(gone)
+        drop_landmarks(slam, gone)
         slam.counts["landmarks_silenced"] += int(gone.size)
 
 
