@@ -39,6 +39,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from robots.models import wrap_angle
 from schemas.contract import Event, OdomEvent, ScanEvent
 from schemas.messages import RobotInfo
 from services.mcl.config import MclConfig
@@ -56,6 +57,27 @@ def withhold_start_poses(infos: list[RobotInfo], mode: str) -> list[RobotInfo]:
     keep = {"known": len(infos), "first": 1, "none": 0}[mode]
     return [info if k < keep else info.model_copy(update={"start_pose": None, "start_pose_cov": None})
             for k, info in enumerate(infos)]
+
+
+def draw_start_poses(infos: list[RobotInfo], seed: int) -> list[RobotInfo]:
+    """The robots' infos with each start pose drawn from its announced covariance (seed 0: as announced).
+
+    A start pose is a measurement: a user who surveyed it knows it within its covariance, not exactly. An estimator
+    that draws nothing at random (D-SLAM) gives one run per data set; drawing its start poses this way gives it
+    seeds, so a change to it can be judged against a spread. Robots without a start pose or a covariance are kept.
+    """
+    if seed == 0:
+        return list(infos)
+    rng = np.random.default_rng(seed)
+    drawn = []
+    for info in infos:
+        if info.start_pose is None or info.start_pose_cov is None:
+            drawn.append(info)
+            continue
+        pose = rng.multivariate_normal(np.asarray(info.start_pose, float), np.asarray(info.start_pose_cov, float))
+        pose[2] = wrap_angle(pose[2])
+        drawn.append(info.model_copy(update={"start_pose": pose}))
+    return drawn
 
 
 def anchor_due(waiting: dict[str, float], now: float, after_s: float) -> str | None:

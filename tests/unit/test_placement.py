@@ -11,7 +11,7 @@ from robots.simulator import simulate
 from schemas.contract import RunOptions
 from services.evaluation.metrics import Trajectory, fleet_alignment, transform_points
 from services.offline import run_estimator
-from services.placement import PlacementCheck, withhold_start_poses
+from services.placement import PlacementCheck, draw_start_poses, withhold_start_poses
 
 
 def test_withholding_start_poses_keeps_only_what_the_mode_says():
@@ -21,6 +21,24 @@ def test_withholding_start_poses_keeps_only_what_the_mode_says():
     assert [i.start_pose is not None for i in withhold_start_poses(infos, "none")] == [False, False, False]
     with pytest.raises(ValueError, match="known, first, none"):
         withhold_start_poses(infos, "some")
+
+
+def test_start_poses_drawn_by_a_seed_scatter_as_their_announced_covariance():
+    infos = [log.info for log in simulate("arena", robots=3, seed=0, duration=1.0).robots.values()]
+    cov = np.array([[0.04, 0.02, 0.0], [0.02, 0.02, 0.0], [0.0, 0.0, 0.09]])
+    infos[0] = infos[0].model_copy(update={"start_pose": np.array([1.0, -2.0, 3.1]), "start_pose_cov": cov})
+    infos[1] = infos[1].model_copy(update={"start_pose_cov": None})  # a pose without a covariance is kept
+    infos[2] = infos[2].model_copy(update={"start_pose": None, "start_pose_cov": None})
+    assert draw_start_poses(infos, 0) == infos  # seed 0: the poses as announced
+    first, again = draw_start_poses(infos, 7), draw_start_poses(infos, 7)
+    np.testing.assert_array_equal(first[0].start_pose, again[0].start_pose)  # a seed is one draw
+    assert first[1:] == infos[1:]
+    draws = np.array([draw_start_poses(infos, seed)[0].start_pose for seed in range(1, 801)])
+    assert np.all(np.abs(draws[:, 2]) <= np.pi)  # 3.1 rad ± 0.3: headings wrapped
+    offsets = draws - infos[0].start_pose
+    offsets[:, 2] = np.arctan2(np.sin(offsets[:, 2]), np.cos(offsets[:, 2]))
+    np.testing.assert_allclose(offsets.mean(axis=0), 0.0, atol=0.03)
+    np.testing.assert_allclose(np.cov(offsets.T), cov, atol=0.012)
 
 
 @pytest.mark.parametrize("association, world, seed, bound", [
