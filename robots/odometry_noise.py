@@ -21,6 +21,17 @@ multiplied, from data the filter cannot bias:
 
 It is the online form of ``benchmarks/odometry_noise.py``'s check (pairs of detections of one landmark against the
 model's prediction), with the shared association's ids instead of a distance gate.
+
+The same pairs measure a robot's turn scale s (its true turn is s × what its odometry says; MR.CLAM's robots
+over-count their turns by 5–12 % against Vicon), which no covariance can stand for: an error that always has one
+sign adds up over every turn, and a robot that turns blind comes back with its heading tens of degrees off. A turn
+of the dead reckoning over-counted by ε_k at the increment ending at x_k moves the place of a landmark at p by
+ε_k·J(p − x_k). With ε_k = (1 − s)·Δθ_k that is d ≈ (1 − s)·v, v = J(p·ΣΔθ_k − ΣΔθ_k x_k) (two more running
+sums). A pair's estimate of 1 − s, vᵀd/|v|², has the σ √(tr(P₁ + P₂))/|v| from the detections alone; it counts
+when that is at most ``TURN_SCALE_SD`` (0.1). Pairs with shorter levers (small turns, where MR.CLAM's odometry
+over-counts more in proportion) drew the scale 3–5 % below what the large turns show. Each counted pair steps the
+scale by the same kind of quantile tracker (the median, so a wrong association cannot throw it), and the motion turns by s × the odometry's turn (:attr:`OdometryNoiseGain.turn_scale`): the pairs then
+measure what is left of it.
 """
 
 from __future__ import annotations
@@ -32,6 +43,8 @@ import numpy as np
 from robots.models import wrap_angle
 
 CHI2_2_MEDIAN = 2.0 * math.log(2.0)
+TURN_SCALE_BOUNDS = (0.8, 1.25)  # a turn scale beyond these is not an odometry's calibration to learn
+TURN_SCALE_SD = 0.1  # a pair counts for the turn scale when it measures it this well (σ of its estimate)
 
 
 def increment_sums(cov: np.ndarray, heading: float, end: np.ndarray) -> list[float]:
@@ -56,7 +69,7 @@ def displacement_cov(sums, point) -> tuple[float, float, float]:
     ε_xy + ε_θ·J(point − x_k), so the covariance is Σ_k B_k Q_k B_kᵀ, B_k = [I | J(point − x_k)], which expands
     into the running sums of Q_xx, Q_xθ, Q_xθ w_kᵀ, Q_θθ, Q_θθ w_k and Q_θθ w_k w_kᵀ (w_k = J x_k):
     A + b uᵀ + u bᵀ − C − Cᵀ + q u uᵀ − u mᵀ − m uᵀ + W with u = J·point."""
-    a00, a01, _, a11, b0, b1, c00, c01, c10, c11, q, m0, m1, w00, w01, _, w11 = sums
+    a00, a01, _, a11, b0, b1, c00, c01, c10, c11, q, m0, m1, w00, w01, _, w11 = sums[:17]
     u0, u1 = -float(point[1]), float(point[0])
     xx = a00 + 2.0 * b0 * u0 - 2.0 * c00 + q * u0 * u0 - 2.0 * u0 * m0 + w00
     xy = a01 + b0 * u1 + u0 * b1 - c01 - c10 + q * u0 * u1 - u0 * m1 - m0 * u1 + w01
@@ -69,13 +82,18 @@ class OdometryNoiseGain:
     (the announced covariance, not the scaled one), ``scan`` with the scan's detections of identified landmarks."""
 
     def __init__(self, gain: float = 1.0, min_gain: float = 2.0**-6, max_gain: float = 1.0, step: float = 0.02,
-                 first_step: float = 0.5):
+                 first_step: float = 0.5, turn_scale_bounds: tuple[float, float] | None = None,
+                 turn_step: float = 0.002, turn_first_step: float = 0.03):
         self.gain = float(min(max(gain, min_gain), max_gain))
         self.min_gain, self.max_gain, self.step, self.first_step = min_gain, max_gain, step, first_step
         self.pose = [0.0, 0.0, 0.0]  # dead reckoning, in its own frame
-        self.sums = [0.0] * 17
+        self.sums = [0.0] * 20  # increment_sums' 17, then ΣΔθ, ΣΔθ x, ΣΔθ y (the turn scale's)
         self.anchors: dict[int, tuple[list, np.ndarray, np.ndarray]] = {}  # id → (sums, place, its covariance)
         self.pairs = 0
+        self.turn_scale = 1.0  # what the motion should multiply the odometry's turn by (1 while it does not adapt)
+        self.turn_scale_bounds = turn_scale_bounds  # None: the turn scale stays 1
+        self.turn_step, self.turn_first_step = turn_step, turn_first_step
+        self.turn_pairs = 0
 
     def move(self, delta, cov) -> None:
         """Compose one motion (``delta`` in the robot's frame, its announced covariance ``cov``) onto the dead
@@ -85,6 +103,7 @@ class OdometryNoiseGain:
         c, s = math.cos(heading), math.sin(heading)
         self.pose = [x + c * dx - s * dy, y + s * dx + c * dy, float(wrap_angle(heading + dt))]
         added = increment_sums(np.asarray(cov, float).tolist(), heading, self.pose)
+        added += [dt, dt * self.pose[0], dt * self.pose[1]]
         self.sums = [a + b for a, b in zip(self.sums, added)]
 
     def scan(self, offset: tuple[float, float], ids, z, r) -> None:
@@ -116,16 +135,37 @@ class OdometryNoiseGain:
                 self.anchors[lid] = (self.sums, place, cov)
                 continue
             sums, before, before_cov = anchor
-            xx, xy, yy = displacement_cov([a - b for a, b in zip(self.sums, sums)], place)
+            between = [a - b for a, b in zip(self.sums, sums)]
+            xx, xy, yy = displacement_cov(between, place)
             s00, s01, s11 = cov[0][0] + before_cov[0][0], cov[0][1] + before_cov[0][1], cov[1][1] + before_cov[1][1]
             if self.gain * (xx + yy) < s00 + s11:
                 continue  # the sensor's error would decide: this pair says nothing about the odometry
             self.anchors[lid] = (self.sums, place, cov)
             t00, t01, t11 = self.gain * xx + s00, self.gain * xy + s01, self.gain * yy + s11
             d0, d1 = place[0] - before[0], place[1] - before[1]
+            self.step_turn_scale(between[17:], place, (d0, d1), s00 + s11)
             d2 = (t11 * d0 * d0 - 2.0 * t01 * d0 * d1 + t00 * d1 * d1) / (t00 * t11 - t01 * t01)
             self.step_gain(d2 > CHI2_2_MEDIAN)
             self.pairs += 1
+
+    def step_turn_scale(self, turn_sums, place, d, sensor_trace: float) -> None:
+        """One pair's say on the turn scale (module docstring): ``turn_sums`` (ΣΔθ, ΣΔθ x, ΣΔθ y) between its two
+        detections, ``place`` the second, ``d`` their difference, ``sensor_trace`` tr(P₁ + P₂)."""
+        if self.turn_scale_bounds is None:
+            return
+        turned, mx, my = turn_sums
+        w0, w1 = place[0] * turned - mx, place[1] * turned - my
+        v0, v1 = -w1, w0  # v = J·w
+        lever = v0 * v0 + v1 * v1
+        if lever * TURN_SCALE_SD**2 < sensor_trace:
+            return  # the detections' own errors would blur what the turns between them did
+        over = (v0 * d[0] + v1 * d[1]) / lever  # 1 − s of what is left: > 0 when the odometry over-counts
+        if over == 0.0:
+            return
+        size = max(self.turn_step, self.turn_first_step / math.sqrt(self.turn_pairs + 1.0))
+        low, high = self.turn_scale_bounds
+        self.turn_scale = min(max(self.turn_scale * 2.0 ** (-size if over > 0 else size), low), high)
+        self.turn_pairs += 1
 
     def step_gain(self, looser: bool) -> None:
         """One step of the quantile tracker, in powers of 2: ``first_step``/√(pairs + 1), at least ``step``, so

@@ -9,6 +9,7 @@ from typing import TYPE_CHECKING, Literal
 
 from pydantic import Field, model_validator
 
+from robots.odometry_noise import TURN_SCALE_BOUNDS
 from schemas.contract import CoreConfig
 
 if TYPE_CHECKING:  # the re-acquisition module loads numba and scipy: every process reads this config, few search
@@ -109,6 +110,15 @@ class FastSlamConfig(CoreConfig):
     motion_noise_step: float = Field(0.02, gt=0.0, le=1.0, description="... the gain's step per pair of detections, in powers of 2")
     pose_noise_per_s: tuple[float, float, float] = Field(
         (0.0, 0.0, 0.0), description="extra σ (m, m, rad) per √s of motion: slip, unmodelled")
+    turn_scale_adapt: bool = Field(
+        False, description="shared association, (v, ω) odometry: each robot's turns are multiplied by a scale that "
+        "follows pairs of its detections of one landmark (robots/odometry_noise.py; MR.CLAM's robots over-count their "
+        "turns by 4-10 %). Off by default: with start poses it took MR.CLAM 6's worst robot (10 seeds) 0.40 / 1.30 -> "
+        "0.37 / 0.76 m and MR.CLAM 2's 0.86 / 1.20 -> 0.63 / 0.99 m, but without start poses MR.CLAM 4's spurious "
+        "landmarks went 1 -> 12 (median of 5 seeds) and MR.CLAM 6's worst robot 0.99 -> 1.61 m (docs/fastslam.md)")
+    turn_scale_bounds: tuple[float, float] = Field(
+        TURN_SCALE_BOUNDS, description="... the least and largest turn scale: odometry off by more than this is not "
+        "a calibration to learn")
     turn_slip: bool = Field(
         False, description="add the heading variance per radian turned that the robot announces (RobotInfo."
         "turn_slip_var, wheel slip) to the motion. Off: without ids it made MR.CLAM worse over 10 seeds (the wider "

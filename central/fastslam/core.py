@@ -288,6 +288,7 @@ class FastSlam:
         out = {"fastslam": self.stats()}
         if self.config.adapts_motion_noise:
             out["noise_gain"] = {rid: round(noise_gain.gain(robot), 4) for rid, robot in self.robots.items()}
+            out["turn_scale"] = {rid: round(noise_gain.turn_scale(robot), 4) for rid, robot in self.robots.items()}
         return out
 
     def stats(self) -> dict[str, float]:

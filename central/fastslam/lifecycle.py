@@ -124,7 +124,7 @@ def take_in(slam: FastSlam, info: RobotInfo, pose: np.ndarray, cov: np.ndarray) 
     slam.turn_gain = np.concatenate([slam.turn_gain, gain[:, None]], 1)
     model, sensor = robot_models(info)
     slam.robots[info.robot_id] = RobotState(index=slam.pose.shape[1] - 1, info=info, model=model, sensor=sensor,
-                                            odometry_noise=noise_gain.start(slam))
+                                            odometry_noise=noise_gain.start(slam, model.name))
 
 
 def placed(slam: FastSlam, robot_id: str) -> RobotState | None:

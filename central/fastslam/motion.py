@@ -46,6 +46,9 @@ def take_control(slam: FastSlam, robot: RobotState, event: OdomEvent) -> bool:
         slam.rejected["time_backwards"] += 1
         return False
     robot.last_odom_stamp = stamp
+    scale = noise_gain.turn_scale(robot)
+    if scale != 1.0:
+        control = control * (1.0, scale)
     start = stamp - dt
     if robot.pose_time is None:
         robot.pose_time = start

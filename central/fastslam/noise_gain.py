@@ -22,12 +22,21 @@ if TYPE_CHECKING:
     from central.fastslam.lifecycle import RobotState
 
 
-def start(slam: FastSlam) -> OdometryNoiseGain | None:
-    """A placed robot's estimator (None when the gain does not adapt)."""
+def start(slam: FastSlam, model_name: str) -> OdometryNoiseGain | None:
+    """A placed robot's estimator (None when the gain does not adapt). Its turn scale adapts too (``turn_scale_adapt``)
+    for a robot whose odometry is (v, ω): an Ackermann robot's turn comes from its steering through its wheelbase,
+    which one scale on the turn does not stand for."""
     config = slam.config
     if not config.adapts_motion_noise:
         return None
-    return OdometryNoiseGain(1.0, config.motion_noise_min_gain, config.motion_noise_max_gain, config.motion_noise_step)
+    bounds = config.turn_scale_bounds if config.turn_scale_adapt and model_name == "unicycle" else None
+    return OdometryNoiseGain(1.0, config.motion_noise_min_gain, config.motion_noise_max_gain, config.motion_noise_step,
+                             turn_scale_bounds=bounds)
+
+
+def turn_scale(robot: RobotState) -> float:
+    """What the robot's odometry turn is multiplied by before the particles move (1 when it does not adapt)."""
+    return 1.0 if robot.odometry_noise is None else robot.odometry_noise.turn_scale
 
 
 def gain(robot: RobotState) -> float:

@@ -368,3 +368,21 @@ def test_a_sighting_of_one_landmark_does_not_cancel_the_full_rank_estimates_that
     pose, _ = estimator.poses()["r1"]
     assert estimator.counts["relocalized"] == 1
     assert np.hypot(*(pose[:2] - truth[:2])) < 0.05 and abs(wrap_angle(pose[2] - truth[2])) < 0.02
+
+
+def test_without_ids_each_robots_turn_scale_follows_how_much_its_odometry_over_counts_its_turns():
+    """A robot whose odometry says 1 / 0.9 of every turn learns a turn scale near 0.9 from pairs of its detections of
+    one mapped landmark (robots/odometry_noise.py) and turns its pose by it (``turn_scale_adapt``); off (the default),
+    or with ids, the scale stays 1."""
+    data = simulate("arena", robots=1, seed=2, duration=120.0)
+    for log in data.robots.values():
+        log.odom_control = log.odom_control * (1.0, 1.0 / 0.9)
+
+    def learned(**settings) -> float:
+        estimator = run(DSlam(DslamConfig(**settings)), data)
+        odometry = estimator.robots["r1"].odometry
+        return 1.0 if odometry is None else odometry.turn_scale
+
+    assert 0.86 < learned(association="auto", turn_scale_adapt=True) < 0.94
+    assert learned(association="auto") == 1.0  # off by default
+    assert learned(association="known", turn_scale_adapt=True) == 1.0

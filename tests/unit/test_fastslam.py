@@ -674,6 +674,26 @@ def test_turn_gains_learn_how_much_a_robot_over_counts_its_turns():
     assert not draws_for_gains() and draws_for_gains(turn_gain_walk=0.002)
 
 
+def test_each_robots_turn_scale_follows_how_much_its_odometry_over_counts_its_turns():
+    """Shared association, ``turn_scale_adapt``: a fleet whose odometry says 1 / 0.9 of every turn learns a turn scale
+    near 0.9 from pairs of its detections (robots/odometry_noise.py) and turns its particles by it; off (the default),
+    the scale stays 1; an Ackermann robot's never adapts (its turn comes from the steering through the wheelbase)."""
+    from central.fastslam import noise_gain
+
+    data = simulate("arena", robots=2, seed=2, duration=120.0)
+    for log in data.robots.values():
+        log.odom_control = log.odom_control * (1.0, 1.0 / 0.9)
+    infos = [log.info for log in data.robots.values()]
+    slam = FastSlam(FastSlamConfig(particles=20, association="shared", seed=0, turn_scale_adapt=True), infos)
+    feed(slam, data)
+    scales = slam.extra_metrics()["turn_scale"]
+    assert all(0.86 < scale < 0.94 for scale in scales.values()), scales
+    fixed = FastSlam(FastSlamConfig(particles=20, association="shared", seed=0), infos)  # off by default
+    feed(fixed, data)
+    assert set(fixed.extra_metrics()["turn_scale"].values()) == {1.0}
+    assert noise_gain.start(slam, "ackermann").turn_scale_bounds is None
+
+
 @pytest.mark.parametrize("looser", [1.0, 16.0])
 def test_each_robots_odometry_noise_gain_follows_what_its_detections_show(looser):
     """Shared association: a fleet whose odometry announces ``looser`` times its real covariance draws a gain of it

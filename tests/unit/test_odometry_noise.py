@@ -94,3 +94,42 @@ def test_the_gain_stays_within_its_bounds():
         bounded.step_gain(False)
     assert bounded.gain == 0.5
     assert estimator.gain >= 2.0**-6
+
+
+def _drive_turning(true_scale: float, seed: int, steps: int = 4000, wrong_ids: float = 0.0,
+                   adapt: bool = True) -> OdometryNoiseGain:
+    """A robot weaving among landmarks whose true turn is ``true_scale`` × its odometry's; its motion turns by the
+    estimator's present turn scale × the odometry's, as FastSLAM's does. ``wrong_ids``: the share of detections
+    given a wrong landmark's id. The estimator after ``steps`` scans."""
+    rng = np.random.default_rng(seed)
+    landmarks = rng.uniform(-8.0, 8.0, (30, 2))
+    sensor = RangeBearingSensor((0.1, 0.0))
+    announced = np.diag([0.01**2, 0.002**2, 0.004**2])
+    r = np.diag([0.05**2, 0.01**2])
+    estimator = OdometryNoiseGain(1.0, 2.0**-6, 4.0, 0.02, turn_scale_bounds=(0.8, 1.25) if adapt else None)
+    pose = np.array([5.0, 0.0, np.pi / 2])
+    for k in range(steps):
+        odometry = np.array([0.1, 0.0, 0.02 + 0.06 * np.sin(k / 40.0)])  # a weave around a circle of radius 5 m
+        true = odometry * (1.0, 1.0, true_scale) + rng.multivariate_normal(np.zeros(3), announced)
+        pose = se2_compose(pose, true)
+        estimator.move(odometry * (1.0, 1.0, estimator.turn_scale), announced)
+        seen = sensor.observe(pose, landmarks)
+        view = (seen[:, 0] < 6.0) & (np.abs(seen[:, 1]) < 0.6)
+        ids = np.flatnonzero(view)
+        wrong = rng.random(ids.size) < wrong_ids
+        ids[wrong] = rng.integers(0, len(landmarks), int(wrong.sum()))
+        z = seen[view] + rng.multivariate_normal(np.zeros(2), r, ids.size)
+        z[:, 1] = wrap_angle(z[:, 1])
+        estimator.scan(sensor.offset, ids.tolist(), z, r)
+    return estimator
+
+
+@pytest.mark.parametrize("true_scale, wrong_ids", [(0.9, 0.0), (1.1, 0.0), (1.0, 0.0), (0.9, 0.1)])
+def test_the_turn_scale_finds_how_much_the_odometry_over_or_under_counts_its_turns(true_scale, wrong_ids):
+    estimator = _drive_turning(true_scale, seed=5, wrong_ids=wrong_ids)
+    assert estimator.turn_pairs > 80
+    assert abs(estimator.turn_scale - true_scale) < 0.025, estimator.turn_scale
+
+
+def test_the_turn_scale_stays_one_unless_it_adapts():
+    assert _drive_turning(0.9, seed=5, steps=500, adapt=False).turn_scale == 1.0
