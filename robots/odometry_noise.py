@@ -23,15 +23,15 @@ It is the online form of ``benchmarks/odometry_noise.py``'s check (pairs of dete
 model's prediction), with the shared association's ids instead of a distance gate.
 
 The same pairs measure a robot's turn scale s (its true turn is s × what its odometry says; MR.CLAM's robots
-over-count their turns by 5–12 % against Vicon), which no covariance can stand for: an error that always has one
+over-count their turns by 4–10 %), which no covariance can stand for: an error that always has one
 sign adds up over every turn, and a robot that turns blind comes back with its heading tens of degrees off. A turn
 of the dead reckoning over-counted by ε_k at the increment ending at x_k moves the place of a landmark at p by
 ε_k·J(p − x_k). With ε_k = (1 − s)·Δθ_k that is d ≈ (1 − s)·v, v = J(p·ΣΔθ_k − ΣΔθ_k x_k) (two more running
 sums). A pair's estimate of 1 − s, vᵀd/|v|², has the σ √(tr(P₁ + P₂))/|v| from the detections alone; it counts
 when that is at most ``TURN_SCALE_SD`` (0.1). Pairs with shorter levers (small turns, where MR.CLAM's odometry
 over-counts more in proportion) drew the scale 3–5 % below what the large turns show. Each counted pair steps the
-scale by the same kind of quantile tracker (the median, so a wrong association cannot throw it), and the motion turns by s × the odometry's turn (:attr:`OdometryNoiseGain.turn_scale`): the pairs then
-measure what is left of it.
+scale by the same kind of quantile tracker (the median, so a wrong association cannot throw it), and the motion
+turns by s × the odometry's turn (:attr:`OdometryNoiseGain.turn_scale`): the pairs then measure what is left of it.
 """
 
 from __future__ import annotations

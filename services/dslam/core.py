@@ -111,7 +111,7 @@ class RobotState:
     robot_checks: list = field(default_factory=list)  # (stamp, robot seen, explained): reacquire.contradicted
     deferred: tuple = ()  # scans kept, without a pose, until the columns of their mapped landmarks are solved
     wanted: tuple = ()  # ... those landmarks (DSlam.column_prefetch solves them first)
-    odometry: OdometryNoiseGain | None = None  # its turn scale (turn_scale_adapt): its odometry's turns × this
+    odometry_noise: OdometryNoiseGain | None = None  # its turn scale (turn_scale_adapt): its odometry's turns × it
 
     def __post_init__(self) -> None:
         self.model, self.sensor = robot_models(self.info)
@@ -119,7 +119,7 @@ class RobotState:
     def __setstate__(self, state: dict) -> None:
         """Restore a pickled robot (a checkpoint), also one written before it kept its robot detections."""
         state.setdefault("robot_checks", [])
-        state.setdefault("odometry", None)
+        state.setdefault("odometry_noise", None)
         self.__dict__.update(state)
 
     @property
@@ -204,7 +204,7 @@ class DSlam:
         cov = None
         if pose is not None:
             cov = np.diag([1e-9, 1e-9, 1e-12]) if info.start_pose_cov is None else np.asarray(info.start_pose_cov, float)
-        self.robots[info.robot_id] = RobotState(info, pose, cov, odometry=self._turn_scale(info))
+        self.robots[info.robot_id] = RobotState(info, pose, cov, odometry_noise=self._turn_scale(info))
 
     def _turn_scale(self, info: RobotInfo) -> OdometryNoiseGain | None:
         """The estimator of a robot's turn scale (robots/odometry_noise.py; its covariance gain stays 1): without ids,
@@ -312,17 +312,17 @@ class DSlam:
         control = np.asarray(event.control, float)
         if np.any(control != 0.0):
             robot.moved = True
-        if robot.odometry is not None:
-            control = control * (1.0, robot.odometry.turn_scale)
+        if robot.odometry_noise is not None:
+            control = control * (1.0, robot.odometry_noise.turn_scale)
         if robot.local is not None:
             robot.local.predict(robot.model, control, event.control_cov, event.dt)
         if robot.pose is None:
             return
         heading = robot.pose[2]
         robot.pose, robot.cov = predict(robot.pose, robot.cov, robot.model, control, event.control_cov, event.dt)
-        if robot.odometry is not None:  # the increment in the robot's frame, and its covariance, to its dead reckoning
+        if robot.odometry_noise is not None:  # the increment (robot's frame) and its covariance: its dead reckoning
             _, f_control = robot.model.jacobians(np.zeros(3), control, event.dt)
-            robot.odometry.move(robot.model.step(np.zeros(3), control, event.dt),
+            robot.odometry_noise.move(robot.model.step(np.zeros(3), control, event.dt),
                                 f_control @ np.asarray(event.control_cov, float) @ f_control.T)
         if self.config.turn_slip:
             robot.turn_slip += turn_slip(robot.info.turn_slip_var, robot.pose[2] - heading)
@@ -386,8 +386,8 @@ class DSlam:
         mapped = np.flatnonzero(kinds == MAPPED)
         phase_one = robot.in_phase_one(mapped.size, self.config.bootstrap_std)
         robot.observed = refs[mapped]
-        if robot.odometry is not None and mapped.size:
-            robot.odometry.scan(robot.sensor.offset, refs[mapped].tolist(), obs[mapped], noise)
+        if robot.odometry_noise is not None and mapped.size:
+            robot.odometry_noise.scan(robot.sensor.offset, refs[mapped].tolist(), obs[mapped], noise)
         if not phase_one:
             self._localize(robot, obs[mapped], noise, refs[mapped])
         confirmed = self._bookkeep(robot, obs, noise, kinds, refs, phase_one)

@@ -380,8 +380,8 @@ def test_without_ids_each_robots_turn_scale_follows_how_much_its_odometry_over_c
 
     def learned(**settings) -> float:
         estimator = run(DSlam(DslamConfig(**settings)), data)
-        odometry = estimator.robots["r1"].odometry
-        return 1.0 if odometry is None else odometry.turn_scale
+        odometry_noise = estimator.robots["r1"].odometry_noise
+        return 1.0 if odometry_noise is None else odometry_noise.turn_scale
 
     assert 0.86 < learned(association="auto", turn_scale_adapt=True) < 0.94
     assert learned(association="auto") == 1.0  # off by default
