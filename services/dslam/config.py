@@ -50,8 +50,9 @@ class DslamConfig(CoreConfig):
     turn_scale_adapt: bool = Field(
         False, description="without ids, (v, ω) odometry: each robot's turns are multiplied by a scale learned from "
         "pairs of its detections of one mapped landmark placed by its own dead reckoning (robots/odometry_noise.py, as "
-        "FastSLAM's). Off by default: with start poses it took the worst robot of MR.CLAM 1 / 2 / 4 / 6 from 1.67 / "
-        "0.90 / 0.55 / 0.66 to 1.56 / 1.48 / 0.55 / 0.31 m (MR.CLAM 2's map 0.12 -> 0.20 m against the survey)")
+        "FastSLAM's). Off by default: with start poses (seeds 0-4) it took the worst robot's median on MR.CLAM 1 / 2 / "
+        "4 / 6 from 1.67 / 1.26 / 0.86 / 0.66 to 1.57 / 0.81 / 0.51 / 0.31 m, but MR.CLAM 1's map 0.10 -> 0.19 m and "
+        "one seed of MR.CLAM 1 and 4 beyond 3 m (docs/dslam.md)")
     turn_scale_bounds: tuple[float, float] = Field(TURN_SCALE_BOUNDS, description="... the least and largest turn scale")
     new_feature_density: float = Field(1e-3, gt=0, description="expected new features per m·rad of measurement space")
     candidate_margin: float = Field(1.0, ge=0, description="landmarks up to max range + this (m) are association candidates")
