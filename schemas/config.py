@@ -384,6 +384,7 @@ def add_settings_arguments(parser: argparse.ArgumentParser, settings_cls: type[B
         default_text = "" if field.is_required() else f" (default: {field.get_default(call_default_factory=True)})"
         choice_text = f"; one of: {', '.join(map(str, choices))}" if choices else ""
         help_text = f"{field.description or name}{choice_text}{default_text} [{ENV_PREFIX}{name.upper()}]"
+        help_text = help_text.replace("%", "%%")  # argparse formats help with %: a "4-10 %" would end --help
         metavar = "{" + ",".join(map(str, choices)) + "}" if choices else None
         if is_bool:
             group.add_argument(*flags, dest=name, default=None, action=argparse.BooleanOptionalAction, help=help_text)
