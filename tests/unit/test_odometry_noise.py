@@ -55,6 +55,21 @@ def test_displacement_cov_agrees_with_sampled_dead_reckoning():
     assert np.allclose([[xx, xy], [xy, yy]], sampled, rtol=0.08, atol=2e-4)
 
 
+def _detect(rng, sensor: RangeBearingSensor, pose: np.ndarray, landmarks: np.ndarray, r: np.ndarray,
+            wrong_ids: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """(ids, noisy range-bearing rows) of the landmarks within 6 m and ±0.6 rad of ``pose``; ``wrong_ids``: the
+    share of detections given a wrong landmark's id."""
+    seen = sensor.observe(pose, landmarks)
+    view = (seen[:, 0] < 6.0) & (np.abs(seen[:, 1]) < 0.6)
+    ids = np.flatnonzero(view)
+    if wrong_ids:
+        wrong = rng.random(ids.size) < wrong_ids
+        ids[wrong] = rng.integers(0, len(landmarks), int(wrong.sum()))
+    z = seen[view] + rng.multivariate_normal(np.zeros(2), r, ids.size)
+    z[:, 1] = wrap_angle(z[:, 1])
+    return ids, z
+
+
 def _drive(fraction: float, seed: int, steps: int = 6000) -> OdometryNoiseGain:
     """A robot circling among landmarks whose odometry's real noise is ``fraction`` of what it announces; every
     landmark within 6 m and ±0.6 rad is detected with its id. The estimator's gain after ``steps`` scans."""
@@ -70,11 +85,7 @@ def _drive(fraction: float, seed: int, steps: int = 6000) -> OdometryNoiseGain:
         true = delta + rng.multivariate_normal(np.zeros(3), fraction * announced)
         pose = se2_compose(pose, true)
         estimator.move(delta, announced)
-        seen = sensor.observe(pose, landmarks)
-        view = (seen[:, 0] < 6.0) & (np.abs(seen[:, 1]) < 0.6)
-        ids = np.flatnonzero(view)
-        z = seen[view] + rng.multivariate_normal(np.zeros(2), r, ids.size)
-        z[:, 1] = wrap_angle(z[:, 1])
+        ids, z = _detect(rng, sensor, pose, landmarks, r)
         estimator.scan(sensor.offset, ids.tolist(), z, r)
     return estimator
 
@@ -99,8 +110,8 @@ def test_the_gain_stays_within_its_bounds():
 def _drive_turning(true_scale: float, seed: int, steps: int = 4000, wrong_ids: float = 0.0,
                    adapt: bool = True) -> OdometryNoiseGain:
     """A robot weaving among landmarks whose true turn is ``true_scale`` × its odometry's; its motion turns by the
-    estimator's present turn scale × the odometry's, as FastSLAM's does. ``wrong_ids``: the share of detections
-    given a wrong landmark's id. The estimator after ``steps`` scans."""
+    estimator's present turn scale × the odometry's, as FastSLAM's does (``wrong_ids``: see :func:`_detect`). The
+    estimator after ``steps`` scans."""
     rng = np.random.default_rng(seed)
     landmarks = rng.uniform(-8.0, 8.0, (30, 2))
     sensor = RangeBearingSensor((0.1, 0.0))
@@ -113,13 +124,7 @@ def _drive_turning(true_scale: float, seed: int, steps: int = 4000, wrong_ids: f
         true = odometry * (1.0, 1.0, true_scale) + rng.multivariate_normal(np.zeros(3), announced)
         pose = se2_compose(pose, true)
         estimator.move(odometry * (1.0, 1.0, estimator.turn_scale), announced)
-        seen = sensor.observe(pose, landmarks)
-        view = (seen[:, 0] < 6.0) & (np.abs(seen[:, 1]) < 0.6)
-        ids = np.flatnonzero(view)
-        wrong = rng.random(ids.size) < wrong_ids
-        ids[wrong] = rng.integers(0, len(landmarks), int(wrong.sum()))
-        z = seen[view] + rng.multivariate_normal(np.zeros(2), r, ids.size)
-        z[:, 1] = wrap_angle(z[:, 1])
+        ids, z = _detect(rng, sensor, pose, landmarks, r, wrong_ids)
         estimator.scan(sensor.offset, ids.tolist(), z, r)
     return estimator
 
