@@ -47,6 +47,10 @@ class DslamConfig(CoreConfig):
         "without it a turning MR.CLAM robot's heading error grows to 0.8 rad while its heading std stays at "
         "0.08–0.10 rad, and no detection gates again. The fused pose keeps the odometry's covariance: the slip in "
         "the prediction too made MR.CLAM with barcodes worse in every subset of robots tried")
+    turn_slip_in_localization_gate: bool = Field(
+        False, description="with turn_slip, the test that sets aside a full-rank localization beyond any doubt from "
+        "the prediction widens the prediction's heading variance by the same slip (the fused pose still keeps the "
+        "odometry's covariance)")
     turn_scale_adapt: bool = Field(
         False, description="without ids, (v, ω) odometry: each robot's turns are multiplied by a scale learned from "
         "pairs of its detections of one mapped landmark placed by its own dead reckoning (robots/odometry_noise.py, as "

@@ -386,3 +386,37 @@ def test_without_ids_each_robots_turn_scale_follows_how_much_its_odometry_over_c
     assert 0.86 < learned(association="auto", turn_scale_adapt=True) < 0.94
     assert learned(association="auto") == 1.0  # off by default
     assert learned(association="known", turn_scale_adapt=True) == 1.0
+
+
+def after_a_slipping_turn(in_gate: bool) -> tuple[DSlam, float]:
+    """A robot announcing a turn slip of 0.015 rad² per rad turns a full circle on the spot; its odometry over-counts
+    the turn by 20° while its heading σ stays at about 2°. It then sees three mapped landmarks. (The estimator, the
+    true heading.)"""
+    estimator = DSlam(DslamConfig(association="known", turn_slip_in_localization_gate=in_gate))
+    estimator.load_landmarks([1, 2, 3], [[3.0, 0.0], [0.0, 3.0], [3.0, 3.0]], np.repeat(1e-6 * np.eye(2)[None], 3, 0))
+    info = simulate("arena", robots=1, duration=1.0).robots["r1"].info
+    estimator.add_robot(info.model_copy(update={"start_pose": (0.0, 0.0, 0.0), "turn_slip_var": 0.015,
+                                                "start_pose_cov": np.diag([1e-4, 1e-4, np.deg2rad(1.0) ** 2])}))
+    steps = 100
+    for k in range(steps):
+        estimator.on_odometry(OdomEvent("r1", k, 0.1 * k, 0.1, np.array([0.0, 2 * np.pi / (steps * 0.1)]),
+                                        np.diag([1e-6, 1e-5])))
+    robot = estimator.robots["r1"]
+    truth = np.array([0.0, 0.0, robot.pose[2] - np.deg2rad(20.0)])
+    z = robot.sensor.observe(truth, np.array([[3.0, 0.0], [0.0, 3.0], [3.0, 3.0]]))
+    estimator.on_scan(ScanEvent("r1", 0, 10.0, z[:, 0], z[:, 1], np.array([1, 2, 3]), np.diag([1e-4, 1e-5])))
+    return estimator, truth[2]
+
+
+def test_the_turn_slip_widens_the_test_of_a_full_rank_localization_that_contradicts_the_prediction():
+    """After turning blind, a robot's heading may be off by far more than its odometry's σ says. The slip it
+    announces widens the association's gate; with ``turn_slip_in_localization_gate`` it also widens the test that
+    sets aside a full-rank localization beyond doubt, so three landmarks that show the 20° are believed at once."""
+    estimator, heading = after_a_slipping_turn(in_gate=True)
+    pose, _ = estimator.poses()["r1"]
+    assert estimator.counts["localization_rejected"] == 0
+    assert abs(wrap_angle(pose[2] - heading)) < np.deg2rad(3.0)
+    estimator, heading = after_a_slipping_turn(in_gate=False)
+    pose, _ = estimator.poses()["r1"]
+    assert estimator.counts["localization_rejected"] == 1
+    assert abs(wrap_angle(pose[2] - heading)) > np.deg2rad(15.0)
