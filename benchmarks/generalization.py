@@ -334,7 +334,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--datasets", default=",".join(DATASETS), help=f"comma-separated, of: {', '.join(DATASETS)}")
     parser.add_argument("--estimators", default="fastslam,dslam")
-    parser.add_argument("--start-poses", default="known,none", help="known, none or both (MR.CLAM only for none)")
+    parser.add_argument("--start-poses", default="known,none",
+                        help="comma-separated, of: known, none (none on MR.CLAM only)")
     parser.add_argument("--seeds", type=int, default=5, help="how many seeds: FIRST..FIRST+N-1")
     parser.add_argument("--first-seed", type=int, default=0)
     parser.add_argument("--particles", type=int, default=100)
@@ -371,6 +372,8 @@ def main() -> None:
     if unknown:
         parser.error(f"unknown data sets {unknown}; choose from {', '.join(DATASETS)}")
     modes = args.start_poses.split(",")
+    if set(modes) - {"known", "none"}:
+        parser.error(f"--start-poses takes known, none or known,none, not {args.start_poses!r}")
     seeds = list(range(args.first_seed, args.first_seed + args.seeds))
     settings = {"fastslam": dict(args.settings), "dslam": dict(args.dslam_settings)}
     truthless = [n for n in names if n in ("mrclam1", "mrclam2", "mrclam4")]
