@@ -596,8 +596,10 @@ class DSlam:
             cov = np.linalg.inv(estimate.info)
             delta = estimate.pose - robot.pose
             delta[2] = wrap_angle(delta[2])
-            slip = robot.turn_slip if self.config.turn_slip_in_localization_gate else 0.0
-            if delta @ np.linalg.solve(robot.cov + np.diag([0.0, 0.0, slip]) + cov, delta) > LOCALIZATION_GATE:
+            spread = robot.cov + cov
+            if self.config.turn_slip_in_localization_gate:
+                spread[2, 2] += robot.turn_slip
+            if delta @ np.linalg.solve(spread, delta) > LOCALIZATION_GATE:
                 robot.disagreements += 1
                 if robot.disagreements < self.config.relocalize_after:
                     self.counts["localization_rejected"] += 1

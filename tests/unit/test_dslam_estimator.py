@@ -336,14 +336,24 @@ def test_a_robot_checkpointed_before_it_kept_robot_detections_restores():
     assert restored.robot_checks == [] and restored.contradicted is False
 
 
+MAPPED_LANDMARKS = np.array([[3.0, 0.0], [0.0, 3.0], [3.0, 3.0]])
+
+
+def one_robot_among_three_mapped_landmarks(robot: dict, **config) -> DSlam:
+    """D-SLAM with ids (``config`` added) holding :data:`MAPPED_LANDMARKS` (ids 1, 2, 3) as if surveyed, and one
+    arena robot r1 whose RobotInfo is updated by ``robot``."""
+    estimator = DSlam(DslamConfig(association="known", **config))
+    estimator.load_landmarks([1, 2, 3], MAPPED_LANDMARKS, np.repeat(1e-6 * np.eye(2)[None], 3, 0))
+    info = simulate("arena", robots=1, duration=1.0).robots["r1"].info
+    estimator.add_robot(info.model_copy(update=robot))
+    return estimator
+
+
 def relocalized_after_interleaved_sightings(steps: int) -> tuple[DSlam, np.ndarray]:
     """A robot sure of a pose 0.6 m and 10° off localizes against three mapped landmarks every other scan and
     against one of them in between. (The estimator after ``steps`` such pairs, the true pose.)"""
-    estimator = DSlam(DslamConfig(association="known"))
-    estimator.load_landmarks([1, 2, 3], [[3.0, 0.0], [0.0, 3.0], [3.0, 3.0]], np.repeat(1e-6 * np.eye(2)[None], 3, 0))
-    info = simulate("arena", robots=1, duration=1.0).robots["r1"].info
-    estimator.add_robot(info.model_copy(update={"start_pose": (0.6, -0.3, np.deg2rad(10.0)),
-                                                "start_pose_cov": np.diag([1e-4, 1e-4, 1e-5])}))
+    estimator = one_robot_among_three_mapped_landmarks({"start_pose": (0.6, -0.3, np.deg2rad(10.0)),
+                                                        "start_pose_cov": np.diag([1e-4, 1e-4, 1e-5])})
     robot = estimator.robots["r1"]
     truth = np.array([0.0, 0.0, np.pi / 4])
     robot.pose[2] += truth[2]
@@ -392,18 +402,16 @@ def after_a_slipping_turn(in_gate: bool) -> tuple[DSlam, float]:
     """A robot announcing a turn slip of 0.015 rad² per rad turns a full circle on the spot; its odometry over-counts
     the turn by 20° while its heading σ stays at about 2°. It then sees three mapped landmarks. (The estimator, the
     true heading.)"""
-    estimator = DSlam(DslamConfig(association="known", turn_slip_in_localization_gate=in_gate))
-    estimator.load_landmarks([1, 2, 3], [[3.0, 0.0], [0.0, 3.0], [3.0, 3.0]], np.repeat(1e-6 * np.eye(2)[None], 3, 0))
-    info = simulate("arena", robots=1, duration=1.0).robots["r1"].info
-    estimator.add_robot(info.model_copy(update={"start_pose": (0.0, 0.0, 0.0), "turn_slip_var": 0.015,
-                                                "start_pose_cov": np.diag([1e-4, 1e-4, np.deg2rad(1.0) ** 2])}))
+    estimator = one_robot_among_three_mapped_landmarks(
+        {"start_pose": (0.0, 0.0, 0.0), "turn_slip_var": 0.015,
+         "start_pose_cov": np.diag([1e-4, 1e-4, np.deg2rad(1.0) ** 2])}, turn_slip_in_localization_gate=in_gate)
     steps = 100
     for k in range(steps):
         estimator.on_odometry(OdomEvent("r1", k, 0.1 * k, 0.1, np.array([0.0, 2 * np.pi / (steps * 0.1)]),
                                         np.diag([1e-6, 1e-5])))
     robot = estimator.robots["r1"]
     truth = np.array([0.0, 0.0, robot.pose[2] - np.deg2rad(20.0)])
-    z = robot.sensor.observe(truth, np.array([[3.0, 0.0], [0.0, 3.0], [3.0, 3.0]]))
+    z = robot.sensor.observe(truth, MAPPED_LANDMARKS)
     estimator.on_scan(ScanEvent("r1", 0, 10.0, z[:, 0], z[:, 1], np.array([1, 2, 3]), np.diag([1e-4, 1e-5])))
     return estimator, truth[2]
 
