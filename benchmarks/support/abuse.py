@@ -19,7 +19,8 @@ Shared by the standing suite (tests/integration/test_abuse.py) and the longer be
   (``--source truth``; the observer answers its query for it, so that it has it before the first robot moves):
   against the D-SLAM map, its default, it lost robots for seconds at a time in untouched copies, each copy
   differently, which would make a poor reference. Steps (:class:`Step`) run in sequence; per step it records the
-  rejections each service counted by reason (``hit`` minus what it had before), reasons counted beyond the
+  rejections each service counted by reason (``hit`` minus what it had before; a robot's own lie in the service's
+  own time, until it published a pose past the lie: :meth:`Fleet._recount_lies`), reasons counted beyond the
   probe's own (against ``ref`` in the same window), the longest silence of each service's stats and pose streams
   (against ``ref``), and the RSS growth of each service (``/proc/PID/status``). At the end: every service still
   running, no absurd counter, and each robot's pose errors against the simulator's truth, per service, ``hit``
@@ -631,6 +632,24 @@ class Recorder:
         with self.lock:
             return list(self.poses[service].get(rid, []))
 
+    def passed(self, service: str, rid: str, stamp: float) -> float | None:
+        """When the first pose of ``rid`` stamped after ``stamp`` arrived from ``service`` (None: none yet). A
+        service takes in a robot's messages in the order they came and publishes a pose only once it released the
+        message stamped so: by then it has taken in (and refused or kept) everything the robot sent up to ``stamp``."""
+        with self.lock:
+            return next((arrived for arrived, s, _ in self.poses[service].get(rid, []) if s > stamp), None)
+
+    def stats_at(self, service: str, t: float) -> ServiceStats | None:
+        """The service's last stats received at or before ``t``."""
+        with self.lock:
+            return next((stats for arrived, stats in reversed(self.stats.get(service, [])) if arrived <= t), None)
+
+    def stats_after(self, service: str, t: float) -> ServiceStats | None:
+        """The service's first stats received after ``t`` (its last, if none came after)."""
+        with self.lock:
+            rows = self.stats.get(service, [])
+            return next((stats for arrived, stats in rows if arrived > t), rows[-1][1] if rows else None)
+
     def close(self) -> None:
         for sub in self._subs:
             sub.undeclare()
@@ -787,6 +806,11 @@ class Fleet:
         """Snapshot the counters, then send the probe (a lie is told by the robot: wait until it is past)."""
         record = {"probe": step.probe.name, "targets": list(step.targets), "at_stamp": step.at_stamp,
                   "expected": sorted(step.probe.expected), "what": step.probe.what}
+        if not step.probe.lie:  # the attacker's probes wait for every service to be past the robots' lies
+            try:
+                wait_until(self._lies_passed, 60, 0.05, what=f"every service past the lies before {step.probe.name}")
+            except AssertionError as exc:
+                self.notes.append(str(exc))
         if step.at_stamp is not None:
             lead = LIE_LEAD_S if step.probe.lie else 0.0
 
@@ -813,6 +837,9 @@ class Fleet:
                        or self._robots_done(), 60, what=f"the lie {step.probe.lie}")
             told = [rid for rid in step.targets if f"LIE {step.probe.lie} " in self.processes.log(f"{rid}-hit")]
             record["sent"] = {"messages": lie.copies * len(lie.streams) * len(told)}
+            stamps = [float(found) for rid in told for found in re.findall(
+                rf"LIE {step.probe.lie} \w+ seq \d+ stamp (\S+)", self.processes.log(f"{rid}-hit"))]
+            record["lie_stamp"] = max(stamps, default=None)  # the real message after the last forgery
         return record
 
     def _twin(self, targets: tuple[str, ...]) -> dict:
@@ -861,12 +888,24 @@ class Fleet:
                 pass
         ended = time.monotonic()
         record["ended_stamp"] = {rid: self.stamp(rid) for rid in self.plan.robots}
-        started = record.pop("_started")
+        started = record["_started"] if step.probe.lie else record.pop("_started")  # a lie is counted again at the end
         record["window_s"] = round(ended - started, 2)
         after = {(copy, name): self.recorders[copy].latest(name) for copy in COPIES for name in STREAM_SERVICES}
+        self._tally(step, record, before, after)
+        record["blocked_s"] = self._blocking(started, ended)
+        record["rss_growth_mb"] = self._rss_growth(started, ended)
+        del record["_before"]
+        return record
+
+    @staticmethod
+    def _tally(step: Step, record: dict, before: dict, after: dict) -> None:
+        """The rejections between two stats of each (copy, service): by reason per copy, the probe's own per
+        service of the attacked copy, and the reasons the attacked copy counted beyond the probe's own and the
+        untouched copy's."""
         record["rejected"] = {copy: {name: delta(after[(copy, name)], before[(copy, name)]) for name in STREAM_SERVICES}
                               for copy in COPIES}
-        record["counted"] = {name: counted("hit", name) for name in STREAM_SERVICES}
+        record["counted"] = {name: sum(n for reason, n in record["rejected"]["hit"][name].items()
+                                       if reason in step.probe.expected) for name in STREAM_SERVICES}
         record["unexpected"] = {}
         for name in STREAM_SERVICES:
             hit, ref = record["rejected"]["hit"][name], record["rejected"]["ref"][name]
@@ -874,10 +913,35 @@ class Fleet:
                      if reason not in step.probe.expected | BENIGN and n - ref.get(reason, 0) > 0}
             if extra:
                 record["unexpected"][name] = extra
-        record["blocked_s"] = self._blocking(started, ended)
-        record["rss_growth_mb"] = self._rss_growth(started, ended)
-        del record["_before"]
-        return record
+
+    def _lies_passed(self) -> bool:
+        """Has every stream service of both copies published a pose of each lie's target stamped past the lie?"""
+        return all(self.recorders[copy].passed(name, rid, record["lie_stamp"]) is not None
+                   for record in self.steps if record.get("lie_stamp") is not None for rid in record["targets"]
+                   for copy in COPIES for name in STREAM_SERVICES)
+
+    def _recount_lies(self, steps: list[Step]) -> None:
+        """Count each lie of a buggy robot in each service's own time, not the observer's. A loaded service takes a
+        robot's messages in seconds late: a window closed when the robot's stamp reached the next lie missed the
+        count, which then fell in the next window (seen in CI: D-SLAM counted each lie one window late, 4 s of wall
+        time behind the robot). Per copy and service, a lie's window opens where the one before it closed (the
+        first: when its step began) and closes with the first stats after the service's first pose of the target
+        stamped past the lie; a service that never got past it is counted to its last stats."""
+        opened: dict[tuple[str, str], ServiceStats | None] = {}
+        for step, record in zip(steps, self.steps):
+            if not step.probe.lie:
+                continue
+            started, stamp = record.pop("_started"), record.get("lie_stamp")
+            before, after = {}, {}
+            for copy in COPIES:
+                recorder = self.recorders[copy]
+                for name in STREAM_SERVICES:
+                    key = (copy, name)
+                    before[key] = opened[key] if key in opened else recorder.stats_at(name, started)
+                    passed = [None] if stamp is None else [recorder.passed(name, rid, stamp) for rid in step.targets]
+                    after[key] = recorder.latest(name) if None in passed else recorder.stats_after(name, max(passed))
+                    opened[key] = after[key]
+            self._tally(step, record, before, after)
 
     def _blocking(self, start: float, end: float) -> dict:
         """Per service of the attacked copy: its longest silence in the window (stats; and each robot's poses for
@@ -1045,6 +1109,7 @@ class Fleet:
                              self.plan.duration - self.plan.attack_s)
                 self.steps.append(self.complete(step, self.begin(step), after))
             final = self.finish()
+            self._recount_lies(early + later)
         finally:
             self.close()
         return {"plan": {"robots": list(self.plan.robots), "duration": self.plan.duration,
