@@ -77,30 +77,6 @@ def displacement_cov(sums, point) -> tuple[float, float, float]:
     return xx, xy, yy
 
 
-def relative_poses_cov(sums_between, points) -> np.ndarray:
-    """Joint covariance ``(3K, 3K)`` of a robot's poses at K instants, in time order (its dead-reckoned positions
-    then, ``points`` ``(K, 2)``), seen from its pose now: ``sums_between`` ``(K, 17)``, the :func:`increment_sums` of
-    the increments from each instant to now. Two of the poses share the increments after the later of them, each
-    increment's error ε_k moving pose i by B_ik ε_k, B_ik = [[I, J(p_i − x_k)], [0, 1]]: block (i, l) is
-    Σ_k B_ik Q_k B_lkᵀ, whose position part is A + b u_lᵀ + u_i bᵀ − C − Cᵀ + q u_i u_lᵀ − u_i mᵀ − m u_lᵀ
-    + W (:func:`displacement_cov`'s for i = l), position-heading b + q u_i − m, heading q (u = J·p)."""
-    points = np.asarray(points, float).reshape(-1, 2)
-    count = len(points)
-    s = np.asarray(sums_between, float).reshape(count, -1)[np.maximum.outer(np.arange(count), np.arange(count))]
-    a, b, c = s[..., 0:4].reshape(count, count, 2, 2), s[..., 4:6], s[..., 6:10].reshape(count, count, 2, 2)
-    q, m, w = s[..., 10], s[..., 11:13], s[..., 13:17].reshape(count, count, 2, 2)
-    u = np.column_stack([-points[:, 1], points[:, 0]])
-    u_i, u_l = np.broadcast_to(u[:, None, :], b.shape), np.broadcast_to(u[None, :, :], b.shape)
-    outer = lambda x, y: x[..., :, None] * y[..., None, :]  # noqa: E731
-    out = np.zeros((count, count, 3, 3))
-    out[..., :2, :2] = (a + outer(b, u_l) + outer(u_i, b) - c - np.swapaxes(c, -1, -2)
-                        + q[..., None, None] * outer(u_i, u_l) - outer(u_i, m) - outer(m, u_l) + w)
-    out[..., :2, 2] = b + q[..., None] * u_i - m
-    out[..., 2, :2] = b + q[..., None] * u_l - m
-    out[..., 2, 2] = q
-    return out.transpose(0, 2, 1, 3).reshape(3 * count, 3 * count)
-
-
 class OdometryNoiseGain:
     """One robot's gain on its announced odometry covariance (module docstring). ``move`` with each applied motion
     (the announced covariance, not the scaled one), ``scan`` with the scan's detections of identified landmarks."""

@@ -15,12 +15,9 @@ from poses the meeting allows (:func:`draw`): a robot lost on the twin of a symm
 
 A robot's meetings also place it without a map (:class:`MeetingLog`): each is kept with the robot's
 dead-reckoned pose then, and the pose of the odometry frame in the world that explains them all is a small
-least-squares problem (three unknowns). The meetings are weighed with the dead reckoning's errors between them
-and now (the odometry's announced covariance carried along, correlated where two meetings share increments:
-:func:`robots.odometry_noise.relative_poses_cov`): a robot that met one other robot many times over a long arc
-knows its heading no better than its odometry does. Its solution is taken when it is consistent, precise and
-unique (no other local minimum nearly as good): early in a run the anchor's map may hold too few landmarks for
-MCL, and a map without landmark ids can be nearly symmetric, the robots' own ids are not.
+least-squares problem (three unknowns). Its solution is taken when it is consistent, precise and unique (no
+other local minimum nearly as good): early in a run the anchor's map may hold too few landmarks for MCL, and a
+map without landmark ids can be nearly symmetric, the robots' own ids are not.
 """
 
 from __future__ import annotations
@@ -35,7 +32,6 @@ from scipy.optimize import least_squares
 from robots.gaussian import chi2_quantile
 from robots.models import (RangeBearingSensor, compose_start_jacobian, robot_models, se2_between, se2_compose,
                            se2_inverse, wrap_angle)
-from robots.odometry_noise import increment_sums, relative_poses_cov
 from schemas.contract import OdomEvent, ScanEvent
 
 GATE = chi2_quantile(0.999, 2)  # a particle farther than this (d²) from the meeting disagrees with it
@@ -122,15 +118,12 @@ class _Logged:
     odometry: np.ndarray  # the robot's dead-reckoned pose at the meeting
     turned: float
     meeting: Meeting
-    sums: tuple = ()  # the dead reckoning's error sums then (increment_sums); () in a log kept before they were
 
 
 class MeetingLog:
     """One robot's recent meetings with placed robots, each at its dead-reckoned pose then, and the pose they
     give it now (:meth:`solve`). Meetings older than ``max_turn`` radians turned are dropped (odometry drifts in
     turns), and all but the last ``max_meetings``."""
-
-    sums: tuple = (0.0,) * 17  # the dead reckoning's error sums (a class default: logs pickled before it load)
 
     def __init__(self, max_meetings: int = 40, max_turn: float = 1.0, min_meetings: int = 3,
                  max_std_xy: float = 0.3, max_std_theta: float = 0.1, headings: int = 12):
@@ -146,27 +139,13 @@ class MeetingLog:
     def __len__(self) -> int:
         return len(self.usable())
 
-    def move(self, pose: np.ndarray, increment_cov: np.ndarray | None = None) -> None:
-        """The dead-reckoned pose after one odometry reading; ``increment_cov`` ``(3, 3)``: the error the reading
-        added to it, in the dead reckoning's frame (None: none known, the meetings are weighed as exact)."""
+    def move(self, pose: np.ndarray) -> None:
+        """The dead-reckoned pose after one odometry reading."""
         self.turned += abs(float(wrap_angle(pose[2] - self.odometry[2])))
         self.odometry = np.asarray(pose, float).copy()
-        if increment_cov is not None:
-            added = increment_sums(np.asarray(increment_cov, float).tolist(), 0.0, self.odometry)
-            self.sums = tuple(a + b for a, b in zip(self.sums, added))
 
     def add(self, meeting: Meeting) -> None:
-        self.entries.append(_Logged(self.odometry.copy(), self.turned, meeting, self.sums))
-
-    def motion_cov(self, entries: list[_Logged]) -> np.ndarray | None:
-        """The joint covariance ``(3K, 3K)`` of the robot's poses at its meetings ``entries`` (in time order), seen
-        from its pose now: the dead reckoning's error in between, in the dead reckoning's frame (None when a meeting
-        was logged before the errors were kept)."""
-        if not all(e.sums for e in entries):
-            return None
-        now = np.asarray(self.sums, float)
-        return relative_poses_cov(now - np.array([e.sums for e in entries]),
-                                  np.array([e.odometry[:2] for e in entries]))
+        self.entries.append(_Logged(self.odometry.copy(), self.turned, meeting))
 
     def usable(self) -> list[_Logged]:
         return [e for e in self.entries if self.turned - e.turned <= self.max_turn]
@@ -203,20 +182,16 @@ class MeetingLog:
                                   jac=_forward_differences(free), x_scale=[1.0, 1.0, 0.1]).x
             if not any(_same_frame(frame, other) for other in minima):
                 minima.append(frame)
-        motion = self.motion_cov(entries)
+        batch, others = _residual_function(entries, odometry, sensor)
+        residuals = _one(batch)
         solutions = []
-        for frame in minima:  # the dead reckoning's errors turned into the world by the frame found
-            turn = np.eye(3)
-            turn[:2, :2] = [[math.cos(frame[2]), -math.sin(frame[2])], [math.sin(frame[2]), math.cos(frame[2])]]
-            world = None if motion is None else np.einsum(
-                "ab,ibjc,dc->iajd", turn, motion.reshape(len(entries), 3, len(entries), 3), turn).reshape(motion.shape)
-            batch, others = _residual_function(entries, odometry, sensor, motion=world, at=frame)
-            fit = least_squares(_one(batch), np.concatenate([frame, np.zeros(3 * others)]), method="lm",
+        for frame in minima:
+            fit = least_squares(residuals, np.concatenate([frame, np.zeros(3 * others)]), method="lm",
                                 jac=_forward_differences(batch), x_scale=[1.0, 1.0, 0.1] + [0.1, 0.1, 0.01] * others)
             solutions.append((2.0 * fit.cost, fit.x, fit.jac))
         solutions.sort(key=lambda item: item[0])
         chi2, unknowns, jacobian = solutions[0]
-        dof = jacobian.shape[0] - unknowns.size  # the priors' residuals balance their unknowns
+        dof = residuals(unknowns).size - unknowns.size  # the priors' residuals balance their unknowns
         if dof <= 0 or chi2 > chi2_quantile(0.999, dof):
             return None
         information = jacobian.T @ jacobian
@@ -244,7 +219,7 @@ def _same_frame(a: np.ndarray, b: np.ndarray) -> bool:
 
 
 def _residual_function(entries: list[_Logged], odometry: np.ndarray, sensor: RangeBearingSensor,
-                       shared: bool = True, motion: np.ndarray | None = None, at: np.ndarray | None = None):
+                       shared: bool = True):
     """(whitened residuals ``(B, m)`` of every meeting for a batch ``(B, n)`` of unknowns, how many placed robots'
     pose errors are unknowns).
 
@@ -252,9 +227,7 @@ def _residual_function(entries: list[_Logged], odometry: np.ndarray, sensor: Ran
     meetings (``shared``), an error δ ``(3,)`` added to every pose of it the meetings hold, with its covariance
     as a prior (one residual block per robot). A meeting with a named robot is weighed by the detection's noise
     alone, its prediction moved by δ to first order; a meeting with an unnamed one (or without ``shared``)
-    carries that robot's covariance itself. ``motion`` ``(3K, 3K)``, if given: the joint covariance of this robot's
-    poses at the meetings relative to its pose now (world frame, :meth:`MeetingLog.motion_cov`); the meetings'
-    residuals are then whitened together, their Jacobians in this robot's pose taken at the frame ``at``."""
+    carries that robot's covariance itself."""
     names = sorted({e.meeting.other_id for e in entries if shared and e.meeting.other_id is not None})
     group = np.array([names.index(e.meeting.other_id) if e.meeting.other_id in names else len(names)
                       for e in entries], np.int64)  # len(names): the row of zeros (no shared error)
@@ -267,13 +240,12 @@ def _residual_function(entries: list[_Logged], odometry: np.ndarray, sensor: Ran
 
     seen = [k for k, e in enumerate(entries) if e.meeting.by_other]
     saw = [k for k, e in enumerate(entries) if not e.meeting.by_other]
-    means, whiten, shift, seen_covs = [], [], [], []
+    means, whiten, shift = [], [], []
     for k in seen:
         meeting = entries[k].meeting
         mean, g_pose, detection_cov = meeting.position_terms()  # one inverse and its Jacobians per meeting
         cov = detection_cov if named[k] else g_pose @ meeting.other_cov @ g_pose.T + detection_cov
         means.append(mean)
-        seen_covs.append(cov)
         whiten.append(np.linalg.inv(np.linalg.cholesky(cov)))
         shift.append(g_pose)  # how the placed robot's error δ moves the position
     means, whiten = np.array(means).reshape(-1, 2), np.array(whiten).reshape(-1, 2, 2)
@@ -283,56 +255,23 @@ def _residual_function(entries: list[_Logged], odometry: np.ndarray, sensor: Ran
                            for k in saw], float).reshape(-1, 2, 2)
     z = np.array([entries[k].meeting.z for k in saw], float).reshape(-1, 2)
     noise = np.array([entries[k].meeting.noise_cov for k in saw], float).reshape(-1, 2, 2)
-    joint = None if motion is None else _joint_whitening(motion, at, odometry, seen, saw, seen_covs, others,
-                                                         other_covs, noise, sensor)
 
     def residuals(unknowns: np.ndarray) -> np.ndarray:
         batch = unknowns.shape[0]
         errors = np.concatenate([unknowns[:, 3:].reshape(batch, -1, 3), np.zeros((batch, 1, 3))], 1)[:, group]
         poses = se2_compose(unknowns[:, None, :3], odometry)
         moved = means + np.einsum("kij,bkj->bki", shift, errors[:, seen])
-        off = poses[:, seen, :2] - moved
-        raw = [off.reshape(batch, -1)]  # whitened together (joint), or each meeting on its own
-        out = [] if joint is not None else [np.einsum("kij,bkj->bki", whiten, off).reshape(batch, -1)]
+        out = [np.einsum("kij,bkj->bki", whiten, poses[:, seen, :2] - moved).reshape(batch, -1)]
         if saw:
             predicted, h_other = sensor.observe_with_jacobian(poses[:, saw, None, :], others[:, None, :])
             h_other = h_other[..., 0, :, :]
             nu = sensor.innovation(z, predicted[..., 0, :]) - np.einsum("bkij,bkj->bki", h_other, errors[:, saw, :2])
-            raw.append(nu.reshape(batch, -1))
-            if joint is None:
-                cov = noise + h_other @ other_covs @ np.swapaxes(h_other, -1, -2)
-                out.append(np.einsum("bkij,bkj->bki", np.linalg.inv(np.linalg.cholesky(cov)), nu).reshape(batch, -1))
-        if joint is not None:
-            out.append(np.concatenate(raw, 1) @ joint.T)
+            cov = noise + h_other @ other_covs @ np.swapaxes(h_other, -1, -2)
+            out.append(np.einsum("bkij,bkj->bki", np.linalg.inv(np.linalg.cholesky(cov)), nu).reshape(batch, -1))
         out.append(np.einsum("gij,bgj->bgi", prior_whiten, unknowns[:, 3:].reshape(batch, -1, 3)).reshape(batch, -1))
         return np.concatenate(out, 1)
 
     return residuals, len(names)
-
-
-def _joint_whitening(motion, at, odometry, seen, saw, seen_covs, others, other_covs, noise, sensor) -> np.ndarray:
-    """The whitening ``(2K, 2K)`` of the meetings' residuals (those of ``seen`` meetings, then of ``saw``) with this
-    robot's odometry errors between them (``motion``, :func:`_residual_function`): L⁻¹ of the Cholesky factor of
-    Σ = diag(each meeting's own covariance) + H·motion·Hᵀ, H the residuals' Jacobian in this robot's poses (the
-    position for a meeting in which the other robot saw it, minus the detection's pose Jacobian for one in which it
-    saw the other: the signs matter where the two kinds share an odometry error), both taken with the robot's poses
-    from the frame ``at``."""
-    order = list(seen) + list(saw)
-    count = len(order)
-    own = np.zeros((2 * count, 2 * count))
-    lever = np.zeros((2 * count, 3 * len(odometry)))
-    for row, cov in enumerate(seen_covs):
-        own[2 * row:2 * row + 2, 2 * row:2 * row + 2] = cov
-        lever[2 * row:2 * row + 2, 3 * seen[row]:3 * seen[row] + 2] = np.eye(2)
-    if saw:
-        poses = se2_compose(np.asarray(at, float), odometry[saw])
-        h_pose, h_other = sensor.jacobians(poses, others)
-        covs = noise + h_other @ other_covs @ np.swapaxes(h_other, -1, -2)
-        for index, k in enumerate(saw):
-            row = len(seen) + index
-            own[2 * row:2 * row + 2, 2 * row:2 * row + 2] = covs[index]
-            lever[2 * row:2 * row + 2, 3 * k:3 * k + 3] = -h_pose[index]  # an innovation: z − h(pose)
-    return np.linalg.inv(np.linalg.cholesky(own + lever @ motion @ lever.T))
 
 
 def _one(batch):
@@ -397,15 +336,11 @@ class MeetingDesk:
         self.logs[info.robot_id] = MeetingLog()
 
     def move(self, event: OdomEvent) -> None:
-        """One odometry reading of a known robot moves its dead-reckoned pose, its announced covariance carried
-        along (the control's through the motion model's Jacobian)."""
+        """One odometry reading of a known robot moves its dead-reckoned pose."""
         log = self.logs.get(event.robot_id)
         if log is not None:
             motion = self.models[event.robot_id][0]
-            control = np.asarray(event.control, float)
-            f_control = motion.jacobians(log.odometry, control, event.dt)[1]
-            log.move(motion.step(log.odometry[None], control[None], event.dt)[0],
-                     f_control @ np.asarray(event.control_cov, float) @ f_control.T)
+            log.move(motion.step(log.odometry[None], np.asarray(event.control, float)[None], event.dt)[0])
 
     @staticmethod
     def sightings(event: ScanEvent, localizing, placed) -> list[Sighting]:
