@@ -668,6 +668,11 @@ def delta(after: ServiceStats | None, before: ServiceStats | None) -> dict[str, 
     return {reason: n - then.get(reason, 0) for reason, n in now.items() if n - then.get(reason, 0)}
 
 
+def own_count(rejected: dict[str, int], probe: Probe) -> int:
+    """How many of the rejections ``rejected`` (by reason) are under a reason that fits the probe."""
+    return sum(n for reason, n in rejected.items() if reason in probe.expected)
+
+
 def absurd_counters(extra: dict[str, float]) -> dict[str, float]:
     """Counters in a service's stats.extra that cannot be true: not finite, or past :data:`COUNTER_LIMIT` (times
     and sizes only need be finite)."""
@@ -867,13 +872,12 @@ class Fleet:
         need = record["sent"].get("messages", 0)
         before = record["_before"]
 
-        def counted(copy: str, name: str) -> int:
-            changes = delta(self.recorders[copy].latest(name), before[(copy, name)])
-            return sum(n for reason, n in changes.items() if reason in step.probe.expected)
+        def counted(name: str) -> int:
+            return own_count(delta(self.recorders["hit"].latest(name), before[("hit", name)]), step.probe)
 
         if need:
             try:
-                wait_until(lambda: all(counted("hit", name) >= need for name in STREAM_SERVICES) or self._robots_done()
+                wait_until(lambda: all(counted(name) >= need for name in STREAM_SERVICES) or self._robots_done()
                            or (step.probe.lie is not None and until_stamp is not None  # the robot's next lie is due
                                and max(map(self.stamp, step.targets)) >= until_stamp),
                            step.probe.deadline_s, 0.05, what="the count")
@@ -888,10 +892,11 @@ class Fleet:
                 pass
         ended = time.monotonic()
         record["ended_stamp"] = {rid: self.stamp(rid) for rid in self.plan.robots}
-        started = record["_started"] if step.probe.lie else record.pop("_started")  # a lie is counted again at the end
+        started = record["_started"] if step.probe.lie else record.pop("_started")
         record["window_s"] = round(ended - started, 2)
-        after = {(copy, name): self.recorders[copy].latest(name) for copy in COPIES for name in STREAM_SERVICES}
-        self._tally(step, record, before, after)
+        if not step.probe.lie:  # a lie is counted at the end, in each service's own time (_recount_lies)
+            after = {(copy, name): self.recorders[copy].latest(name) for copy in COPIES for name in STREAM_SERVICES}
+            self._tally(step, record, before, after)
         record["blocked_s"] = self._blocking(started, ended)
         record["rss_growth_mb"] = self._rss_growth(started, ended)
         del record["_before"]
@@ -904,8 +909,7 @@ class Fleet:
         untouched copy's."""
         record["rejected"] = {copy: {name: delta(after[(copy, name)], before[(copy, name)]) for name in STREAM_SERVICES}
                               for copy in COPIES}
-        record["counted"] = {name: sum(n for reason, n in record["rejected"]["hit"][name].items()
-                                       if reason in step.probe.expected) for name in STREAM_SERVICES}
+        record["counted"] = {name: own_count(record["rejected"]["hit"][name], step.probe) for name in STREAM_SERVICES}
         record["unexpected"] = {}
         for name in STREAM_SERVICES:
             hit, ref = record["rejected"]["hit"][name], record["rejected"]["ref"][name]

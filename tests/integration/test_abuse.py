@@ -23,12 +23,12 @@ is stamped past the robots' clock and every output decodes; every forged message
 service under one of the reasons that fit it (a forgery from another session may be ``not_owner`` or
 ``no_source``, or what its content is; a lie of the robot itself counted from where the service took in the lie
 before it to where it published a pose past this one, however far it lags), and no real message is refused
-meanwhile (no other reason counted beyond the untouched copy's); for every robot and every service, the median error against the truth after the
-last probe aimed at that robot (over the whole run, the attacks on the others included, for a robot none aims
-at) is within 10 % of the untouched copy's plus 0.01 m, and the estimate caught up with the robot's last
-message (the median after the attack; the copies handle events in the same order, and differed by at most 2 mm
-in four runs: see TOLERANCE in benchmarks/support/abuse.py); a flood
-grows no service's RSS by 100 MB or more; and neither a flood nor a heavy query silences a service (its stats,
+meanwhile (no other reason counted beyond the untouched copy's); for every robot and every service, the median
+error against the truth after the last probe aimed at that robot (over the whole run, the attacks on the others
+included, for a robot none aims at) is within 10 % of the untouched copy's plus 0.01 m, and the estimate caught
+up with the robot's last message (the median after the attack; the copies handle events in the same order, and
+differed by at most 2 mm in four runs: see TOLERANCE in benchmarks/support/abuse.py); a flood grows no service's
+RSS by 100 MB or more; and neither a flood nor a heavy query silences a service (its stats,
 its poses of each robot) for more than 1 s longer than the untouched copy's longest silence in the same
 window, while each query is answered.
 
