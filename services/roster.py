@@ -591,6 +591,15 @@ class ReorderBuffer:
                            self.recovery_window_s if stream in recovering or stream[0] in queued else 0.0)
         return now - self.heard.get(stream, float("-inf")) < patience
 
+    def put_back(self, released: list[tuple[StreamEvent, float]]) -> None:
+        """Hold again events that :meth:`release` gave out, as ``(event, arrival time)``, and that were not handled
+        (a stop came between them): they go out again first, in their order. The streams' records stay as they are:
+        those events were heard already."""
+        for event, arrived in released:
+            self._order += 1
+            heapq.heappush(self._heap, _Held(event.stamp, 0 if isinstance(event, OdomEvent) else 1, event.robot_id,
+                                             self._order, arrived, event).entry())
+
     def release(self, live: Iterable[str], flush: bool = False, announced: Iterable[str] = (),
                 queued: Iterable[str] = ()) -> list[tuple[StreamEvent, float]]:
         """(event, arrival time) of every event due now, oldest stamp first within each robot. ``live``: the

@@ -176,7 +176,8 @@ class ServiceShell:
         return encode_checkpoint(self.name, state, self.checkpoint_summary())
 
     async def _write_checkpoint(self) -> None:
-        data = await self.snapshot()
+        async with self._release_lock:  # not between a release and its events' handling: each is held or handled
+            data = await self.snapshot()
         started = time.perf_counter()
         await asyncio.to_thread(self.checkpoints.save, data)
         self.extra["checkpoint_write_ms"] = (time.perf_counter() - started) * 1e3
@@ -291,9 +292,14 @@ class ServiceShell:
             alive, live = self.roster.alive_and_live()
             queued = {lane[0] for lane in self.intake.lanes() if isinstance(lane, tuple)}
             queued.update(lane[0] for lane, _ in self._in_hand[self._in_hand_from:] if isinstance(lane, tuple))
-            for event, arrived in self.reorder.release(live, flush, announced=alive, queued=queued):
+            due = self.reorder.release(live, flush, announced=alive, queued=queued)
+            for index, (event, arrived) in enumerate(due):
                 self.hold_ms.append((time.perf_counter() - arrived) * 1e3)
-                await self.robot_event(event)
+                try:
+                    await self.robot_event(event)
+                except asyncio.CancelledError:  # a stop between two events: the rest is held again for the last flush
+                    self.reorder.put_back(due[index + 1:])
+                    raise
 
     async def _listening(self) -> None:
         """Tell the reorder buffer the loop runs; a stall of this service (``stalls``, the longest in
@@ -308,7 +314,9 @@ class ServiceShell:
         await self.admit(info.robot_id)
 
     async def robot_event(self, event: StreamEvent) -> None:
-        """One odometry or scan event of an admitted robot, in stamp order (:meth:`release_events`)."""
+        """One odometry or scan event of an admitted robot, in stamp order (:meth:`release_events`). An override that
+        awaits must still handle the event when its task is cancelled meanwhile (a stop: D-SLAM shields its scan),
+        since the events after it are held again and this one is not."""
 
     def robot_new_run(self, robot_id: str) -> None:
         """A robot that left started a new run (seq 0 again): forget what the core holds of it."""

@@ -201,10 +201,15 @@ class DslamService(ServiceShell):
             return await super().snapshot()
 
     async def robot_event(self, event) -> None:
-        """Odometry in the loop; scans in a worker thread with the map lock held, then the robot's pose."""
+        """Odometry in the loop; scans in a worker thread with the map lock held, then the robot's pose. A stop
+        meanwhile waits for the scan (shielded): the lock stays held until the scan is in the core, so the last
+        flush and checkpoint come after it, and no scan is half-fused or dropped."""
         if isinstance(event, OdomEvent):
             self.core.on_odometry(event)
             return
+        await asyncio.shield(self._fuse_scan(event))
+
+    async def _fuse_scan(self, event) -> None:
         async with self._lock:
             await asyncio.to_thread(self.core.on_scan, event)
             self._start_prefetch()

@@ -1,8 +1,9 @@
 """Crash-safe checkpoints (services/checkpoint.py) and the cores they hold: files written atomically, a truncated,
 corrupt or foreign file refused with its reason and the previous one used, and each stateful core (FastSLAM, D-SLAM,
 MCL) carrying on after a pickle round trip exactly as it would have without one (D-SLAM to its solver's tolerance:
-its sparse factor is made afresh)."""
+its sparse factor is made afresh). A checkpoint never falls between a release of events and their handling.
 
+import asyncio
 import pickle
 
 import numpy as np
@@ -11,12 +12,15 @@ import pytest
 from central.fastslam.config import FastSlamConfig
 from central.fastslam.core import FastSlam
 from robots.simulator import simulate
+from schemas.config import FleetSettings
 from schemas.contract import OdomEvent
 from services.checkpoint import CheckpointError, CheckpointStore, decode_checkpoint, encode_checkpoint
 from services.dslam.config import DslamConfig
 from services.dslam.core import DSlam
 from services.mcl.config import MclConfig
 from services.mcl.fleet import MclFleet
+from services.roster import Roster
+from services.runtime import ServiceShell
 
 
 def test_the_newest_checkpoint_comes_back_and_only_the_last_few_are_kept(tmp_path):
@@ -168,3 +172,72 @@ def test_mcl_carries_on_bitwise_after_a_checkpoint(two_robots):
         np.testing.assert_array_equal(straight.robots[rid].mcl.particles, restored.robots[rid].mcl.particles)
         np.testing.assert_array_equal(straight.poses()[rid][0], restored.poses()[rid][0])
 
+
+
+class AwaitingShell(ServiceShell):
+    """A service shell without a router whose ``robot_event`` awaits, as D-SLAM's does (its scans go to a worker
+    thread): the loop may run a checkpoint, or a stop may come, between the events of one release. It holds 20
+    odometry events of r1, released together."""
+
+    name = "awaiting"
+
+    def __init__(self, state_dir):
+        super().__init__(FleetSettings(prefix="fleet", reorder_window_s=0.5))
+        self.roster = Roster()
+        self.checkpoints = CheckpointStore(state_dir, self.name)
+        self.handled: list[int] = []
+        self.handled_at_snapshot: list[int] | None = None
+        for seq in range(20):
+            self.reorder.push(OdomEvent("r1", seq, 0.1 * seq, 0.1, np.zeros(2), np.eye(2)))
+
+    async def robot_event(self, event):
+        self.handled.append(event.seq)  # handled, then the await: as D-SLAM's shielded scan
+        await asyncio.sleep(0)
+
+    def checkpoint_state(self):
+        return {"handled": list(self.handled)}
+
+    async def snapshot(self):
+        self.handled_at_snapshot = list(self.handled)
+        return await super().snapshot()
+
+
+def test_a_checkpoint_taken_while_a_release_is_handled_holds_every_event_handled_or_held(tmp_path):
+    """Events the reorder buffer gave out are no longer held by it: a checkpoint taken between two of them would
+    hold neither the rest nor their effect, and a service resumed from it would never see them (their seqs count as
+    received). The checkpoint waits for the release to end."""
+
+    async def scenario():
+        shell = AwaitingShell(tmp_path)
+        release = asyncio.create_task(shell.release_events(flush=True))
+        for _ in range(3):
+            await asyncio.sleep(0)
+        assert 0 < len(shell.handled) < 20  # the release is under way
+        await shell._write_checkpoint()
+        await release
+        return shell
+
+    shell = asyncio.run(scenario())
+    state = CheckpointStore(tmp_path, "awaiting").load().state
+    held = sorted(entry[-1].event.seq for entry in state["reorder"]._heap)
+    assert state["service"]["handled"] == shell.handled_at_snapshot
+    assert sorted(shell.handled_at_snapshot + held) == list(range(20)), (shell.handled_at_snapshot, held)
+
+
+def test_a_stop_between_the_events_of_a_release_holds_the_rest_again_for_the_last_flush(tmp_path):
+    """A stop cancels the loop between two events of one release: the events after the one under way are held
+    again, and the stop's last flush hands every one over, once and in order."""
+
+    async def scenario():
+        shell = AwaitingShell(tmp_path)
+        release = asyncio.create_task(shell.release_events(flush=True))
+        for _ in range(3):
+            await asyncio.sleep(0)
+        release.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await release
+        assert len(shell.handled) < 20
+        await shell.release_events(flush=True)
+        return shell
+
+    assert asyncio.run(scenario()).handled == list(range(20))
