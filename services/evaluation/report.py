@@ -76,7 +76,7 @@ def plot_map(path: Path, title: str, estimator: str, truth: dict[str, Trajectory
     ax.set_title(f"{title}: {estimator}")
     ax.grid(True, alpha=0.3)
     ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, borderaxespad=0.0)
-    fig.tight_layout()
+    fig.subplots_adjust(left=0.07, right=0.8, bottom=0.07, top=0.95)  # fixed margins: tight_layout drew it twice
     fig.savefig(path)
     plt.close(fig)
 
@@ -116,7 +116,8 @@ def plot_errors(path: Path, title: str, curves: dict[str, dict[str, dict]]) -> N
         ax.legend(loc="upper left", fontsize=8, ncol=min(len(robots), 5))
     axes[-1, 0].set_xlabel("time since start (s)")
     fig.suptitle(title)
-    fig.tight_layout()
+    height = fig.get_figheight()  # margins fixed in inches: tight_layout drew the figure twice
+    fig.subplots_adjust(left=0.08, right=0.98, bottom=0.55 / height, top=1.0 - 0.75 / height, hspace=0.35)
     fig.savefig(path)
     plt.close(fig)
 

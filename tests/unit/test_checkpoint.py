@@ -1,7 +1,7 @@
 """Crash-safe checkpoints (services/checkpoint.py) and the cores they hold: files written atomically, a truncated,
 corrupt or foreign file refused with its reason and the previous one used, and each stateful core (FastSLAM, D-SLAM,
 MCL) carrying on after a pickle round trip exactly as it would have without one (D-SLAM to its solver's tolerance:
-its sparse factor is made afresh). A checkpoint never falls between a release of events and their handling.
+its sparse factor is made afresh). A checkpoint never falls between a release of events and their handling."""
 
 import asyncio
 import pickle
