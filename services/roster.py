@@ -525,9 +525,13 @@ class ReorderBuffer:
                 self._sort_streams()
         self.heard[stream] = arrived
         self.expected.pop(stream, None)
+        self._hold(event, arrived)
+
+    def _hold(self, event: StreamEvent, arrived: float) -> None:
+        """Into the heap, after every event held so far at the same stamp, rank and robot."""
         self._order += 1
-        heapq.heappush(self._heap, _Held(event.stamp, 0 if is_odom else 1, event.robot_id, self._order, arrived,
-                                         event).entry())
+        heapq.heappush(self._heap, _Held(event.stamp, 0 if isinstance(event, OdomEvent) else 1, event.robot_id,
+                                         self._order, arrived, event).entry())
 
     def listening(self) -> float:
         """The service's loop is running now; returns the stall (s) since the previous call, 0 if none: a gap longer
@@ -596,9 +600,7 @@ class ReorderBuffer:
         (a stop came between them): they go out again first, in their order. The streams' records stay as they are:
         those events were heard already."""
         for event, arrived in released:
-            self._order += 1
-            heapq.heappush(self._heap, _Held(event.stamp, 0 if isinstance(event, OdomEvent) else 1, event.robot_id,
-                                             self._order, arrived, event).entry())
+            self._hold(event, arrived)
 
     def release(self, live: Iterable[str], flush: bool = False, announced: Iterable[str] = (),
                 queued: Iterable[str] = ()) -> list[tuple[StreamEvent, float]]:
